@@ -1,0 +1,43 @@
+"""Force rectification of whole frames and keypoints (spec §2 order: undistort, then rectify about cx, cy)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from services.calibration import Calibration
+from services.camera import distort_points_px, mm_to_px, px_to_mm, undistort_points_px
+from services.force_model import LoadState, deform_points_mm, rectify_points_mm
+
+
+def pixel_grid(width: int, height: int) -> np.ndarray:
+    """Return the (height, width, 2) array of pixel-centre coordinates (x, y) as float64."""
+    xs, ys = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    return np.stack([xs, ys], axis=-1)
+
+
+def rectify_map(calib: Calibration, state: LoadState) -> tuple[np.ndarray, np.ndarray]:
+    """Return (map_x, map_y) float32 for cv2.remap: for each rectified pixel, the raw pixel it comes from.
+
+    The rectified frame shares the raw frame's pixel grid and principal point, in undeformed mm times
+    px_per_mm: undeformed mm -> observed mm (inverse rectification) -> ideal pixel -> lens distortion.
+    """
+    w, h = calib.image_size
+    grid = pixel_grid(w, h)
+    observed_mm = deform_points_mm(px_to_mm(grid, calib), state, calib)
+    raw = distort_points_px(mm_to_px(observed_mm, calib), calib)
+    return raw[..., 0].astype(np.float32), raw[..., 1].astype(np.float32)
+
+
+def rectify_image(
+    raw: np.ndarray, calib: Calibration, state: LoadState, interpolation: int = cv2.INTER_LINEAR
+) -> np.ndarray:
+    """Return the undistorted, force-rectified frame (same size and dtype as raw; outside = 0)."""
+    map_x, map_y = rectify_map(calib, state)
+    return cv2.remap(raw, map_x, map_y, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def rectify_keypoints_px(raw_px: np.ndarray, calib: Calibration, state: LoadState) -> np.ndarray:
+    """Return rectified pixel positions (N, 2) of raw keypoint positions (N, 2) (undistort, then rectify)."""
+    ideal = undistort_points_px(raw_px, calib)
+    return mm_to_px(rectify_points_mm(px_to_mm(ideal, calib), state, calib), calib)
