@@ -116,7 +116,8 @@ def parse_calibration(doc: Any) -> Calibration:
     if not isinstance(km, list | tuple) or len(km) != 3:
         raise CalibrationError("camera_matrix: expected a 3x3 list of lists")
     rows = [_number_list(r, "camera_matrix", 3) for r in km]
-    if rows[0][0] <= 0 or rows[1][1] <= 0 or rows[2] != [0.0, 0.0, 1.0] or rows[1][0] != 0.0:
+    # skew (K[0][1]) must be 0: the lens model (camera.py, like OpenCV's) uses fx, fy, cx, cy only
+    if rows[0][0] <= 0 or rows[1][1] <= 0 or rows[2] != [0.0, 0.0, 1.0] or rows[1][0] != 0.0 or rows[0][1]:
         raise CalibrationError("camera_matrix: expected [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0")
     kwargs: dict[str, Any] = {
         "image_size": (int(size[0]), int(size[1])),

@@ -14,7 +14,11 @@ def undistort_points_px(points_px: np.ndarray, calib: Calibration) -> np.ndarray
     if len(pts) == 0 or not np.any(calib.D):
         return pts.reshape(-1, 2).copy()
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9)
-    out = cv2.undistortPointsIter(pts, calib.K, calib.D, None, calib.K, criteria)
+    undistort_iter = getattr(cv2, "undistortPointsIter", None)  # OpenCV 4.x; 5.x: undistortPoints(criteria=)
+    if undistort_iter is not None:
+        out = undistort_iter(pts, calib.K, calib.D, None, calib.K, criteria)
+    else:
+        out = cv2.undistortPoints(pts, calib.K, calib.D, R=None, P=calib.K, criteria=criteria)
     return out.reshape(-1, 2)
 
 
@@ -22,6 +26,15 @@ def distort_points_px(ideal_px: np.ndarray, calib: Calibration) -> np.ndarray:
     """Return raw (distorted) pixel coordinates (..., 2) of ideal pixel coordinates (..., 2)."""
     p = np.asarray(ideal_px, dtype=np.float64)
     K = calib.K
+    if len(calib.D) > 5 and np.any(calib.D[5:]) and p.size:
+        # rational / thin-prism / tilted models (8, 12, 14 coefficients): let OpenCV evaluate the whole
+        # model, the same one undistort_points_px inverts (the closed form below has k1, k2, p1, p2, k3 only)
+        flat = p.reshape(-1, 2)
+        obj = np.column_stack(
+            [(flat[:, 0] - K[0, 2]) / K[0, 0], (flat[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(flat))]
+        )
+        img, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, calib.D)
+        return img.reshape(p.shape)
     d = np.zeros(5)
     d[: min(5, len(calib.D))] = calib.D[:5]
     k1, k2, p1, p2, k3 = d

@@ -33,10 +33,14 @@ def interpolate_forces(sample_t: np.ndarray, samples: np.ndarray, t: np.ndarray)
     Samples may be unsorted and may repeat a timestamp (overlapping upload batches): repeats are averaged.
     """
     sample_t = np.asarray(sample_t, dtype=np.float64).ravel()
-    samples = np.asarray(samples, dtype=np.float64).reshape(len(sample_t), -1)
+    samples = np.asarray(samples, dtype=np.float64)
     t = np.atleast_1d(np.asarray(t, dtype=np.float64))
     if len(sample_t) == 0:
         raise ValueError("no force samples to interpolate")
+    if samples.ndim == 1:
+        samples = samples[:, None]
+    if samples.ndim != 2 or samples.shape[0] != len(sample_t):
+        raise ValueError(f"force samples: expected {len(sample_t)} rows (one per time), got {samples.shape}")
     uniq, inverse = np.unique(sample_t, return_inverse=True)
     sums = np.zeros((len(uniq), samples.shape[1]))
     np.add.at(sums, inverse, samples)

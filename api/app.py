@@ -1,0 +1,164 @@
+"""The FastAPI application: lifespan (settings, Redis, SessionStore), routers, errors, JSON request logs.
+
+Logs never carry patient data: one JSON line per request with the route *template*
+(/v1/sessions/{session_id}), never the raw URL (whose ?token= is a credential), and never labels or
+calibrations. Every response carries X-Request-ID (the client's, if it sent a sane one). Run uvicorn with
+access_log=False: its access log prints raw URLs; create_app disables "uvicorn.access" for the same reason.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import json
+import logging
+import re
+import time
+import uuid
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from api.auth import key_table
+from api.errors import add_exception_handlers, error_response
+from api.routes import ROUTERS
+from api.settings import Settings, get_settings, token_secret_bytes
+from services import queue
+from services.redis_backend import close, connect
+from services.storage import SessionStore
+
+API_VERSION = "1.0.0"
+log = logging.getLogger("veinmosaic.api")
+request_id_var: contextvars.ContextVar[str] = contextvars.ContextVar("request_id", default="-")
+_SANE_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+_LOG_FIELDS = ("session", "seq", "bytes", "frames", "method", "route", "status", "duration_ms")
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per line: ts, level, logger, msg, request_id and the whitelisted extra fields."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        """Return the record as a JSON line."""
+        doc: dict[str, Any] = {
+            "ts": round(record.created, 3),
+            "level": record.levelname,
+            "logger": record.name,
+            "msg": record.getMessage(),
+            "request_id": request_id_var.get(),
+        }
+        doc.update({k: getattr(record, k) for k in _LOG_FIELDS if hasattr(record, k)})
+        if record.exc_info:
+            doc["exc"] = self.formatException(record.exc_info)
+        return json.dumps(doc, default=str)
+
+
+def configure_logging(level: str) -> None:
+    """Send "veinmosaic" logs to stderr as JSON lines (idempotent); silence uvicorn's raw-URL access log."""
+    root = logging.getLogger("veinmosaic")
+    root.setLevel(level.upper())
+    if not any(isinstance(h.formatter, JsonFormatter) for h in root.handlers):
+        handler = logging.StreamHandler()
+        handler.setFormatter(JsonFormatter())
+        root.addHandler(handler)
+        root.propagate = False
+    logging.getLogger("uvicorn.access").disabled = True
+
+
+class RequestContextMiddleware:
+    """Pure ASGI: request id, Content-Length guard (413), one JSON log line per request, last-resort 500."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        headers = {k.decode().lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        incoming = headers.get("x-request-id", "")
+        rid = incoming if _SANE_ID.match(incoming) else uuid.uuid4().hex
+        token = request_id_var.set(rid)
+        started = time.perf_counter()
+        state: dict[str, Any] = {"status": 500, "started": False}
+
+        async def send_with_id(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                state["status"], state["started"] = message["status"], True
+                message.setdefault("headers", [])
+                message["headers"] = [*message["headers"], (b"x-request-id", rid.encode())]
+            await send(message)
+
+        try:
+            limit = _body_limit(scope)
+            length = headers.get("content-length", "")
+            if limit is not None and length.isdigit() and int(length) > limit:
+                response = error_response(413, "payload_too_large", f"request body larger than {limit} bytes")
+                await response(scope, receive, send_with_id)
+            else:
+                await self.app(scope, receive, send_with_id)
+        except Exception:
+            log.exception("unhandled error")
+            if not state["started"]:
+                response = error_response(500, "internal_error", "internal error; quote the X-Request-ID")
+                await response(scope, receive, send_with_id)
+        finally:
+            route = scope.get("route")
+            log.info(
+                "request",
+                extra={
+                    "method": scope.get("method"),
+                    "route": getattr(route, "path", "(unmatched)"),
+                    "status": state["status"],
+                    "duration_ms": round(1000 * (time.perf_counter() - started), 1),
+                },
+            )
+            request_id_var.reset(token)
+
+
+def _body_limit(scope: Scope) -> int | None:
+    app = scope.get("app")
+    settings: Settings | None = getattr(getattr(app, "state", None), "settings", None)
+    if settings is None:
+        return None
+    if scope.get("path", "").endswith("/frames"):
+        return settings.max_frame_bytes + 256 * 1024  # the image plus multipart headers and the meta part
+    return settings.max_json_bytes
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Return the application; settings default to the environment, read once when the lifespan starts."""
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        s = settings if settings is not None else get_settings()
+        configure_logging(s.log_level)
+        s.data_dir.mkdir(parents=True, exist_ok=True)
+        app.state.settings = s
+        app.state.keys = key_table(s.api_keys)
+        app.state.token_secret = token_secret_bytes(s)
+        app.state.store = SessionStore(s.data_dir)
+        app.state.redis = connect(s.redis_url, s.data_dir)
+        try:
+            queue.ensure_group(app.state.redis, prefix=s.redis_prefix)
+        except Exception:  # Redis may come up later; /readyz reports it meanwhile
+            log.warning("could not create the consumer group at start-up")
+        log.info("started", extra={"route": "lifespan"})
+        try:
+            yield
+        finally:
+            close(app.state.redis)
+
+    app = FastAPI(
+        title="veinmosaic",
+        version=API_VERSION,
+        summary="Force-rectified near-infrared vein mosaicking for a hand-held breast-scanning probe",
+        lifespan=lifespan,
+    )
+    app.state.clock = time.time
+    add_exception_handlers(app)
+    for router in ROUTERS:
+        app.include_router(router)
+    app.add_middleware(RequestContextMiddleware)
+    return app

@@ -1,0 +1,50 @@
+"""FastAPI dependencies as Annotated aliases: settings, store, Redis, principals and visible sessions."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import redis
+from fastapi import Depends, Request
+
+from api.auth import Principal, require_scope, view_principal, visible_session
+from api.settings import Settings
+from services.storage import SessionMeta, SessionStore
+
+
+def get_settings_dep(request: Request) -> Settings:
+    """Return the settings read at start-up."""
+    return request.app.state.settings
+
+
+def get_store(request: Request) -> SessionStore:
+    """Return the application's SessionStore."""
+    return request.app.state.store
+
+
+def get_redis(request: Request) -> redis.Redis:
+    """Return the application's Redis client."""
+    return request.app.state.redis
+
+
+AppSettings = Annotated[Settings, Depends(get_settings_dep)]
+Store = Annotated[SessionStore, Depends(get_store)]
+RedisClient = Annotated[redis.Redis, Depends(get_redis)]
+
+IngestPrincipal = Annotated[Principal, Depends(require_scope("ingest"))]
+AdminPrincipal = Annotated[Principal, Depends(require_scope("admin"))]
+ViewPrincipal = Annotated[Principal, Depends(view_principal)]
+
+
+def ingest_session(session_id: str, principal: IngestPrincipal, store: Store) -> SessionMeta:
+    """Return the metadata of a session the ingest key owns (404 otherwise)."""
+    return visible_session(store, principal, session_id)
+
+
+def view_session(session_id: str, principal: ViewPrincipal, store: Store) -> SessionMeta:
+    """Return the meta of a session the caller may view: owner key, admin or viewer token (else 404)."""
+    return visible_session(store, principal, session_id)
+
+
+IngestSession = Annotated[SessionMeta, Depends(ingest_session)]
+ViewSession = Annotated[SessionMeta, Depends(view_session)]

@@ -1,0 +1,173 @@
+"""Every error -> HTTP status mapping, in one place; every error body is {"error": {"code", "message"}}.
+
+Malformed JSON (a request body or the `meta` form field that does not parse) is 400 "malformed_json";
+well-formed JSON that breaks the schema is 422 "validation_error" (with "details": [{"field", "message"}],
+never echoing the submitted values, which may be patient data).
+"""
+
+# ruff: noqa: N818  (the HTTP names NotFound, Conflict, ... read better than NotFoundError)
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import redis
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from services.calibration import CalibrationError
+from services.storage import ConflictError, SessionClosedError, SessionNotFoundError
+
+log = logging.getLogger("veinmosaic.api")
+
+
+class APIError(Exception):
+    """An error with a status, a stable machine code and a human message safe to show to the client."""
+
+    status = 500
+    code = "internal_error"
+
+    def __init__(
+        self, message: str, *, code: str | None = None, headers: dict[str, str] | None = None
+    ) -> None:
+        super().__init__(message)
+        self.message = message
+        self.code = code or self.code
+        self.headers = headers or {}
+
+
+class BadRequest(APIError):
+    status, code = 400, "bad_request"
+
+
+class Unauthorized(APIError):
+    status, code = 401, "unauthorized"
+
+    def __init__(self, message: str = "a valid bearer key or viewer token is required", **kw: Any) -> None:
+        super().__init__(message, **kw)
+        self.headers.setdefault("WWW-Authenticate", 'Bearer realm="veinmosaic"')
+
+
+class Forbidden(APIError):
+    status, code = 403, "forbidden"
+
+
+class NotFound(APIError):
+    status, code = 404, "not_found"
+
+
+class Conflict(APIError):
+    status, code = 409, "conflict"
+
+
+class PayloadTooLarge(APIError):
+    status, code = 413, "payload_too_large"
+
+
+class UnsupportedMediaType(APIError):
+    status, code = 415, "unsupported_media_type"
+
+
+class Validation(APIError):
+    status, code = 422, "validation_error"
+
+
+class TooManyRequests(APIError):
+    status, code = 429, "too_many_requests"
+
+    def __init__(self, message: str, retry_after_s: int = 2, **kw: Any) -> None:
+        super().__init__(message, **kw)
+        self.headers.setdefault("Retry-After", str(int(retry_after_s)))
+
+
+class ServiceUnavailable(APIError):
+    status, code = 503, "service_unavailable"
+
+    def __init__(self, message: str, retry_after_s: int = 2, **kw: Any) -> None:
+        super().__init__(message, **kw)
+        self.headers.setdefault("Retry-After", str(int(retry_after_s)))
+
+
+# Exceptions raised below the web layer: (status, code, message shown; None = the exception's own message).
+SERVICE_ERRORS: dict[type[Exception], tuple[int, str, str | None]] = {
+    SessionNotFoundError: (404, "not_found", "no such session"),
+    ConflictError: (409, "conflict", None),
+    SessionClosedError: (409, "session_finished", None),
+    CalibrationError: (422, "invalid_calibration", None),
+    redis.ConnectionError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
+    redis.TimeoutError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
+}
+HTTP_CODES = {400: "bad_request", 404: "not_found", 405: "method_not_allowed", 413: "payload_too_large"}
+
+
+def error_body(code: str, message: str, **extra: Any) -> dict[str, Any]:
+    """Return the JSON error document of spec §5."""
+    return {"error": {"code": code, "message": message, **extra}}
+
+
+def error_response(
+    status: int, code: str, message: str, headers: dict[str, str] | None = None, **extra: Any
+) -> JSONResponse:
+    """Return a JSONResponse with the error document."""
+    return JSONResponse(error_body(code, message, **extra), status_code=status, headers=headers)
+
+
+def _field(loc: tuple[Any, ...]) -> str:
+    parts = [str(p) for p in loc]
+    if parts and parts[0] in ("body", "query", "path", "header", "form"):
+        parts = parts[1:]
+    return ".".join(parts) or "body"
+
+
+def validation_response(errors: list[dict[str, Any]]) -> JSONResponse:
+    """Return 400 for unparseable JSON, else 422 naming every failing field (values never echoed)."""
+    if any(e.get("type") == "json_invalid" for e in errors):
+        return error_response(400, "malformed_json", "the request body is not valid JSON")
+    details = [
+        {"field": _field(tuple(e.get("loc", ()))), "message": str(e.get("msg", "invalid"))} for e in errors
+    ]
+    message = "; ".join(f"{d['field']}: {d['message']}" for d in details) or "invalid request"
+    return error_response(422, "validation_error", message, details=details)
+
+
+def add_exception_handlers(app: FastAPI) -> None:
+    """Register the handlers that turn every exception into the spec's error document."""
+
+    async def api_error(request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, APIError)
+        return error_response(exc.status, exc.code, exc.message, headers=exc.headers or None)
+
+    async def service_error(request: Request, exc: Exception) -> JSONResponse:
+        for cls in type(exc).__mro__:
+            if cls in SERVICE_ERRORS:
+                status, code, message = SERVICE_ERRORS[cls]
+                break
+        else:  # pragma: no cover - only registered classes reach this handler
+            status, code, message = 500, "internal_error", "internal error"
+        headers = {"Retry-After": str(request.app.state.settings.retry_after_s)} if status == 503 else None
+        return error_response(status, code, message or str(exc), headers=headers)
+
+    async def request_validation(request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, RequestValidationError)
+        return validation_response(list(exc.errors()))
+
+    async def http_error(request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, StarletteHTTPException)
+        code = HTTP_CODES.get(exc.status_code, "http_error")
+        message = exc.detail if isinstance(exc.detail, str) else "request failed"
+        return error_response(exc.status_code, code, message, headers=getattr(exc, "headers", None))
+
+    async def unhandled(request: Request, exc: Exception) -> JSONResponse:
+        log.error("unhandled error", exc_info=(type(exc), exc, exc.__traceback__))
+        return error_response(
+            500, "internal_error", "internal error; the request id identifies it in the logs"
+        )
+
+    app.add_exception_handler(APIError, api_error)
+    for cls in SERVICE_ERRORS:
+        app.add_exception_handler(cls, service_error)
+    app.add_exception_handler(RequestValidationError, request_validation)
+    app.add_exception_handler(StarletteHTTPException, http_error)
+    app.add_exception_handler(Exception, unhandled)

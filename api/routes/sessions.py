@@ -1,0 +1,81 @@
+"""Session lifecycle: create (with calibration), read state, finish (spec §5)."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import APIRouter, Request, Response, status
+
+from api.auth import make_viewer_token
+from api.deps import (
+    AppSettings,
+    IngestPrincipal,
+    IngestSession,
+    RedisClient,
+    Store,
+    ViewPrincipal,
+    ViewSession,
+)
+from api.errors import Validation
+from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
+from services import queue
+from services.calibration import CalibrationError, parse_calibration
+
+router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
+log = logging.getLogger("veinmosaic.api")
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionCreated)
+def create_session(
+    body: SessionCreate,
+    principal: IngestPrincipal,
+    store: Store,
+    settings: AppSettings,
+    request: Request,
+    response: Response,
+) -> SessionCreated:
+    """Create a session owned by the calling key; 422 naming the field for a bad calibration."""
+    try:
+        calibration = parse_calibration(body.calibration)
+    except CalibrationError as exc:
+        raise Validation(f"calibration: {exc}", code="invalid_calibration") from None
+    assert principal.fingerprint is not None
+    meta = store.create_session(principal.fingerprint, body.label, calibration)
+    now = request.app.state.clock()
+    token = make_viewer_token(request.app.state.token_secret, meta.id, settings.viewer_token_ttl_s, now)
+    response.headers["Location"] = f"/v1/sessions/{meta.id}"
+    log.info("session created", extra={"session": meta.id})
+    return SessionCreated(
+        id=meta.id,
+        viewer_url=f"/viewer/{meta.id}?token={token}",
+        viewer_token=token,
+        viewer_token_expires=int(now + settings.viewer_token_ttl_s),
+    )
+
+
+@router.get("/{session_id}", response_model=SessionState)
+def get_session(
+    meta: ViewSession, principal: ViewPrincipal, store: Store, r: RedisClient, settings: AppSettings
+) -> SessionState:
+    """Return the session's status and frame counters (received from storage, processed/lost from workers)."""
+    counters = queue.session_counters(r, meta.id, prefix=settings.redis_prefix)
+    return SessionState(
+        id=meta.id,
+        status=meta.status,  # type: ignore[arg-type]
+        label=meta.label if principal.session_id is None else None,  # viewer links never see the label
+        created=meta.created,
+        finished=meta.finished_at is not None,
+        frames_received=store.count_frames(meta.id),
+        frames_processed=counters["processed"],
+        frames_lost=counters["lost"],
+        extent=None,
+    )
+
+
+@router.post("/{session_id}/finish", status_code=status.HTTP_202_ACCEPTED, response_model=Accepted)
+def finish_session(meta: IngestSession, store: Store, r: RedisClient, settings: AppSettings) -> Accepted:
+    """Record that no more uploads come (idempotent) and queue the finish marker after the frame jobs."""
+    meta = store.finish(meta.id)
+    queue.enqueue_finish(r, meta.id, prefix=settings.redis_prefix)
+    log.info("session finished", extra={"session": meta.id, "frames": meta.frames_expected})
+    return Accepted(id=meta.id, status=meta.status)

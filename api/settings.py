@@ -1,0 +1,76 @@
+"""Service configuration from the environment (prefix VEINMOSAIC_, plus REDIS_URL); read once at start-up."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+import uuid
+from pathlib import Path
+from typing import Literal
+
+from pydantic import AliasChoices, Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+Scope = Literal["ingest", "view", "admin"]
+SECRET_BYTES = 32
+
+
+class Settings(BaseSettings):
+    """All knobs of the HTTP service; tests build one explicitly, the server calls `get_settings()`.
+
+    Note: pydantic-settings deep-merges dict fields from the environment into explicit values, so a test
+    building Settings(api_keys=...) must clear VEINMOSAIC_API_KEYS from its environment.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="VEINMOSAIC_", extra="ignore", populate_by_name=True)
+
+    data_dir: Path = Path("./data")
+    redis_url: str | None = Field(
+        default=None, validation_alias=AliasChoices("REDIS_URL", "VEINMOSAIC_REDIS_URL", "redis_url")
+    )
+    redis_prefix: str = "vm:"
+    api_keys: dict[str, list[Scope]] = Field(default_factory=dict, repr=False)
+    token_secret: SecretStr | None = None
+    max_frame_bytes: int = Field(default=20 * 1024 * 1024, gt=0)
+    max_force_samples: int = Field(default=100_000, gt=0)
+    max_json_bytes: int = Field(default=32 * 1024 * 1024, gt=0)
+    queue_max_depth: int = Field(default=5000, gt=0)
+    retry_after_s: int = Field(default=2, gt=0)
+    viewer_token_ttl_s: int = Field(default=8 * 3600, gt=0)
+    log_level: str = "INFO"
+
+
+def get_settings() -> Settings:
+    """Return the settings read from the environment (call once, at start-up)."""
+    return Settings()
+
+
+def token_secret_bytes(settings: Settings) -> bytes:
+    """Return the HMAC key for viewer tokens: VEINMOSAIC_TOKEN_SECRET, else data_dir/secret (made once).
+
+    The file is created atomically (written to a temp file, then hard-linked into place, which fails if
+    another process won the race), so every process of one deployment reads the same 32 random bytes.
+    """
+    if settings.token_secret is not None:
+        return settings.token_secret.get_secret_value().encode()
+    path = Path(settings.data_dir) / "secret"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not path.exists():
+        tmp = path.parent / f".secret.{uuid.uuid4().hex}.tmp"
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(os.urandom(SECRET_BYTES))
+                fh.flush()
+                os.fsync(fh.fileno())
+            with contextlib.suppress(FileExistsError):
+                os.link(tmp, path)
+        finally:
+            os.unlink(tmp)
+    for _ in range(50):
+        data = path.read_bytes()
+        if len(data) >= SECRET_BYTES:
+            return data
+        time.sleep(0.01)  # pragma: no cover - only a hand-made short file gets here
+    raise RuntimeError(f"{path} holds fewer than {SECRET_BYTES} bytes; delete it to make a new one")

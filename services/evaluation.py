@@ -1,0 +1,120 @@
+"""Probe-path accuracy against a reference track (spec §4): RMSE, max error, final drift, error ratio."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class AccuracyReport:
+    """Accuracy of an estimated path against a reference, both in frame 0's coordinates (mm, spec §4).
+
+    errors_mm (N,) holds the per-frame Euclidean error in mm, NaN where the frame is not registered or has
+    no reference. error_ratio_pct = 100 * final_drift_mm / path_length_mm (NaN for a zero-length path).
+    """
+
+    rmse_mm: float
+    max_error_mm: float
+    final_drift_mm: float
+    path_length_mm: float
+    error_ratio_pct: float
+    registered_fraction: float
+    n_frames: int
+    n_registered: int
+    n_with_reference: int
+    errors_mm: np.ndarray
+
+    @property
+    def n_compared(self) -> int:
+        """Return the number of frames both registered and with a reference."""
+        return int(np.count_nonzero(np.isfinite(self.errors_mm)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return a JSON-able dict: the figures (NaN as None) and errors_mm as a list with None for NaN."""
+
+        def num(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+
+        return {
+            "rmse_mm": num(self.rmse_mm),
+            "max_error_mm": num(self.max_error_mm),
+            "final_drift_mm": num(self.final_drift_mm),
+            "path_length_mm": num(self.path_length_mm),
+            "error_ratio_pct": num(self.error_ratio_pct),
+            "registered_fraction": num(self.registered_fraction),
+            "n_frames": int(self.n_frames),
+            "n_registered": int(self.n_registered),
+            "n_with_reference": int(self.n_with_reference),
+            "n_compared": self.n_compared,
+            "errors_mm": [num(float(e)) for e in self.errors_mm],
+        }
+
+
+def _as_path(name: str, value: np.ndarray) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"{name}: expected an (N, 2) array of x, y in mm, got shape {arr.shape}")
+    return arr
+
+
+def reference_path_length_mm(reference_mm: np.ndarray) -> float:
+    """Return the length (mm) of the reference track: the sum of steps between consecutive known rows."""
+    ref = _as_path("reference_mm", reference_mm)
+    known = ref[np.all(np.isfinite(ref), axis=1)]
+    if len(known) < 2:
+        return 0.0
+    return float(np.sum(np.linalg.norm(np.diff(known, axis=0), axis=1)))
+
+
+def evaluate_path(
+    estimate_mm: np.ndarray, registered: np.ndarray, reference_mm: np.ndarray
+) -> AccuracyReport:
+    """Return the AccuracyReport (mm, %) of an estimated path against a reference, no alignment (spec §4).
+
+    estimate_mm (N, 2) with NaN rows for frames not placed; registered (N,) bool; reference_mm (N, 2) with
+    NaN rows where unknown. A frame is compared when it is registered, placed and has a reference.
+    """
+    est = _as_path("estimate_mm", estimate_mm)
+    ref = _as_path("reference_mm", reference_mm)
+    reg = np.asarray(registered)
+    if reg.ndim != 1:
+        raise ValueError(f"registered: expected an (N,) boolean array, got shape {reg.shape}")
+    reg = reg.astype(bool)
+    n = len(est)
+    if len(ref) != n or len(reg) != n:
+        raise ValueError(
+            f"length mismatch: estimate has {n} frames, registered {len(reg)}, reference {len(ref)}"
+        )
+    if n == 0:
+        raise ValueError("no frames to evaluate")
+    has_ref = np.all(np.isfinite(ref), axis=1)
+    placed = reg & np.all(np.isfinite(est), axis=1)
+    compared = placed & has_ref
+    if not np.any(compared):
+        raise ValueError(
+            "nothing to compare: no frame is both registered and has a reference position "
+            f"({int(reg.sum())} registered, {int(has_ref.sum())} with a reference, of {n})"
+        )
+    errors = np.full(n, np.nan)
+    errors[compared] = np.linalg.norm(est[compared] - ref[compared], axis=1)
+    valid = errors[compared]
+    rmse = float(np.sqrt(np.mean(valid**2)))
+    final_drift = float(errors[np.flatnonzero(compared)[-1]])
+    length = reference_path_length_mm(ref)
+    ratio = 100.0 * final_drift / length if length > 0 else float("nan")
+    return AccuracyReport(
+        rmse_mm=rmse,
+        max_error_mm=float(np.max(valid)),
+        final_drift_mm=final_drift,
+        path_length_mm=length,
+        error_ratio_pct=ratio,
+        registered_fraction=float(reg.sum()) / n,
+        n_frames=n,
+        n_registered=int(reg.sum()),
+        n_with_reference=int(has_ref.sum()),
+        errors_mm=errors,
+    )

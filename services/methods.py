@@ -1,0 +1,67 @@
+"""The reconstruction methods compared in the benchmark, as frozen option sets."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+METHOD_NAMES = ("sift-chain", "paper", "best")
+REGISTRATION_KINDS = ("previous", "mosaic", "keyframes")
+
+
+@dataclass(frozen=True)
+class MethodOptions:
+    """Options of one reconstruction method; units in each field's comment."""
+
+    name: str
+    rectify: bool = True  # spec §2 force rectification (else lens undistortion only)
+    features: str = "sift"  # sift | modified-asift | asift
+    max_features: int = 1000  # SIFT cap per view (0 = no cap)
+    registration: str = "keyframes"  # previous (frame-to-frame) | mosaic (paper) | keyframes (pose graph)
+    rigid_stitch: bool = False  # stitch with yaw + x/y only (the paper's correction) instead of the similarity
+    refine: bool = True  # global pose-graph refinement on loop closures (beyond the paper)
+    self_calibrate: bool = True  # fit the tissue compliance from registration scales (beyond the paper)
+    flat_field: bool = True  # divide out the IR ring's vignetting before blending
+    min_inliers: int = 20  # unique RANSAC inliers for an accepted registration
+    ransac_px: float = 2.0  # RANSAC reprojection threshold, pixels of the rectified frame
+    ratio: float = 0.8  # Lowe ratio test
+    neighbours: int = 4  # keyframes matched per frame (keyframes registration)
+    loop_gap: int = 25  # an edge spanning more frames than this is a loop closure
+    max_jump_mm: float = 15.0  # a pose farther than this from the prediction is implausible
+    blur_ratio: float = 0.35  # sharpness below this fraction of the running median = blurred frame
+
+    def with_overrides(self, overrides: dict[str, Any]) -> MethodOptions:
+        """Return a copy with overrides applied; unknown option names raise ValueError."""
+        known = {f.name for f in fields(self)}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise ValueError(f"unknown method option(s): {', '.join(unknown)}")
+        return replace(self, **overrides)
+
+
+def method_options(name: str) -> MethodOptions:
+    """Return the options of a named method: sift-chain, paper or best."""
+    if name == "sift-chain":
+        return MethodOptions(
+            name=name,
+            rectify=False,
+            registration="previous",
+            rigid_stitch=True,
+            refine=False,
+            self_calibrate=False,
+            flat_field=False,
+        )
+    if name == "paper":
+        return MethodOptions(
+            name=name,
+            features="modified-asift",
+            max_features=400,
+            registration="mosaic",
+            rigid_stitch=True,
+            refine=False,
+            self_calibrate=False,
+            flat_field=False,
+        )
+    if name == "best":
+        return MethodOptions(name=name)
+    raise ValueError(f"unknown method {name!r}; expected one of {', '.join(METHOD_NAMES)}")

@@ -1,0 +1,225 @@
+"""Sequential registration of prepared frames against what is already placed (spec §2 "Pose").
+
+Three strategies share one state machine: `previous` (frame-to-frame chaining, the SfM-like baseline),
+`mosaic` (the paper: match against the features of the mosaic around the predicted position, keep yaw and
+x/y), and `keyframes` (match against several overlapping placed frames, each match an edge of a similarity
+pose graph; loop closures trigger a robust global re-optimisation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.features import Features
+from services.frame_prep import PreparedFrame
+from services.methods import MethodOptions
+from services.pose_graph import Edge, optimise_poses, place_node
+from services.registration import IDENTITY, Similarity, estimate_similarity, match_features
+
+STATUS_OK, STATUS_LOST, STATUS_REJECTED = "ok", "lost", "rejected"
+MOVED_MM = 0.02  # a refined pose that moves a frame by less than this does not re-render its tiles
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """The outcome for one frame: status, pose (frame mm -> mosaic mm) or None, evidence, frames moved."""
+
+    index: int
+    status: str
+    pose: Similarity | None
+    inliers: int
+    blurred: bool
+    moved: tuple[int, ...] = ()
+
+
+@dataclass
+class Registrar:
+    """The growing registration state of one session (frames fed in index order)."""
+
+    options: MethodOptions
+    px_per_mm: float
+    window_radius_mm: float
+    poses: dict[int, Similarity] = field(default_factory=dict)
+    features: dict[int, Features] = field(default_factory=dict)
+    times: dict[int, float] = field(default_factory=dict)
+    stretches: dict[int, float] = field(default_factory=dict)
+    edges: list[Edge] = field(default_factory=list)
+    sharpness: list[float] = field(default_factory=list)
+    order: list[int] = field(default_factory=list)
+    loops_since_refine: int = 0
+
+    @property
+    def ransac_mm(self) -> float:
+        """Return the RANSAC threshold in mm."""
+        return self.options.ransac_px / self.px_per_mm
+
+    def predict(self, t_s: float) -> Similarity | None:
+        """Return the constant-velocity prediction of the pose at time t_s, or None before any frame."""
+        if not self.order:
+            return None
+        last = self.order[-1]
+        p1 = self.poses[last]
+        if len(self.order) < 2:
+            return p1
+        prev = self.order[-2]
+        p0 = self.poses[prev]
+        dt = self.times[last] - self.times[prev]
+        if dt <= 0:
+            return p1
+        k = min((t_s - self.times[last]) / dt, 3.0)
+        return Similarity(p1.a * (p1.a / p0.a) ** k, p1.t + (p1.t - p0.t) * k)
+
+    def _is_blurred(self, pf: PreparedFrame) -> bool:
+        history = self.sharpness[-30:]
+        self.sharpness.append(pf.sharpness)
+        if len(history) < 5:
+            return False
+        return pf.sharpness < self.options.blur_ratio * float(np.median(history))
+
+    def _candidates(self, predicted: Similarity, count: int, radius_mm: float) -> list[int]:
+        """Return placed frames near the prediction: the latest first, then the nearest, older ones mixed in."""
+        if not self.order:
+            return []
+        latest = self.order[-1]
+        placed = np.array(self.order)
+        centres = np.array([self.poses[i].t for i in self.order])
+        dist = np.abs(centres - predicted.t)
+        near = placed[dist < radius_mm]
+        near_dist = dist[dist < radius_mm]
+        ranked = [int(i) for i in near[np.argsort(near_dist)] if i != latest]
+        recent = [i for i in ranked if latest - i <= self.options.loop_gap]
+        old = [i for i in ranked if latest - i > self.options.loop_gap]
+        chosen = [latest]
+        # alternate recent and old so a revisit always gets a chance to close the loop
+        while len(chosen) < count and (recent or old):
+            for pool in (old, recent):
+                if pool and len(chosen) < count:
+                    chosen.append(pool.pop(0))
+        return chosen
+
+    def _pairwise(self, pf: PreparedFrame, other: int) -> tuple[Similarity, int, float] | None:
+        iq, it = match_features(
+            pf.features, self.features[other], self.options.ratio, same_point=2.0 / self.px_per_mm
+        )
+        fit = estimate_similarity(
+            pf.features.points_px[iq],
+            self.features[other].points_px[it],
+            self.ransac_mm,
+            seed=pf.index,
+            min_inliers=self.options.min_inliers,
+            dedupe_radius=2.0 / self.px_per_mm,
+        )
+        if fit is None:
+            return None
+        return fit.transform, fit.inliers, fit.rms
+
+    def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity) -> tuple[Similarity, int] | None:
+        """Match against the mosaic's features around the prediction (the paper's registration)."""
+        near = self._candidates(predicted, 6, 1.6 * self.window_radius_mm)
+        pts, desc = [], []
+        for i in near:
+            f = self.features[i]
+            pts.append(self.poses[i].apply(f.points_px))
+            desc.append(f.descriptors)
+        if not pts:
+            return None
+        train = Features(np.concatenate(pts), np.concatenate(desc), np.zeros(sum(len(p) for p in pts)))
+        iq, it = match_features(pf.features, train, self.options.ratio, same_point=2.0 / self.px_per_mm)
+        fit = estimate_similarity(
+            pf.features.points_px[iq],
+            train.points_px[it],
+            self.ransac_mm,
+            seed=pf.index,
+            min_inliers=self.options.min_inliers,
+            dedupe_radius=2.0 / self.px_per_mm,
+        )
+        if fit is None:
+            return None
+        return fit.transform, fit.inliers
+
+    def _plausible(self, pose: Similarity, predicted: Similarity, lost_for: int) -> bool:
+        limit = self.options.max_jump_mm * (1 + lost_for)
+        return abs(pose.t - predicted.t) <= limit and abs(np.angle(pose.a / predicted.a)) <= np.radians(25)
+
+    def add(self, pf: PreparedFrame) -> FrameResult:
+        """Register one prepared frame; return its status, pose and which earlier frames moved."""
+        blurred = self._is_blurred(pf)
+        if not self.order:
+            return self._accept(pf, IDENTITY, [], len(pf.features), blurred)
+        predicted = self.predict(pf.t_s)
+        assert predicted is not None
+        lost_for = pf.index - self.order[-1] - 1
+        kind = self.options.registration
+        if kind == "previous":
+            found = self._pairwise(pf, self.order[-1])
+            if found is None:
+                return self._reject(pf, STATUS_REJECTED if blurred else STATUS_LOST, blurred)
+            rel, n, _ = found
+            pose = self.poses[self.order[-1]].compose(rel.rigid())
+            return self._accept(pf, pose, [], n, blurred)
+        if kind == "mosaic":
+            found_m = self._mosaic_match(pf, predicted)
+            if found_m is None:
+                return self._reject(pf, STATUS_REJECTED if blurred else STATUS_LOST, blurred)
+            pose, n = found_m
+            pose = pose.rigid()
+            if not self._plausible(pose, predicted, lost_for):
+                return self._reject(pf, STATUS_REJECTED, blurred)
+            return self._accept(pf, pose, [], n, blurred)
+        return self._add_keyframes(pf, predicted, lost_for, blurred)
+
+    def _add_keyframes(
+        self, pf: PreparedFrame, predicted: Similarity, lost_for: int, blurred: bool
+    ) -> FrameResult:
+        radius = 1.6 * self.window_radius_mm * (1 + lost_for)
+        count = self.options.neighbours + (4 if lost_for else 0)
+        edges: list[Edge] = []
+        total = 0
+        for other in self._candidates(predicted, count, radius):
+            found = self._pairwise(pf, other)
+            if found is None:
+                continue
+            rel, n, rms = found
+            if not self._plausible(self.poses[other].compose(rel), predicted, lost_for):
+                continue
+            load = 1.0 + 10.0 * max(pf.stretch, self.stretches[other])
+            sigma = (0.01 + rms / np.sqrt(n)) * load
+            edges.append(Edge(other, pf.index, rel, sigma, loop=self.order[-1] - other > self.options.loop_gap))
+            total += n
+        if not edges:
+            return self._reject(pf, STATUS_REJECTED if blurred else STATUS_LOST, blurred)
+        pose = place_node(self.poses, edges, pf.index)
+        result = self._accept(pf, pose, edges, total, blurred)
+        if any(e.loop for e in edges):
+            self.loops_since_refine += 1
+        if self.options.refine and self.loops_since_refine and (self.loops_since_refine >= 3 or not blurred):
+            return FrameResult(pf.index, result.status, result.pose, total, blurred, self.refine())
+        return result
+
+    def refine(self) -> tuple[int, ...]:
+        """Re-optimise every placed pose on the pose graph; return the frames that moved (> MOVED_MM)."""
+        self.loops_since_refine = 0
+        if len(self.order) < 3 or not self.edges:
+            return ()
+        solution = optimise_poses(self.poses, self.edges, fixed=self.order[0])
+        moved = tuple(
+            i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM and i in self.poses
+        )
+        self.poses.update(solution.poses)
+        return moved
+
+    def _accept(
+        self, pf: PreparedFrame, pose: Similarity, edges: list[Edge], inliers: int, blurred: bool
+    ) -> FrameResult:
+        self.poses[pf.index] = pose
+        self.features[pf.index] = pf.features
+        self.times[pf.index] = pf.t_s
+        self.stretches[pf.index] = pf.stretch
+        self.edges.extend(edges)
+        self.order.append(pf.index)
+        return FrameResult(pf.index, STATUS_OK, pose, inliers, blurred)
+
+    def _reject(self, pf: PreparedFrame, status: str, blurred: bool) -> FrameResult:
+        return FrameResult(pf.index, status, None, 0, blurred)

@@ -1,0 +1,178 @@
+"""Feature matching and plane-induced similarity estimation between a frame and the mosaic (spec §2 "Pose")."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from services.features import Features
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """A 2-D similarity p -> a p + t on complex coordinates (x + iy, image axes): a = s e^{i yaw}, t in mm."""
+
+    a: complex
+    t: complex
+
+    @property
+    def yaw_rad(self) -> float:
+        """Return the rotation angle in radians (image axes, R the ordinary 2-D rotation matrix)."""
+        return float(np.angle(self.a))
+
+    @property
+    def scale(self) -> float:
+        """Return the scale factor |a| (dimensionless)."""
+        return float(abs(self.a))
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Return points (..., 2) mapped by the similarity (same units as t)."""
+        z = points[..., 0] + 1j * points[..., 1]
+        w = self.a * z + self.t
+        return np.stack([w.real, w.imag], axis=-1)
+
+    def compose(self, other: Similarity) -> Similarity:
+        """Return self after other: p -> self(other(p))."""
+        return Similarity(self.a * other.a, self.a * other.t + self.t)
+
+    def inverse(self) -> Similarity:
+        """Return the inverse similarity."""
+        return Similarity(1.0 / self.a, -self.t / self.a)
+
+    def rigid(self) -> Similarity:
+        """Return the pose correction of spec §2: yaw and translation only (scale set to 1)."""
+        return Similarity(self.a / abs(self.a), self.t)
+
+    def matrix(self) -> np.ndarray:
+        """Return the 2x3 affine matrix of the similarity."""
+        a, t = self.a, self.t
+        return np.array([[a.real, -a.imag, t.real], [a.imag, a.real, t.imag]])
+
+
+IDENTITY = Similarity(1.0 + 0j, 0j)
+
+
+@dataclass(frozen=True)
+class SimilarityFit:
+    """A RANSAC similarity fit: the transform (src -> dst units), unique inliers and their RMS residual."""
+
+    transform: Similarity
+    inliers: int
+    rms: float
+    inlier_mask: np.ndarray
+
+
+def match_features(
+    query: Features,
+    train: Features,
+    ratio: float = 0.8,
+    same_point: float = 2.0,
+    candidates: int = 4,
+    allowed: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return index arrays (iq, it) of ratio-test matches from query to train.
+
+    The second neighbour of the ratio test is the best one at a *different place* (farther than same_point
+    from the first, in train units), so a point seen in several A-SIFT views or several frames does not
+    veto its own match. `allowed` (len(query), len(train)) uint8 restricts candidates (guided matching).
+    """
+    if len(query) == 0 or len(train) < 2:
+        return np.zeros(0, int), np.zeros(0, int)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    k = min(candidates, len(train))
+    if allowed is not None:
+        knn = matcher.knnMatch(query.descriptors, train.descriptors, k=k, mask=allowed)
+    else:
+        knn = matcher.knnMatch(query.descriptors, train.descriptors, k=k)
+    iq, it = [], []
+    tp = train.points_px
+    for row in knn:
+        if not row:
+            continue
+        best = row[0]
+        second = None
+        for m in row[1:]:
+            if np.hypot(*(tp[m.trainIdx] - tp[best.trainIdx])) > same_point:
+                second = m
+                break
+        # no candidate at another place: unambiguous; else Lowe's ratio against the other place
+        second_ok = second is None or best.distance < ratio * second.distance
+        if second_ok:
+            iq.append(best.queryIdx)
+            it.append(best.trainIdx)
+    return np.asarray(iq, int), np.asarray(it, int)
+
+
+def unique_pairs(src: np.ndarray, dst: np.ndarray, radius: float = 2.0) -> np.ndarray:
+    """Return a boolean mask keeping one of each group of matches whose ends both lie within radius."""
+    keep = np.ones(len(src), bool)
+    if len(src) < 2:
+        return keep
+    cell = {}
+    for i in range(len(src)):
+        key = (int(src[i, 0] // radius), int(src[i, 1] // radius))
+        duplicate = False
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for j in cell.get((key[0] + dx, key[1] + dy), ()):
+                    if (
+                        abs(src[i, 0] - src[j, 0]) <= radius
+                        and abs(src[i, 1] - src[j, 1]) <= radius
+                        and abs(dst[i, 0] - dst[j, 0]) <= radius
+                        and abs(dst[i, 1] - dst[j, 1]) <= radius
+                    ):
+                        duplicate = True
+                        break
+                if duplicate:
+                    break
+            if duplicate:
+                break
+        if duplicate:
+            keep[i] = False
+        else:
+            cell.setdefault(key, []).append(i)
+    return keep
+
+
+def estimate_similarity(
+    src: np.ndarray,
+    dst: np.ndarray,
+    threshold: float,
+    seed: int = 0,
+    min_inliers: int = 8,
+    dedupe_radius: float = 0.0,
+) -> SimilarityFit | None:
+    """Return the RANSAC similarity src -> dst (LM-refined on inliers), or None with too few inliers.
+
+    `threshold` is the reprojection threshold in dst units; inliers are counted after merging matches
+    repeated within dedupe_radius (src units scaled alike), so counts are honest for A-SIFT.
+    """
+    if len(src) < max(3, min_inliers):
+        return None
+    cv2.setRNGSeed(seed)
+    M, mask = cv2.estimateAffinePartial2D(
+        src.astype(np.float64),
+        dst.astype(np.float64),
+        method=cv2.RANSAC,
+        ransacReprojThreshold=threshold,
+        maxIters=2000,
+        confidence=0.999,
+        refineIters=20,
+    )
+    if M is None or mask is None:
+        return None
+    inl = mask.ravel().astype(bool)
+    if dedupe_radius > 0 and inl.sum() > 1:
+        idx = np.flatnonzero(inl)
+        keep = unique_pairs(src[idx], dst[idx], dedupe_radius)
+        inl = np.zeros_like(inl)
+        inl[idx[keep]] = True
+    n = int(inl.sum())
+    if n < min_inliers:
+        return None
+    transform = Similarity(complex(M[0, 0], M[1, 0]), complex(M[0, 2], M[1, 2]))
+    resid = transform.apply(src[inl]) - dst[inl]
+    rms = float(np.sqrt(np.mean(np.sum(resid**2, axis=1))))
+    return SimilarityFit(transform, n, rms, inl)

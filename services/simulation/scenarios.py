@@ -1,0 +1,189 @@
+"""Simulated scans with known truth: `simulate(scenario, seed)` returns a Scan with frames in memory."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from services.calibration import Calibration
+from services.force_model import LoadState
+from services.scan import Scan, in_memory_loader
+from services.simulation.probe_path import (
+    ProbeMotion,
+    calibration_motion,
+    free_hand_motion,
+    path_length_mm,
+    rotation,
+    scenario_motion_spec,
+)
+from services.simulation.renderer import (
+    Imaging,
+    apply_imaging,
+    frame_geometry,
+    motion_blur_kernel,
+    render_scene,
+)
+from services.simulation.vein_texture import make_world
+
+SCENARIOS = ("raster", "revisit", "hard", "short", "calib")
+
+NOMINAL_E_KPA = 16.1
+NOMINAL_KAPPA_N_PER_MM = 18.0
+FORCE_RATE_HZ = 100.0
+FORCE_NOISE_N = 0.03
+FORCE_OFFSET_N = 0.1  # per-sensor constant offset, uniform in [-0.1, 0.1] N
+IMU_RATE_HZ = 50.0
+IMU_NOISE_DEG = 0.01
+STREAM_MARGIN_S = 0.5  # force and IMU streams start this long before the first frame and end after the last
+WORLD_MARGIN_MM = (
+    45.0  # the world extends this far beyond every frame centre (half-diagonal of the view + slack)
+)
+
+
+@dataclass(frozen=True)
+class ImagingSpec:
+    """A scenario's imaging: fraction of motion-blurred frames, blur lengths (px) and output dtype."""
+
+    blur_fraction: float
+    blur_length_px: tuple[int, int]
+    dtype: type = np.uint8
+    gain_jitter: float = 0.02
+
+
+IMAGING = {
+    "raster": ImagingSpec(0.02, (5, 8)),
+    "revisit": ImagingSpec(0.02, (5, 8)),
+    "hard": ImagingSpec(0.05, (5, 11), np.uint16),
+    "short": ImagingSpec(0.0, (5, 8)),
+    "calib": ImagingSpec(0.0, (5, 8), gain_jitter=0.0),
+}
+
+
+def nominal_calibration() -> Calibration:
+    """Return the simulated probe's calibration: its lens model and the NOMINAL force constants of spec §2."""
+    return Calibration(
+        image_size=(400, 320),
+        camera_matrix=((420.0, 0.0, 201.7), (0.0, 420.0, 157.9), (0.0, 0.0, 1.0)),
+        px_per_mm=8.0,
+        dist_coeffs=(-0.12, 0.03, 0.0005, -0.0003, 0.0),
+        young_modulus_kpa=NOMINAL_E_KPA,
+        poisson_ratio=0.5,
+        hooke_n_per_mm=NOMINAL_KAPPA_N_PER_MM,
+        sensor_separation_mm=(53.0, 53.0),
+        scanner_area_m2=0.0048,
+    )
+
+
+def draw_true_constants(rng: np.random.Generator) -> tuple[float, float]:
+    """Return (E_true kPa, kappa_true N/mm): 4-10% off the nominal E, up to 10% off the nominal kappa."""
+    d = rng.uniform(0.04, 0.10) * rng.choice([-1.0, 1.0])
+    d2 = rng.uniform(-0.10, 0.10)
+    return NOMINAL_E_KPA * (1.0 + d), NOMINAL_KAPPA_N_PER_MM * (1.0 + d2)
+
+
+def _stream_times(rng: np.random.Generator, t_first: float, t_last: float, rate_hz: float) -> np.ndarray:
+    """Return jittered, strictly increasing sample times (s) at ~rate_hz covering the frames +-0.5 s."""
+    period = 1.0 / rate_hz
+    n = int(np.floor((t_last - t_first + 2 * STREAM_MARGIN_S) / period)) + 1
+    t = t_first - STREAM_MARGIN_S + period * np.arange(n)
+    jitter = rng.uniform(-0.2 * period, 0.2 * period, n)
+    jitter[0] = jitter[-1] = 0.0
+    return t + jitter
+
+
+def frame_poses(motion: ProbeMotion) -> tuple[np.ndarray, np.ndarray]:
+    """Return (positions (N, 2) mm, yaw (N,) deg) of every frame in frame 0's coordinates (spec §4)."""
+    back = rotation(-float(motion.yaw_deg[0]))
+    xy = (motion.centre_mm - motion.centre_mm[0]) @ back.T
+    return xy, motion.yaw_deg - motion.yaw_deg[0]
+
+
+def simulate(scenario: str, seed: int) -> Scan:
+    """Return a simulated Scan (frames in memory) of a scenario in SCENARIOS, deterministic for the seed.
+
+    truth: young_modulus_kpa, hooke_n_per_mm (the true constants), poses [[x_mm, y_mm, yaw_deg], ...] in frame
+    0's coordinates, fz_n and tilt_x_deg / tilt_y_deg per frame, blurred frame indices, path_length_mm,
+    force_offsets_n, scenario, seed.
+    """
+    if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(SCENARIOS)}")
+    cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)
+    rng_const, rng_path, rng_world, rng_img, rng_stream = (
+        np.random.default_rng(s)
+        for s in np.random.SeedSequence([int(seed), SCENARIOS.index(scenario)]).spawn(5)
+    )
+    calib = nominal_calibration()
+    e_true, kappa_true = draw_true_constants(rng_const)
+    true_calib = calib.with_overrides(young_modulus_kpa=e_true, hooke_n_per_mm=kappa_true)
+    sep = calib.sensor_separation_mm
+
+    if scenario == "calib":
+        motion = calibration_motion(rng_path, kappa_true, sep)
+    else:
+        motion = free_hand_motion(rng_path, scenario_motion_spec(scenario), kappa_true, sep)
+    n = len(motion)
+
+    lo = motion.centre_mm.min(axis=0) - WORLD_MARGIN_MM
+    hi = motion.centre_mm.max(axis=0) + WORLD_MARGIN_MM
+    world = make_world(rng_world, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])), calib.px_per_mm)
+
+    spec = IMAGING[scenario]
+    geometry = frame_geometry(calib)
+    fz, tx, ty = motion.load_at(motion.frame_t_s)
+    blurred_flags = rng_img.random(n) < spec.blur_fraction
+    blurred_flags[0] = False
+    frames = []
+    for k in range(n):
+        kernel = None
+        if blurred_flags[k]:
+            length = int(rng_img.integers(spec.blur_length_px[0], spec.blur_length_px[1] + 1))
+            kernel = motion_blur_kernel(length, float(rng_img.uniform(0.0, 180.0)))
+        imaging = Imaging(
+            gain=1.0 + float(rng_img.uniform(-spec.gain_jitter, spec.gain_jitter)),
+            blur_kernel=kernel,
+            dtype=spec.dtype,
+        )
+        state = LoadState(float(fz[k]), float(tx[k]), float(ty[k]))
+        scene = render_scene(
+            world, geometry, motion.centre_mm[k], float(motion.yaw_deg[k]), state, true_calib
+        )
+        frames.append(apply_imaging(scene, geometry, imaging, rng_img))
+
+    t_first, t_last = float(motion.frame_t_s[0]), float(motion.frame_t_s[-1])
+    force_t = _stream_times(rng_stream, t_first, t_last, FORCE_RATE_HZ)
+    offsets = rng_stream.uniform(-FORCE_OFFSET_N, FORCE_OFFSET_N, 4)
+    true_forces = motion.sensor_forces_at(force_t, kappa_true, sep)
+    forces = true_forces + offsets + rng_stream.normal(0.0, FORCE_NOISE_N, true_forces.shape)
+    imu_t = _stream_times(rng_stream, t_first, t_last, IMU_RATE_HZ)
+    _, itx, ity = motion.load_at(imu_t)
+    imu = np.rad2deg(np.stack([itx, ity], axis=1)) + rng_stream.normal(0.0, IMU_NOISE_DEG, (len(imu_t), 2))
+
+    xy, yaw = frame_poses(motion)
+    truth = {
+        "scenario": scenario,
+        "seed": int(seed),
+        "young_modulus_kpa": float(e_true),
+        "hooke_n_per_mm": float(kappa_true),
+        "poses": [[float(x), float(y), float(a)] for (x, y), a in zip(xy, yaw, strict=True)],
+        "fz_n": [float(v) for v in fz],
+        "tilt_x_deg": [float(v) for v in np.rad2deg(tx)],
+        "tilt_y_deg": [float(v) for v in np.rad2deg(ty)],
+        "blurred": [int(i) for i in np.flatnonzero(blurred_flags)],
+        "path_length_mm": path_length_mm(xy),
+        "force_offsets_n": [float(v) for v in offsets],
+    }
+    return Scan(
+        calibration=calib,
+        frame_seq=np.arange(n, dtype=np.int64),
+        frame_t_s=np.asarray(motion.frame_t_s, dtype=np.float64),
+        force_t_s=force_t,
+        forces_n=forces,
+        frame_loader=in_memory_loader(frames),
+        mask=geometry.mask.copy(),
+        imu_t_s=imu_t,
+        imu_tilt_deg=imu,
+        reference_mm=xy.copy(),
+        truth=truth,
+    )

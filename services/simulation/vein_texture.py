@@ -1,0 +1,197 @@
+"""Procedural NIR skin world: a branching dark vein network on band-limited skin texture (float32, 0..1)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+SKIN_LEVEL = 0.62  # mean reflectance of skin at 850 nm (fraction of full scale)
+SKIN_LAYERS = ((0.9, 0.012), (2.0, 0.035), (4.0, 0.04), (10.0, 0.03))  # (sigma px, amplitude) texture bands
+SHADING_SIGMA_MM = 30.0  # low-frequency shading (curvature, fat) scale
+SHADING_AMPLITUDE = 0.05
+BAND_LIMIT_SIGMA_PX = 0.9  # final blur: nothing finer than this, so linear remapping does not alias
+MAX_GAP_MM = 11.0  # no point of the world is farther than this from a vessel centreline
+STEP_MM = 1.0  # centreline step
+
+
+@dataclass(frozen=True)
+class World:
+    """The undeformed skin surface as an image: world pixel = (world mm - origin_mm) * px_per_mm."""
+
+    image: np.ndarray  # float32 (H, W), reflectance 0..1
+    px_per_mm: float
+    origin_mm: tuple[float, float]
+
+    def mm_to_px(self, xy_mm: np.ndarray) -> np.ndarray:
+        """Return world pixel coordinates (..., 2) of world positions (..., 2) in mm."""
+        xy = np.asarray(xy_mm, dtype=np.float64)
+        return (xy - np.asarray(self.origin_mm)) * self.px_per_mm
+
+    @property
+    def extent_mm(self) -> tuple[float, float, float, float]:
+        """Return (x_min, y_min, x_max, y_max) of the world in mm."""
+        h, w = self.image.shape
+        x0, y0 = self.origin_mm
+        return x0, y0, x0 + w / self.px_per_mm, y0 + h / self.px_per_mm
+
+
+@dataclass(frozen=True)
+class Vessel:
+    """A vessel: centreline (M, 2) world mm, width (M,) mm and contrast (fractional darkening)."""
+
+    points_mm: np.ndarray
+    width_mm: np.ndarray
+    contrast: float
+
+
+def band_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float) -> np.ndarray:
+    """Return zero-mean, unit-std Gaussian-filtered white noise (float32, shape) with blur sigma_px."""
+    h, w = shape
+    factor = max(1, int(sigma_px / 2.0))
+    sh, sw = h // factor + 3, w // factor + 3
+    small = rng.standard_normal((sh, sw), dtype=np.float32)
+    small = cv2.GaussianBlur(small, (0, 0), sigma_px / factor, borderType=cv2.BORDER_REFLECT)
+    full = (
+        small if factor == 1 else cv2.resize(small, (sw * factor, sh * factor), interpolation=cv2.INTER_CUBIC)
+    )
+    full = full[:h, :w]
+    return ((full - full.mean()) / max(float(full.std()), 1e-12)).astype(np.float32)
+
+
+def skin_texture(rng: np.random.Generator, shape: tuple[int, int], px_per_mm: float) -> np.ndarray:
+    """Return skin reflectance (float32, shape): SKIN_LEVEL, low-frequency shading, multi-scale texture."""
+    skin = np.full(shape, SKIN_LEVEL, dtype=np.float32)
+    skin += SHADING_AMPLITUDE * band_noise(rng, shape, SHADING_SIGMA_MM * px_per_mm)
+    for sigma, amplitude in SKIN_LAYERS:
+        skin += amplitude * band_noise(rng, shape, sigma)
+    return skin
+
+
+def centreline(
+    rng: np.random.Generator,
+    start_mm: np.ndarray,
+    heading_rad: float,
+    length_mm: float,
+    bounds_mm: tuple[float, float, float, float],
+    curviness: float = 0.025,
+) -> np.ndarray:
+    """Return a smooth random-walk centreline (M, 2) mm from start_mm, stopping at length or the bounds."""
+    n = max(2, int(length_mm / STEP_MM))
+    turn = gaussian_filter1d(rng.standard_normal(n), 6.0, mode="reflect") * curviness * 6.0
+    heading = heading_rad + np.cumsum(turn)
+    steps = STEP_MM * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+    pts = np.vstack([start_mm, start_mm + np.cumsum(steps, axis=0)])
+    x0, y0, x1, y1 = bounds_mm
+    inside = (pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)
+    stop = int(np.argmin(inside)) if not inside.all() else len(pts)
+    return pts[: max(stop, 2)]
+
+
+def _tapered(n: int, w_start: float, w_end: float) -> np.ndarray:
+    return np.linspace(w_start, w_end, n)
+
+
+def vein_network(rng: np.random.Generator, bounds_mm: tuple[float, float, float, float]) -> list[Vessel]:
+    """Return the vessels of a branching network covering bounds_mm: trunks, branches and gap fillers."""
+    x0, y0, x1, y1 = bounds_mm
+    area = (x1 - x0) * (y1 - y0)
+    diag = float(np.hypot(x1 - x0, y1 - y0))
+    # grow beyond the world a little so vessels run off its edges instead of ending inside
+    grow = (x0 - 20.0, y0 - 20.0, x1 + 20.0, y1 + 20.0)
+    vessels: list[Vessel] = []
+    n_trunks = max(3, round(area / 7000.0))
+    for _ in range(n_trunks):
+        start = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
+        h = rng.uniform(0, 2 * np.pi)
+        fwd = centreline(rng, start, h, diag, grow)
+        back = centreline(rng, start, h + np.pi, diag, grow)
+        pts = np.vstack([back[::-1], fwd[1:]])
+        w = rng.uniform(1.6, 2.5)
+        width = w * (1.0 + 0.15 * np.sin(np.linspace(0, rng.uniform(2, 6), len(pts)) + rng.uniform(0, 6)))
+        vessels.append(Vessel(pts, width, rng.uniform(0.25, 0.35)))
+    # branches off existing vessels, then branches of branches
+    for _ in range(n_trunks * 6):
+        parent = vessels[int(rng.integers(len(vessels)))]
+        if len(parent.points_mm) < 12:
+            continue
+        i = int(rng.integers(5, len(parent.points_mm) - 5))
+        d = parent.points_mm[i + 1] - parent.points_mm[i - 1]
+        h = np.arctan2(d[1], d[0]) + rng.choice([-1, 1]) * np.deg2rad(rng.uniform(25, 65))
+        pts = centreline(rng, parent.points_mm[i], h, rng.uniform(15, 70), grow)
+        w0 = max(0.6, parent.width_mm[i] * rng.uniform(0.45, 0.8))
+        width = _tapered(len(pts), w0, max(0.6, 0.7 * w0))
+        vessels.append(Vessel(pts, width, min(parent.contrast, rng.uniform(0.15, 0.3))))
+    # gap fillers: short free vessels wherever the network leaves a hole
+    for _ in range(400):
+        gap_mm, where = _largest_gap(vessels, bounds_mm)
+        if gap_mm <= MAX_GAP_MM:
+            break
+        h = rng.uniform(0, 2 * np.pi)
+        half = rng.uniform(15, 35)
+        fwd = centreline(rng, where, h, half, grow)
+        back = centreline(rng, where, h + np.pi, half, grow)
+        pts = np.vstack([back[::-1], fwd[1:]])
+        w0 = rng.uniform(0.7, 1.6)
+        vessels.append(Vessel(pts, _tapered(len(pts), w0, max(0.6, 0.75 * w0)), rng.uniform(0.15, 0.3)))
+    return vessels
+
+
+def _largest_gap(
+    vessels: list[Vessel], bounds_mm: tuple[float, float, float, float]
+) -> tuple[float, np.ndarray]:
+    """Return (distance mm, position mm) of the point of bounds_mm farthest from every centreline."""
+    x0, y0, x1, y1 = bounds_mm
+    w, h = int(np.ceil(x1 - x0)) + 1, int(np.ceil(y1 - y0)) + 1
+    occ = np.full((h, w), 255, np.uint8)
+    for v in vessels:
+        pts = np.round(v.points_mm - (x0, y0)).astype(np.int32)
+        cv2.polylines(occ, [pts.reshape(-1, 1, 2)], False, 0, 1)
+    dist = cv2.distanceTransform(occ, cv2.DIST_L2, 5)
+    iy, ix = np.unravel_index(int(np.argmax(dist)), dist.shape)
+    return float(dist[iy, ix]), np.array([x0 + ix, y0 + iy], dtype=np.float64)
+
+
+def vein_darkness(
+    vessels: list[Vessel], shape: tuple[int, int], origin_mm: tuple[float, float], px_per_mm: float
+) -> np.ndarray:
+    """Return the vessels' fractional darkening (float32, shape): smooth profiles, max where they cross."""
+    h, w = shape
+    dark = np.zeros(shape, np.float32)
+    shift = 4  # cv2 sub-pixel drawing: coordinates in 1/16 px
+    for v in vessels:
+        px = (v.points_mm - np.asarray(origin_mm)) * px_per_mm
+        wpx = v.width_mm * px_per_mm
+        sigma = max(BAND_LIMIT_SIGMA_PX, 0.22 * float(wpx.mean()))
+        pad = int(wpx.max() + 4 * sigma + 3)
+        bx0, by0 = int(np.floor(px[:, 0].min())) - pad, int(np.floor(px[:, 1].min())) - pad
+        bx1, by1 = int(np.ceil(px[:, 0].max())) + pad, int(np.ceil(px[:, 1].max())) + pad
+        cx0, cy0, cx1, cy1 = max(bx0, 0), max(by0, 0), min(bx1, w), min(by1, h)
+        if cx0 >= cx1 or cy0 >= cy1:
+            continue
+        canvas = np.zeros((by1 - by0, bx1 - bx0), np.uint8)
+        fixed = np.round((px - (bx0, by0)) * (1 << shift)).astype(np.int64)
+        for i in range(len(fixed) - 1):
+            thickness = max(1, round(0.5 * (wpx[i] + wpx[i + 1])))
+            p, q = (int(fixed[i, 0]), int(fixed[i, 1])), (int(fixed[i + 1, 0]), int(fixed[i + 1, 1]))
+            cv2.line(canvas, p, q, 255, thickness, cv2.LINE_AA, shift)
+        layer = cv2.GaussianBlur(canvas.astype(np.float32) * (v.contrast / 255.0), (0, 0), sigma)
+        sub = layer[cy0 - by0 : cy1 - by0, cx0 - bx0 : cx1 - bx0]
+        np.maximum(dark[cy0:cy1, cx0:cx1], sub, out=dark[cy0:cy1, cx0:cx1])
+    return dark
+
+
+def make_world(
+    rng: np.random.Generator, bounds_mm: tuple[float, float, float, float], px_per_mm: float = 8.0
+) -> World:
+    """Return a World covering bounds_mm (x_min, y_min, x_max, y_max in mm) at px_per_mm."""
+    x0, y0, x1, y1 = bounds_mm
+    w = int(np.ceil((x1 - x0) * px_per_mm))
+    h = int(np.ceil((y1 - y0) * px_per_mm))
+    skin = skin_texture(rng, (h, w), px_per_mm)
+    vessels = vein_network(rng, (x0, y0, x0 + w / px_per_mm, y0 + h / px_per_mm))
+    dark = vein_darkness(vessels, (h, w), (x0, y0), px_per_mm)
+    image = cv2.GaussianBlur(skin * (1.0 - dark), (0, 0), BAND_LIMIT_SIGMA_PX)
+    return World(np.clip(image, 0.02, 0.98).astype(np.float32), px_per_mm, (float(x0), float(y0)))

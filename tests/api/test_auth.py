@@ -1,0 +1,85 @@
+"""Bearer keys and scopes, ownership (404 for another key's session), signed viewer tokens."""
+
+from __future__ import annotations
+
+import time
+
+from api_helpers import INGEST, auth, calibration_doc, frame_bytes, upload
+from fastapi.testclient import TestClient
+
+from api.auth import fingerprint, make_viewer_token, verify_viewer_token
+
+SECRET = b"test-secret"
+
+
+def test_missing_or_unknown_key_is_401_with_challenge(client: TestClient) -> None:
+    for headers in ({}, auth("not-a-key"), {"Authorization": "Basic abc"}):
+        resp = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=headers)
+        assert resp.status_code == 401
+        assert resp.headers["WWW-Authenticate"].startswith("Bearer")
+        assert resp.json()["error"]["code"] == "unauthorized"
+
+
+def test_key_without_scope_is_403(client: TestClient) -> None:
+    resp = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=auth("view-key"))
+    assert resp.status_code == 403
+    assert resp.json()["error"]["code"] == "forbidden"
+
+
+def test_other_owner_gets_404_admin_sees_all(client: TestClient, session_id: str) -> None:
+    other = auth("ingest-key-b")
+    assert client.get(f"/v1/sessions/{session_id}", headers=other).status_code == 404
+    assert upload(client, session_id, 0, frame_bytes(), headers=other).status_code == 404
+    assert client.post(f"/v1/sessions/{session_id}/finish", headers=other).status_code == 404
+    # same answer as for an id that does not exist: existence does not leak
+    missing = client.get("/v1/sessions/" + "0" * 32, headers=other)
+    assert missing.status_code == 404 and missing.json() == client.get(
+        f"/v1/sessions/{session_id}", headers=other
+    ).json()
+    assert client.get(f"/v1/sessions/{session_id}", headers=auth("admin-key")).status_code == 200
+    assert client.get(f"/v1/sessions/{session_id}", headers=INGEST).status_code == 200
+    # a view-only key did not create the session, so it cannot see it either
+    assert client.get(f"/v1/sessions/{session_id}", headers=auth("view-key")).status_code == 404
+
+
+def test_session_owner_is_key_fingerprint_never_key(client: TestClient, session_id: str) -> None:
+    store = client.app.state.store  # type: ignore[attr-defined]
+    meta = store.get_meta(session_id)
+    assert meta.owner == fingerprint("ingest-key-a")
+    raw = (store.session_dir(session_id) / "session.json").read_text()
+    assert "ingest-key-a" not in raw
+
+
+def test_viewer_token_from_create_grants_view_only(client: TestClient) -> None:
+    resp = client.post("/v1/sessions", json={"calibration": calibration_doc(), "label": "x"}, headers=INGEST)
+    body = resp.json()
+    sid, token = body["id"], body["viewer_token"]
+    assert body["viewer_url"] == f"/viewer/{sid}?token={token}"
+    by_query = client.get(f"/v1/sessions/{sid}", params={"token": token})
+    assert by_query.status_code == 200
+    assert by_query.json()["label"] is None  # a shared link never reveals the (patient) label
+    assert client.get(f"/v1/sessions/{sid}", headers=auth(token)).status_code == 200
+    # view-only: it cannot upload or finish
+    assert upload(client, sid, 0, frame_bytes(), headers=auth(token)).status_code == 401
+    assert client.post(f"/v1/sessions/{sid}/finish", params={"token": token}).status_code == 401
+
+
+def test_viewer_token_expired_or_for_other_session_is_401(client: TestClient, session_id: str) -> None:
+    other = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()["id"]
+    expired = make_viewer_token(SECRET, session_id, ttl_s=60, now=time.time() - 120)
+    wrong_session = make_viewer_token(SECRET, other, ttl_s=60, now=time.time())
+    forged = make_viewer_token(b"another-secret", session_id, ttl_s=60, now=time.time())
+    for token in (expired, wrong_session, forged, "garbage", "99999999999.AAAA"):
+        resp = client.get(f"/v1/sessions/{session_id}", params={"token": token})
+        assert resp.status_code == 401, token
+        assert set(resp.json()["error"]) >= {"code", "message"}
+
+
+def test_token_roundtrip_and_tamper() -> None:
+    token = make_viewer_token(SECRET, "a" * 32, ttl_s=10, now=1000.0)
+    assert verify_viewer_token(SECRET, token, "a" * 32, now=1009.0)
+    assert not verify_viewer_token(SECRET, token, "a" * 32, now=1010.0)  # expiry is exclusive
+    assert not verify_viewer_token(SECRET, token, "b" * 32, now=1000.0)
+    expires, mac = token.split(".")
+    assert not verify_viewer_token(SECRET, f"{int(expires) + 100}.{mac}", "a" * 32, now=1000.0)
+    assert all(c.isalnum() or c in "-_." for c in token)  # URL-safe as is

@@ -1,0 +1,111 @@
+"""Session create/read/finish, error shapes, request ids and logs free of patient data."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import pytest
+from api_helpers import INGEST, calibration_doc, frame_bytes, upload
+from fastapi.testclient import TestClient
+
+from services import queue
+
+
+def _error(resp) -> dict:  # type: ignore[no-untyped-def]
+    body = resp.json()
+    assert set(body) == {"error"} and {"code", "message"} <= set(body["error"])
+    return body["error"]
+
+
+def test_create_session_201(client: TestClient) -> None:
+    resp = client.post("/v1/sessions", json={"calibration": calibration_doc(), "label": "L"}, headers=INGEST)
+    assert resp.status_code == 201
+    sid = resp.json()["id"]
+    assert len(sid) == 32 and int(sid, 16) >= 0
+    assert resp.headers["Location"] == f"/v1/sessions/{sid}"
+    state = client.get(f"/v1/sessions/{sid}", headers=INGEST).json()
+    assert state["status"] == "receiving"
+    assert (state["frames_received"], state["frames_processed"], state["frames_lost"]) == (0, 0, 0)
+    assert state["extent"] is None and state["label"] == "L"
+
+
+@pytest.mark.parametrize(
+    ("calibration", "needle"),
+    [
+        (calibration_doc(colour="red"), "colour"),
+        ({"camera_matrix": calibration_doc()["camera_matrix"], "px_per_mm": 8.0}, "image_size"),
+        (calibration_doc(px_per_mm=-1), "px_per_mm"),
+    ],
+)
+def test_bad_calibration_is_422_naming_field(client: TestClient, calibration: dict, needle: str) -> None:
+    resp = client.post("/v1/sessions", json={"calibration": calibration}, headers=INGEST)
+    assert resp.status_code == 422
+    err = _error(resp)
+    assert err["code"] == "invalid_calibration"
+    assert needle in err["message"] and err["message"].startswith("calibration")
+
+
+def test_unknown_body_field_is_422_and_bad_json_400(client: TestClient) -> None:
+    resp = client.post("/v1/sessions", json={"calibration": calibration_doc(), "labl": "x"}, headers=INGEST)
+    assert resp.status_code == 422
+    err = _error(resp)
+    assert err["code"] == "validation_error" and "labl" in err["message"]
+    assert err["details"][0]["field"] == "labl"
+    bad = client.post(
+        "/v1/sessions", content=b'{"calibration": ', headers={**INGEST, "Content-Type": "application/json"}
+    )
+    assert bad.status_code == 400 and _error(bad)["code"] == "malformed_json"
+
+
+def test_finish_sets_processing_queues_marker_and_closes_uploads(client: TestClient, session_id: str) -> None:
+    assert upload(client, session_id, 0, frame_bytes(0)).status_code == 202
+    resp = client.post(f"/v1/sessions/{session_id}/finish", headers=INGEST)
+    assert resp.status_code == 202 and resp.json()["status"] == "processing"
+    again = client.post(f"/v1/sessions/{session_id}/finish", headers=INGEST)
+    assert again.status_code == 202  # idempotent
+    state = client.get(f"/v1/sessions/{session_id}", headers=INGEST).json()
+    assert state["status"] == "processing" and state["finished"] and state["frames_received"] == 1
+    late = upload(client, session_id, 1, frame_bytes(1))
+    assert late.status_code == 409 and _error(late)["code"] == "session_finished"
+    forces = client.post(f"/v1/sessions/{session_id}/forces", json={"samples": [[0, 1, 1, 1, 1]]}, headers=INGEST)
+    assert forces.status_code == 409
+    r, prefix = client.app.state.redis, client.app.state.settings.redis_prefix  # type: ignore[attr-defined]
+    entries = r.xrange(queue.frames_stream(prefix))
+    kinds = [e[1][b"kind"] for e in entries]
+    assert kinds == [b"frame", b"finish"]  # the marker comes after the session's frame jobs, once
+
+
+def test_unknown_route_and_unhandled_error_use_error_shape(make_client: Callable[..., TestClient]) -> None:
+    client = make_client()
+
+    @client.app.get("/boom")  # type: ignore[attr-defined]
+    def boom() -> None:
+        raise RuntimeError("internal detail /secret/path")
+
+    assert _error(client.get("/nope"))["code"] == "not_found"
+    resp = client.get("/boom")
+    assert resp.status_code == 500
+    assert "secret" not in resp.text and _error(resp)["code"] == "internal_error"
+    assert resp.headers["X-Request-ID"]
+
+
+def test_request_id_and_logs_hold_no_patient_data(
+    client: TestClient, caplog: pytest.LogCaptureFixture
+) -> None:
+    label = "Patient Jane Q. Public, DOB 1970-01-01"
+    logger = logging.getLogger("veinmosaic")
+    logger.addHandler(caplog.handler)  # the app's logger does not propagate to the root
+    try:
+        resp = client.post(
+            "/v1/sessions", json={"calibration": calibration_doc(), "label": label},
+            headers={**INGEST, "X-Request-ID": "req-123"},
+        )
+        token = resp.json()["viewer_token"]
+        client.get(f"/v1/sessions/{resp.json()['id']}", params={"token": token})
+    finally:
+        logger.removeHandler(caplog.handler)
+    assert resp.headers["X-Request-ID"] == "req-123"
+    text = "\n".join(logger.handlers[0].formatter.format(r) for r in caplog.records)  # type: ignore[union-attr]
+    assert '"route": "/v1/sessions/{session_id}"' in text and '"request_id": "req-123"' in text
+    assert "Jane" not in text and token not in text and "camera_matrix" not in text
