@@ -25,6 +25,7 @@ class Edge:
     relative: Similarity
     sigma_mm: float
     loop: bool = False
+    inliers: int = 0
 
 
 @dataclass(frozen=True)

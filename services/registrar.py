@@ -140,6 +140,8 @@ class Registrar:
         return fit.transform, fit.inliers
 
     def _plausible(self, pose: Similarity, predicted: Similarity, lost_for: int) -> bool:
+        if len(self.order) < 2:  # no velocity yet: anything the window could still overlap
+            return abs(pose.t - predicted.t) < 2 * self.window_radius_mm
         limit = self.options.max_jump_mm * (1 + lost_for)
         return abs(pose.t - predicted.t) <= limit and abs(np.angle(pose.a / predicted.a)) <= np.radians(25)
 
@@ -173,30 +175,45 @@ class Registrar:
     def _add_keyframes(
         self, pf: PreparedFrame, predicted: Similarity, lost_for: int, blurred: bool
     ) -> FrameResult:
-        radius = 1.6 * self.window_radius_mm * (1 + lost_for)
-        count = self.options.neighbours + (4 if lost_for else 0)
+        latest = self.order[-1]
         edges: list[Edge] = []
-        total = 0
-        for other in self._candidates(predicted, count, radius):
+        anchor: Similarity | None = None
+        found = self._pairwise(pf, latest)
+        if found is not None:
+            pose = self.poses[latest].compose(found[0])
+            if abs(pose.t - self.poses[latest].t) < 2 * self.window_radius_mm:  # the frames can overlap
+                anchor = pose
+                edges.append(self._edge(pf, latest, *found))
+        centre = anchor if anchor is not None else predicted
+        radius = 1.6 * self.window_radius_mm * (1 + (lost_for if anchor is None else 0))
+        count = self.options.neighbours + (4 if anchor is None else 0)
+        for other in self._candidates(centre, count, radius)[1:]:
             found = self._pairwise(pf, other)
             if found is None:
                 continue
-            rel, n, rms = found
-            if not self._plausible(self.poses[other].compose(rel), predicted, lost_for):
+            pose = self.poses[other].compose(found[0])
+            if anchor is not None and abs(pose.t - anchor.t) > self.options.max_jump_mm / 5:
+                continue  # disagrees with the direct match to the latest frame: a false loop closure
+            if anchor is None and not self._plausible(pose, predicted, lost_for):
                 continue
-            load = 1.0 + 10.0 * max(pf.stretch, self.stretches[other])
-            sigma = (0.01 + rms / np.sqrt(n)) * load
-            edges.append(Edge(other, pf.index, rel, sigma, loop=self.order[-1] - other > self.options.loop_gap))
-            total += n
+            edges.append(self._edge(pf, other, *found))
         if not edges:
             return self._reject(pf, STATUS_REJECTED if blurred else STATUS_LOST, blurred)
         pose = place_node(self.poses, edges, pf.index)
+        total = sum(e.inliers for e in edges)
         result = self._accept(pf, pose, edges, total, blurred)
         if any(e.loop for e in edges):
             self.loops_since_refine += 1
         if self.options.refine and self.loops_since_refine and (self.loops_since_refine >= 3 or not blurred):
             return FrameResult(pf.index, result.status, result.pose, total, blurred, self.refine())
         return result
+
+    def _edge(self, pf: PreparedFrame, other: int, rel: Similarity, inliers: int, rms: float) -> Edge:
+        """Return the pose-graph edge of a match, its sigma from the evidence and the loads (heavier = looser)."""
+        load = 1.0 + 10.0 * max(pf.stretch, self.stretches[other])
+        sigma = (0.01 + rms / np.sqrt(inliers)) * load
+        loop = self.order[-1] - other > self.options.loop_gap
+        return Edge(other, pf.index, rel, sigma, loop=loop, inliers=inliers)
 
     def refine(self) -> tuple[int, ...]:
         """Re-optimise every placed pose on the pose graph; return the frames that moved (> MOVED_MM)."""

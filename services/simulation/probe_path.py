@@ -260,8 +260,9 @@ def free_hand_motion(
         longest = float(np.linalg.norm(np.diff(pos, axis=0), axis=1).max())
         if longest > spec.max_step_mm:
             pos *= spec.max_step_mm / longest
-    yaw_rel = smooth_noise(rng, n, spec.yaw_tau_frames, -spec.yaw_amplitude_deg, spec.yaw_amplitude_deg)
+    yaw_rel = smooth_noise(rng, n, spec.yaw_tau_frames)
     yaw_rel -= yaw_rel[0]
+    yaw_rel *= spec.yaw_amplitude_deg / max(float(np.abs(yaw_rel).max()), 1e-12)  # |yaw - yaw_0| <= amplitude
     # the route is laid out in frame 0's axes: rotate it into the world by frame 0's yaw
     centre = pos @ rotation(yaw0).T
     t = frame_times(rng, n, rng.uniform(5.0, 50.0))
