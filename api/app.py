@@ -16,7 +16,7 @@ import time
 import uuid
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Any
+from typing import Any, TextIO
 
 from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -36,6 +36,16 @@ _SANE_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
 _LOG_FIELDS = ("session", "seq", "bytes", "frames", "method", "route", "status", "duration_ms")
 
 
+class RequestIdFilter(logging.Filter):
+    """Stamp each record with the current request id (taken when the record is made, not when formatted)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """Add record.request_id; keep every record."""
+        if not hasattr(record, "request_id"):
+            record.request_id = request_id_var.get()
+        return True
+
+
 class JsonFormatter(logging.Formatter):
     """One JSON object per line: ts, level, logger, msg, request_id and the whitelisted extra fields."""
 
@@ -46,7 +56,7 @@ class JsonFormatter(logging.Formatter):
             "level": record.levelname,
             "logger": record.name,
             "msg": record.getMessage(),
-            "request_id": request_id_var.get(),
+            "request_id": getattr(record, "request_id", "-"),
         }
         doc.update({k: getattr(record, k) for k in _LOG_FIELDS if hasattr(record, k)})
         if record.exc_info:
@@ -54,14 +64,20 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(doc, default=str)
 
 
+def make_log_handler(stream: TextIO | None = None) -> logging.Handler:
+    """Return a handler writing JSON lines with request ids to `stream` (stderr by default)."""
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(JsonFormatter())
+    handler.addFilter(RequestIdFilter())
+    return handler
+
+
 def configure_logging(level: str) -> None:
     """Send "veinmosaic" logs to stderr as JSON lines (idempotent); silence uvicorn's raw-URL access log."""
     root = logging.getLogger("veinmosaic")
     root.setLevel(level.upper())
     if not any(isinstance(h.formatter, JsonFormatter) for h in root.handlers):
-        handler = logging.StreamHandler()
-        handler.setFormatter(JsonFormatter())
-        root.addHandler(handler)
+        root.addHandler(make_log_handler())
         root.propagate = False
     logging.getLogger("uvicorn.access").disabled = True
 

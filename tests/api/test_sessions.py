@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import io
+import json
 import logging
 from collections.abc import Callable
 
@@ -9,6 +11,7 @@ import pytest
 from api_helpers import INGEST, calibration_doc, frame_bytes, upload
 from fastapi.testclient import TestClient
 
+from api.app import make_log_handler
 from services import queue
 
 
@@ -68,7 +71,9 @@ def test_finish_sets_processing_queues_marker_and_closes_uploads(client: TestCli
     assert state["status"] == "processing" and state["finished"] and state["frames_received"] == 1
     late = upload(client, session_id, 1, frame_bytes(1))
     assert late.status_code == 409 and _error(late)["code"] == "session_finished"
-    forces = client.post(f"/v1/sessions/{session_id}/forces", json={"samples": [[0, 1, 1, 1, 1]]}, headers=INGEST)
+    forces = client.post(
+        f"/v1/sessions/{session_id}/forces", json={"samples": [[0, 1, 1, 1, 1]]}, headers=INGEST
+    )
     assert forces.status_code == 409
     r, prefix = client.app.state.redis, client.app.state.settings.redis_prefix  # type: ignore[attr-defined]
     entries = r.xrange(queue.frames_stream(prefix))
@@ -90,22 +95,27 @@ def test_unknown_route_and_unhandled_error_use_error_shape(make_client: Callable
     assert resp.headers["X-Request-ID"]
 
 
-def test_request_id_and_logs_hold_no_patient_data(
-    client: TestClient, caplog: pytest.LogCaptureFixture
-) -> None:
+def test_request_id_and_logs_hold_no_patient_data(client: TestClient) -> None:
     label = "Patient Jane Q. Public, DOB 1970-01-01"
+    buf = io.StringIO()
+    handler = make_log_handler(buf)
     logger = logging.getLogger("veinmosaic")
-    logger.addHandler(caplog.handler)  # the app's logger does not propagate to the root
+    logger.addHandler(handler)
     try:
         resp = client.post(
-            "/v1/sessions", json={"calibration": calibration_doc(), "label": label},
+            "/v1/sessions",
+            json={"calibration": calibration_doc(), "label": label},
             headers={**INGEST, "X-Request-ID": "req-123"},
         )
         token = resp.json()["viewer_token"]
         client.get(f"/v1/sessions/{resp.json()['id']}", params={"token": token})
+        upload(client, resp.json()["id"], 0, b"not an image")
     finally:
-        logger.removeHandler(caplog.handler)
+        logger.removeHandler(handler)
     assert resp.headers["X-Request-ID"] == "req-123"
-    text = "\n".join(logger.handlers[0].formatter.format(r) for r in caplog.records)  # type: ignore[union-attr]
-    assert '"route": "/v1/sessions/{session_id}"' in text and '"request_id": "req-123"' in text
+    lines = [json.loads(line) for line in buf.getvalue().splitlines()]
+    assert {"request_id": "req-123", "route": "/v1/sessions", "status": 201}.items() <= lines[1].items()
+    assert any(d.get("route") == "/v1/sessions/{session_id}" for d in lines)
+    assert any(d.get("status") == 415 for d in lines)
+    text = buf.getvalue()
     assert "Jane" not in text and token not in text and "camera_matrix" not in text
