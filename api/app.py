@@ -165,6 +165,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             close(app.state.redis)
+            log.info("stopped", extra={"route": "lifespan"})
 
     app = FastAPI(
         title="veinmosaic",

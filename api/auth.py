@@ -41,9 +41,7 @@ class Principal:
         """Return True if this principal may see the session: its owner, an admin, or a token for it."""
         if self.session_id is not None:
             return self.session_id == meta.id
-        return self.is_admin or (
-            self.fingerprint is not None and hmac.compare_digest(self.fingerprint, meta.owner)
-        )
+        return self.is_admin or (self.fingerprint is not None and hmac.compare_digest(self.fingerprint, meta.owner))
 
 
 def fingerprint(key: str) -> str:

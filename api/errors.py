@@ -29,9 +29,7 @@ class APIError(Exception):
     status = 500
     code = "internal_error"
 
-    def __init__(
-        self, message: str, *, code: str | None = None, headers: dict[str, str] | None = None
-    ) -> None:
+    def __init__(self, message: str, *, code: str | None = None, headers: dict[str, str] | None = None) -> None:
         super().__init__(message)
         self.message = message
         self.code = code or self.code
@@ -125,9 +123,7 @@ def validation_response(errors: list[dict[str, Any]]) -> JSONResponse:
     """Return 400 for unparseable JSON, else 422 naming every failing field (values never echoed)."""
     if any(e.get("type") == "json_invalid" for e in errors):
         return error_response(400, "malformed_json", "the request body is not valid JSON")
-    details = [
-        {"field": _field(tuple(e.get("loc", ()))), "message": str(e.get("msg", "invalid"))} for e in errors
-    ]
+    details = [{"field": _field(tuple(e.get("loc", ()))), "message": str(e.get("msg", "invalid"))} for e in errors]
     message = "; ".join(f"{d['field']}: {d['message']}" for d in details) or "invalid request"
     return error_response(422, "validation_error", message, details=details)
 
@@ -161,9 +157,7 @@ def add_exception_handlers(app: FastAPI) -> None:
 
     async def unhandled(request: Request, exc: Exception) -> JSONResponse:
         log.error("unhandled error", exc_info=(type(exc), exc, exc.__traceback__))
-        return error_response(
-            500, "internal_error", "internal error; the request id identifies it in the logs"
-        )
+        return error_response(500, "internal_error", "internal error; the request id identifies it in the logs")
 
     app.add_exception_handler(APIError, api_error)
     for cls in SERVICE_ERRORS:

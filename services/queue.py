@@ -95,9 +95,7 @@ def queue_depth(r: redis.Redis, prefix: str = DEFAULT_PREFIX) -> int:
     return int(r.xlen(stream))
 
 
-def record_frame_result(
-    r: redis.Redis, session_id: str, seq: int, lost: bool, prefix: str = DEFAULT_PREFIX
-) -> bool:
+def record_frame_result(r: redis.Redis, session_id: str, seq: int, lost: bool, prefix: str = DEFAULT_PREFIX) -> bool:
     """Count frame `seq` as processed (and lost if so) exactly once; return True if it was counted now."""
     keys = [session_key(session_id, prefix), f"{session_key(session_id, prefix)}:done"]
     return bool(r.eval(_RECORD_ONCE, 2, *keys, str(int(seq)), "1" if lost else "0"))

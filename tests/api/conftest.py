@@ -32,9 +32,7 @@ def backend(request: pytest.FixtureRequest) -> str:
 
 
 @pytest.fixture
-def make_client(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, backend: str
-) -> Iterator[Callable[..., TestClient]]:
+def make_client(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, backend: str) -> Iterator[Callable[..., TestClient]]:
     """Return a factory of started TestClients (lifespan run) with settings overrides; cleans Redis keys."""
     _clear_env(monkeypatch)
     prefix = f"vmtest:{uuid.uuid4().hex}:"

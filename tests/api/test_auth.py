@@ -34,8 +34,7 @@ def test_other_owner_gets_404_admin_sees_all(client: TestClient, session_id: str
     # same answer as for an id that does not exist: existence does not leak
     missing = client.get("/v1/sessions/" + "0" * 32, headers=other)
     assert (
-        missing.status_code == 404
-        and missing.json() == client.get(f"/v1/sessions/{session_id}", headers=other).json()
+        missing.status_code == 404 and missing.json() == client.get(f"/v1/sessions/{session_id}", headers=other).json()
     )
     assert client.get(f"/v1/sessions/{session_id}", headers=auth("admin-key")).status_code == 200
     assert client.get(f"/v1/sessions/{session_id}", headers=INGEST).status_code == 200

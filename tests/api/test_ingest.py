@@ -69,9 +69,7 @@ def test_frame_stored_but_never_queued_is_queued_by_retry(client: TestClient, se
         (b"%PDF-1.4 hello", 415, "unsupported_media_type"),
     ],
 )
-def test_bad_images_rejected(
-    client: TestClient, session_id: str, data: bytes, status: int, code: str
-) -> None:
+def test_bad_images_rejected(client: TestClient, session_id: str, data: bytes, status: int, code: str) -> None:
     resp = upload(client, session_id, 0, data)
     assert resp.status_code == status
     assert resp.json()["error"]["code"] == code
@@ -162,9 +160,7 @@ def test_overlapping_force_batches_merged(client: TestClient, session_id: str) -
     for t in (t_late, t_early):
         samples = [[float(ti), 1.0, 2.0, 3.0, 4.0] for ti in t]
         imu = [[float(ti), 0.5, -0.5] for ti in t]
-        resp = client.post(
-            f"/v1/sessions/{session_id}/forces", json={"samples": samples, "imu": imu}, headers=INGEST
-        )
+        resp = client.post(f"/v1/sessions/{session_id}/forces", json={"samples": samples, "imu": imu}, headers=INGEST)
         assert resp.status_code == 202 and resp.json() == {"accepted": 10, "imu_accepted": 10}
     store = client.app.state.store  # type: ignore[attr-defined]
     t, f = store.merged_forces(session_id)

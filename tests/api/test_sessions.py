@@ -71,9 +71,7 @@ def test_finish_sets_processing_queues_marker_and_closes_uploads(client: TestCli
     assert state["status"] == "processing" and state["finished"] and state["frames_received"] == 1
     late = upload(client, session_id, 1, frame_bytes(1))
     assert late.status_code == 409 and _error(late)["code"] == "session_finished"
-    forces = client.post(
-        f"/v1/sessions/{session_id}/forces", json={"samples": [[0, 1, 1, 1, 1]]}, headers=INGEST
-    )
+    forces = client.post(f"/v1/sessions/{session_id}/forces", json={"samples": [[0, 1, 1, 1, 1]]}, headers=INGEST)
     assert forces.status_code == 409
     r, prefix = client.app.state.redis, client.app.state.settings.redis_prefix  # type: ignore[attr-defined]
     entries = r.xrange(queue.frames_stream(prefix))

@@ -1,0 +1,176 @@
+"""A real HTTP client for the v1 API (spec §5): what `veinmosaic upload` and hospital integrators use.
+
+It uploads a scan folder as a device would: forces a little ahead of each frame, frames in time order
+(several in flight), retrying on 503 (honouring Retry-After), on 429 and on dropped connections; every
+upload is idempotent on the server (the same seq with the same bytes is a no-op), so retries are safe.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from services.scan_folder import frame_name, read_scan_folder
+
+RETRY_STATUSES = {429, 502, 503, 504}
+FORCE_LEAD_S = 0.5  # forces are sent this far ahead of each frame's timestamp
+
+
+class ApiError(RuntimeError):
+    """An error answer from the API: status, code and message from the spec's error body."""
+
+    def __init__(self, status: int, code: str, message: str) -> None:
+        super().__init__(f"HTTP {status} {code}: {message}")
+        self.status, self.code, self.message = status, code, message
+
+
+class VeinmosaicClient:
+    """A thin, retrying client for one server and one API key."""
+
+    def __init__(self, base_url: str, key: str, timeout_s: float = 30.0, max_retries: int = 8) -> None:
+        self.base_url = base_url.rstrip("/")
+        self.http = httpx.Client(base_url=self.base_url, headers={"Authorization": f"Bearer {key}"}, timeout=timeout_s)
+        self.max_retries = max_retries
+
+    def close(self) -> None:
+        """Close the connection pool."""
+        self.http.close()
+
+    def request(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
+        """Return the response of a request, retrying transient failures; raise ApiError on 4xx/5xx."""
+        delay = 0.2
+        for attempt in range(self.max_retries + 1):
+            try:
+                response = self.http.request(method, url, **kwargs)
+            except (httpx.ConnectError, httpx.ReadError, httpx.RemoteProtocolError, httpx.TimeoutException):
+                if attempt == self.max_retries:
+                    raise
+                time.sleep(delay)
+                delay = min(delay * 2, 5.0)
+                continue
+            if response.status_code in RETRY_STATUSES and attempt < self.max_retries:
+                wait = float(response.headers.get("Retry-After", delay))
+                time.sleep(min(wait, 30.0))
+                delay = min(delay * 2, 5.0)
+                continue
+            if response.status_code >= 400:
+                try:
+                    err = response.json()["error"]
+                    raise ApiError(response.status_code, err.get("code", ""), err.get("message", ""))
+                except (ValueError, KeyError, TypeError):
+                    raise ApiError(response.status_code, "http_error", response.text[:200]) from None
+            return response
+        raise AssertionError("unreachable")
+
+    def create_session(self, calibration: dict[str, Any], label: str) -> dict[str, Any]:
+        """Return the new session ({"id", "viewer_url", ...})."""
+        return self.request("POST", "/v1/sessions", json={"calibration": calibration, "label": label}).json()
+
+    def upload_frame(self, session_id: str, seq: int, t_s: float, data: bytes, filename: str) -> int:
+        """Upload one frame; return the HTTP status (202 new, 200 already there)."""
+        files = {"image": (filename, data, "application/octet-stream")}
+        meta = json.dumps({"seq": int(seq), "t_s": float(t_s)})
+        return self.request("POST", f"/v1/sessions/{session_id}/frames", files=files, data={"meta": meta}).status_code
+
+    def upload_forces(self, session_id: str, samples: np.ndarray, imu: np.ndarray | None = None) -> None:
+        """Upload a batch of force samples (rows t_s, f1..f4) and optionally IMU rows (t_s, tx, ty)."""
+        body: dict[str, Any] = {"samples": np.asarray(samples, float).tolist()}
+        if imu is not None and len(imu):
+            body["imu"] = np.asarray(imu, float).tolist()
+        self.request("POST", f"/v1/sessions/{session_id}/forces", json=body)
+
+    def finish(self, session_id: str) -> None:
+        """Tell the server no more uploads come for the session."""
+        self.request("POST", f"/v1/sessions/{session_id}/finish")
+
+    def session(self, session_id: str) -> dict[str, Any]:
+        """Return the session's state (status, frames received/processed/lost, extent)."""
+        return self.request("GET", f"/v1/sessions/{session_id}").json()
+
+    def post_reference(self, session_id: str, csv_text: str) -> dict[str, Any]:
+        """Upload reference.csv; return the accuracy report."""
+        headers = {"Content-Type": "text/csv"}
+        return self.request(
+            "POST", f"/v1/sessions/{session_id}/reference", content=csv_text.encode(), headers=headers
+        ).json()
+
+    def wait_done(
+        self, session_id: str, timeout_s: float = 600.0, progress: Callable[[dict[str, Any]], None] | None = None
+    ) -> dict[str, Any]:
+        """Poll until the session is done (or failed); return its final state; raise TimeoutError."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            state = self.session(session_id)
+            if progress:
+                progress(state)
+            if state.get("status") in ("done", "failed"):
+                return state
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"session not done after {timeout_s:.0f} s")
+            time.sleep(0.5)
+
+
+def upload_scan_folder(
+    client: VeinmosaicClient,
+    scan_dir: str | Path,
+    label: str = "",
+    realtime: float = 0.0,
+    parallel: int = 4,
+    progress: Callable[[int, int], None] | None = None,
+    on_session: Callable[[dict[str, Any]], None] | None = None,
+) -> str:
+    """Upload a scan folder (spec §3) as a device would; return the session id.
+
+    realtime > 0 paces frames at that multiple of the recorded frame rate (1.0 = as recorded); 0 = as fast
+    as the server accepts. Frames go in time order with `parallel` in flight; forces lead them.
+    """
+    scan_dir = Path(scan_dir)
+    scan = read_scan_folder(scan_dir)
+    calibration = json.loads((scan_dir / "calibration.json").read_text())
+    created = client.create_session(calibration, label)
+    session_id = created["id"]
+    if on_session:
+        on_session(created)
+    forces = np.column_stack([scan.force_t_s, scan.forces_n])
+    forces = forces[np.argsort(forces[:, 0], kind="stable")]
+    imu = None
+    if scan.imu_t_s is not None and scan.imu_tilt_deg is not None:
+        imu = np.column_stack([scan.imu_t_s, scan.imu_tilt_deg])
+    order = np.argsort(scan.frame_t_s, kind="stable")
+    sent_forces = 0
+    t0_wall, t0_scan = time.monotonic(), float(scan.frame_t_s[order[0]])
+    done = 0
+    with ThreadPoolExecutor(max_workers=parallel) as pool:
+        pending = []
+        for i in order:
+            t = float(scan.frame_t_s[i])
+            if realtime > 0:
+                time.sleep(max(0.0, (t - t0_scan) / realtime - (time.monotonic() - t0_wall)))
+            # the last sample is held back so the final batch (which carries the IMU rows) is never empty
+            upto = min(int(np.searchsorted(forces[:, 0], t + FORCE_LEAD_S, side="right")), len(forces) - 1)
+            if upto > sent_forces:
+                client.upload_forces(session_id, forces[sent_forces:upto])
+                sent_forces = upto
+            seq = int(scan.frame_seq[i])
+            path = next(scan_dir.glob(frame_name(seq, "*")))
+            pending.append(pool.submit(client.upload_frame, session_id, seq, t, path.read_bytes(), path.name))
+            while len(pending) >= parallel * 2:
+                pending.pop(0).result()
+                done += 1
+                if progress:
+                    progress(done, len(scan))
+        for fut in pending:
+            fut.result()
+            done += 1
+            if progress:
+                progress(done, len(scan))
+    client.upload_forces(session_id, forces[sent_forces:], imu)
+    client.finish(session_id)
+    return session_id
