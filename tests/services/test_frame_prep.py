@@ -69,7 +69,7 @@ def test_flat_field_recovers_synthetic_vignetting() -> None:
     # the median of 15 textured frames, smoothed at 15 px: measured median 1.2%, worst 8.7% (at the rim)
     assert np.median(err) < 0.03 < np.median(untouched)
     assert np.percentile(err, 95) < 0.06
-    assert np.all(flat[~inside] == 1.0)
+    assert np.ptp(flat[~inside]) == 0.0 and flat[~inside][0] > 0.5  # a harmless constant outside
 
 
 def test_flat_field_recovers_the_simulators_vignette(scan: Scan) -> None:

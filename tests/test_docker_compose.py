@@ -1,0 +1,64 @@
+"""docker-compose.yml cannot run here (no Docker engine): check that it parses, that every command it runs
+exists in the package, and that every variable it sets is a real setting."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import tomllib
+from pathlib import Path
+
+import yaml
+
+from api.cli import build_parser
+from api.settings import Settings
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def compose() -> dict:
+    return yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+
+
+def test_compose_has_redis_with_aof_api_and_scalable_worker() -> None:
+    services = compose()["services"]
+    assert set(services) == {"redis", "api", "worker"}
+    assert services["redis"]["image"].startswith("redis:7")
+    assert "--appendonly" in services["redis"]["command"] and "yes" in services["redis"]["command"]
+    assert "container_name" not in services["worker"], "a fixed container name would prevent --scale"
+    assert "ports" not in services["worker"]
+    for name in ("redis", "api"):
+        assert services[name]["healthcheck"]["test"], f"{name} needs a health check"
+    volumes = {v.split(":")[0] for v in services["api"]["volumes"]}
+    assert volumes == {v.split(":")[0] for v in services["worker"]["volumes"]}, "api and workers share storage"
+
+
+def test_every_command_exists_in_the_package() -> None:
+    services = compose()["services"]
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    subcommands = set(build_parser()._subparsers._group_actions[0].choices)
+    for name in ("api", "worker"):
+        command = services[name]["command"]
+        if command[0] == "veinmosaic":
+            assert "veinmosaic" in scripts
+            assert command[1] in subcommands, f"{name}: veinmosaic has no subcommand {command[1]!r}"
+        elif command[0] == "uvicorn":
+            assert importlib.util.find_spec("uvicorn") is not None
+            module, attr = command[1].split(":")
+            assert hasattr(importlib.import_module(module), attr), f"{name}: {command[1]} does not exist"
+        else:
+            raise AssertionError(f"{name}: unexpected command {command[0]!r}")
+
+
+def test_every_variable_is_a_real_setting() -> None:
+    fields = Settings.model_fields
+    env_names = set()
+    for name, field in fields.items():
+        env_names.add(f"VEINMOSAIC_{name.upper()}")
+        alias = field.validation_alias
+        if alias is not None:
+            env_names.update(str(a) for a in getattr(alias, "choices", [alias]))
+    for service in ("api", "worker"):
+        env = compose()["services"][service]["environment"]
+        for var in env:
+            assert var in env_names, f"{service} sets {var}, which no setting reads"
