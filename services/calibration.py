@@ -145,9 +145,7 @@ def parse_calibration(doc: Any) -> Calibration:
     return Calibration(**kwargs)
 
 
-def default_calibration(
-    width: int = 400, height: int = 320, px_per_mm: float = 8.0, **overrides: Any
-) -> Calibration:
+def default_calibration(width: int = 400, height: int = 320, px_per_mm: float = 8.0, **overrides: Any) -> Calibration:
     """Return a calibration with a centred principal point and the paper's force constants (for tests)."""
     f = 1.0 * max(width, height)
     base = Calibration(

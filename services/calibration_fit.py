@@ -163,24 +163,19 @@ def fit_hooke(
     if len(t) == 0:
         raise ValueError("no IMU sample falls inside the force record")
     f = interpolate_forces(ft, forces_n, t)
-    g = np.concatenate(
-        [2.0 * s_y * np.sin(np.radians(tilt[:, 0])), 2.0 * s_x * np.sin(np.radians(tilt[:, 1]))]
-    )
+    g = np.concatenate([2.0 * s_y * np.sin(np.radians(tilt[:, 0])), 2.0 * s_x * np.sin(np.radians(tilt[:, 1]))])
     df = np.concatenate([f[:, 1] - f[:, 0], f[:, 3] - f[:, 2]])
     tilted = np.concatenate([np.abs(tilt[:, 0]), np.abs(tilt[:, 1])]) >= MIN_TILT_DEG
     g, df = g[tilted], df[tilted]
     if len(g) < MIN_HOOKE_SAMPLES:
         raise ValueError(
-            f"not enough tilt: {len(g)} IMU axis-samples tilted >= {MIN_TILT_DEG} deg "
-            f"(need {MIN_HOOKE_SAMPLES})"
+            f"not enough tilt: {len(g)} IMU axis-samples tilted >= {MIN_TILT_DEG} deg (need {MIN_HOOKE_SAMPLES})"
         )
     kappa = float(np.sum(df * g) / np.sum(g * g))
     if not kappa > 0.0:
         raise ValueError(f"force differences do not follow the tilt (fitted kappa = {kappa:.3g} N/mm)")
     residual = df - kappa * g
-    return HookeFit(
-        hooke_n_per_mm=kappa, n_samples=len(g), residual_rms_n=float(np.sqrt(np.mean(residual**2)))
-    )
+    return HookeFit(hooke_n_per_mm=kappa, n_samples=len(g), residual_rms_n=float(np.sqrt(np.mean(residual**2))))
 
 
 # ------------------------------------------------------------------------------------- image measurement
@@ -375,9 +370,7 @@ def format_calibration_report(result: CalibrationResult) -> str:
             f"nu = {result.calibration.poisson_ratio:g}, A = {result.calibration.scanner_area_m2:g} m^2)"
         )
         ref = "?" if result.reference_seq is None else str(result.reference_seq)
-        lines.append(
-            f"  reference frame seq {ref} at {m.ref_load_n:.3f} N; {m.n_frames} frames pressed normally"
-        )
+        lines.append(f"  reference frame seq {ref} at {m.ref_load_n:.3f} N; {m.n_frames} frames pressed normally")
         lines.append(f"  {'seq':>7} {'load N':>9} {'scale meas':>11} {'scale model':>12} {'residual':>10}")
         seqs = list(result.modulus_seq) if len(result.modulus_seq) == m.n_frames else ["-"] * m.n_frames
         for sq, f, s, p, r in zip(seqs, m.loads_n, m.scales, m.predicted_scales, m.residuals, strict=True):
@@ -395,12 +388,8 @@ def format_calibration_report(result: CalibrationResult) -> str:
     if before is not None:
         lines.append("")
         lines.append("Calibration values (before -> after):")
-        lines.append(
-            f"  young_modulus_kpa: {before.young_modulus_kpa:g} -> {result.calibration.young_modulus_kpa:g}"
-        )
-        lines.append(
-            f"  hooke_n_per_mm:    {before.hooke_n_per_mm:g} -> {result.calibration.hooke_n_per_mm:g}"
-        )
+        lines.append(f"  young_modulus_kpa: {before.young_modulus_kpa:g} -> {result.calibration.young_modulus_kpa:g}")
+        lines.append(f"  hooke_n_per_mm:    {before.hooke_n_per_mm:g} -> {result.calibration.hooke_n_per_mm:g}")
     if result.notes:
         lines.append("")
         lines.append("Notes:")

@@ -30,9 +30,7 @@ def distort_points_px(ideal_px: np.ndarray, calib: Calibration) -> np.ndarray:
         # rational / thin-prism / tilted models (8, 12, 14 coefficients): let OpenCV evaluate the whole
         # model, the same one undistort_points_px inverts (the closed form below has k1, k2, p1, p2, k3 only)
         flat = p.reshape(-1, 2)
-        obj = np.column_stack(
-            [(flat[:, 0] - K[0, 2]) / K[0, 0], (flat[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(flat))]
-        )
+        obj = np.column_stack([(flat[:, 0] - K[0, 2]) / K[0, 0], (flat[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(flat))])
         img, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, calib.D)
         return img.reshape(p.shape)
     d = np.zeros(5)

@@ -32,9 +32,7 @@ class ComplianceFit:
 
 
 def _log_q(loads: np.ndarray, c_nominal: float, c_true: float) -> np.ndarray:
-    return np.log(np.clip(1 - c_nominal * loads, 1e-3, None)) - np.log(
-        np.clip(1 - c_true * loads, 1e-3, None)
-    )
+    return np.log(np.clip(1 - c_nominal * loads, 1e-3, None)) - np.log(np.clip(1 - c_true * loads, 1e-3, None))
 
 
 def fit_compliance(scales: np.ndarray, loads_n: np.ndarray, c_nominal: float) -> ComplianceFit | None:

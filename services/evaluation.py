@@ -70,9 +70,7 @@ def reference_path_length_mm(reference_mm: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(known, axis=0), axis=1)))
 
 
-def evaluate_path(
-    estimate_mm: np.ndarray, registered: np.ndarray, reference_mm: np.ndarray
-) -> AccuracyReport:
+def evaluate_path(estimate_mm: np.ndarray, registered: np.ndarray, reference_mm: np.ndarray) -> AccuracyReport:
     """Return the AccuracyReport (mm, %) of an estimated path against a reference, no alignment (spec §4).
 
     estimate_mm (N, 2) with NaN rows for frames not placed; registered (N,) bool; reference_mm (N, 2) with
@@ -86,9 +84,7 @@ def evaluate_path(
     reg = reg.astype(bool)
     n = len(est)
     if len(ref) != n or len(reg) != n:
-        raise ValueError(
-            f"length mismatch: estimate has {n} frames, registered {len(reg)}, reference {len(ref)}"
-        )
+        raise ValueError(f"length mismatch: estimate has {n} frames, registered {len(reg)}, reference {len(ref)}")
     if n == 0:
         raise ValueError("no frames to evaluate")
     has_ref = np.all(np.isfinite(ref), axis=1)

@@ -43,9 +43,7 @@ def modified_asift_views() -> tuple[list[float], list[float]]:
 
 
 def _detector(kind: str, max_features: int, contrast_threshold: float) -> cv2.Feature2D:
-    sift = cv2.SIFT_create(
-        nfeatures=max_features, edgeThreshold=EDGE_THRESHOLD, contrastThreshold=contrast_threshold
-    )
+    sift = cv2.SIFT_create(nfeatures=max_features, edgeThreshold=EDGE_THRESHOLD, contrastThreshold=contrast_threshold)
     if kind == "sift":
         return sift
     if kind == "asift":

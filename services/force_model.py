@@ -82,9 +82,7 @@ def rectify_points_mm(xy_obs_mm: np.ndarray, state: LoadState, calib: Calibratio
     return xy * rectify_factor(xy, state, calib)[..., None]
 
 
-def deform_points_mm(
-    xy_mm: np.ndarray, state: LoadState, calib: Calibration, iterations: int = 8
-) -> np.ndarray:
+def deform_points_mm(xy_mm: np.ndarray, state: LoadState, calib: Calibration, iterations: int = 8) -> np.ndarray:
     """Return observed positions (mm) of undeformed positions (..., 2) in mm: the inverse of rectification.
 
     Solves p = p' (1 - c F(p')) for p' by fixed-point iteration p' <- p / (1 - c F(p')); the map is a

@@ -18,9 +18,7 @@ class MethodOptions:
     features: str = "sift"  # sift | modified-asift | asift
     max_features: int = 1000  # SIFT cap per view (0 = no cap)
     registration: str = "keyframes"  # previous (frame-to-frame) | mosaic (paper) | keyframes (pose graph)
-    rigid_stitch: bool = (
-        False  # stitch with yaw + x/y only (the paper's correction) instead of the similarity
-    )
+    rigid_stitch: bool = False  # stitch with yaw + x/y only (the paper's correction) instead of the similarity
     refine: bool = True  # global pose-graph refinement on loop closures (beyond the paper)
     self_calibrate: bool = True  # fit the tissue compliance from registration scales (beyond the paper)
     flat_field: bool = True  # divide out the IR ring's vignetting before blending

@@ -96,9 +96,7 @@ class SparseCanvas:
         """Add (sign=+1) or remove (sign=-1) a frame at a pose; return the tile keys it touched."""
         affine = self.frame_to_canvas(pose, layers)
         w = layers.weight
-        src = np.dstack([layers.intensity * w, w, layers.force_n * w, (w > 0).astype(np.float32)]).astype(
-            np.float32
-        )
+        src = np.dstack([layers.intensity * w, w, layers.force_n * w, (w > 0).astype(np.float32)]).astype(np.float32)
         touched = []
         for key in self.footprint_tiles(affine, w.shape):
             shift = affine.copy()
@@ -135,9 +133,7 @@ class SparseCanvas:
         c0, r0, c1, r1 = ext
         big = np.zeros(((r1 - r0 + 1) * TILE_PX, (c1 - c0 + 1) * TILE_PX, PLANES), np.float32)
         for (c, r), tile in self.tiles.items():
-            big[(r - r0) * TILE_PX : (r - r0 + 1) * TILE_PX, (c - c0) * TILE_PX : (c - c0 + 1) * TILE_PX] = (
-                tile
-            )
+            big[(r - r0) * TILE_PX : (r - r0 + 1) * TILE_PX, (c - c0) * TILE_PX : (c - c0 + 1) * TILE_PX] = tile
         covered = big[..., 1] > min_weight
         ys, xs = np.nonzero(covered)
         y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1

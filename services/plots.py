@@ -120,9 +120,7 @@ def plot_paths_over_mosaic(
     est_line = est[placed]
     if ref is not None:
         ref_line = _finite_rows(ref)
-        ax.plot(
-            ref_line[:, 0], ref_line[:, 1], "-", color=REFERENCE_COLOR, lw=2.0, label="reference", zorder=2
-        )
+        ax.plot(ref_line[:, 0], ref_line[:, 1], "-", color=REFERENCE_COLOR, lw=2.0, label="reference", zorder=2)
         extent_pts.append(ref_line)
     if len(est_line):
         ax.plot(est_line[:, 0], est_line[:, 1], "-", color=ESTIMATE_COLOR, lw=2.0, label="estimate", zorder=3)
@@ -168,21 +166,15 @@ def plot_error_along_scan(path_png: str | Path, report: AccuracyReport) -> None:
     idx = np.arange(len(errors))
     ax.plot(idx, errors, ".-", color=ESTIMATE_COLOR, lw=1.5, ms=4, label="error")
     if math.isfinite(report.rmse_mm):
-        ax.axhline(
-            report.rmse_mm, color=REFERENCE_COLOR, ls="--", lw=1.5, label=f"RMSE {report.rmse_mm:.3f} mm"
-        )
+        ax.axhline(report.rmse_mm, color=REFERENCE_COLOR, ls="--", lw=1.5, label=f"RMSE {report.rmse_mm:.3f} mm")
     for j, (a, b) in enumerate(_runs(~np.isfinite(errors))):  # frames not registered or without a reference
-        ax.axvspan(
-            a - 0.5, b - 0.5, color=UNREGISTERED_COLOR, alpha=0.25, lw=0, label=None if j else "not compared"
-        )
+        ax.axvspan(a - 0.5, b - 0.5, color=UNREGISTERED_COLOR, alpha=0.25, lw=0, label=None if j else "not compared")
     ax.set_xlim(-0.5, max(len(errors) - 0.5, 0.5))
     top = np.nanmax(errors) if np.any(np.isfinite(errors)) else 1.0
     ax.set_ylim(0.0, max(float(top) * 1.1, 1e-3))
     ax.set_xlabel("frame index")
     ax.set_ylabel("error (mm)")
-    ax.set_title(
-        f"Error along the scan: max {report.max_error_mm:.3f} mm, final drift {report.final_drift_mm:.3f} mm"
-    )
+    ax.set_title(f"Error along the scan: max {report.max_error_mm:.3f} mm, final drift {report.final_drift_mm:.3f} mm")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="upper left", fontsize="small")
     fig.tight_layout()

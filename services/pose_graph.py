@@ -137,9 +137,7 @@ def optimise_poses(
     return GraphSolution(poses, weights, resid, it)
 
 
-def place_node(
-    placed: dict[int, Similarity], edges: list[Edge], node: int, lever_mm: float = 20.0
-) -> Similarity:
+def place_node(placed: dict[int, Similarity], edges: list[Edge], node: int, lever_mm: float = 20.0) -> Similarity:
     """Return the pose of `node` that best fits its edges to already placed nodes (their poses held)."""
     num_a, num_t, den = 0j, 0j, 0.0
     for e in edges:

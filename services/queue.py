@@ -106,3 +106,139 @@ def session_counters(r: redis.Redis, session_id: str, prefix: str = DEFAULT_PREF
     raw = r.hgetall(session_key(session_id, prefix))
     get = {(k.decode() if isinstance(k, bytes) else k): int(v) for k, v in raw.items()}
     return {"processed": get.get("processed", 0), "lost": get.get("lost", 0)}
+
+
+# ----- worker streams and keys (added for the workers; the names above are unchanged) -----------------------
+# <prefix>register             stream of registration kicks {"kind": "register", "session", "version"}
+# <prefix>jobs                 stream of reprocess jobs {"kind": "reprocess", "job", "session", "options" (json)}
+# <prefix>dead                 dead-letter stream: entries that failed too often, with "stream", "entry", "error"
+# <prefix>delayed              ZSET of jobs to put back on a stream at a time (score = Unix seconds)
+# <prefix>events:<id>          stream of progress events of a session (MAXLEN ~ 1000)
+# <prefix>metrics              hash of counters (Prometheus totals)
+# <prefix>job:<id>             hash {state, done, total, session, version, error, created, options}
+# <prefix>batch:<id>           hash {jobs: json list of job ids, created}
+# <prefix>lease:<id>:<v>       the registration lease of (session, results version): "<consumer>:<token>"
+# <prefix>fence:<id>:<v>       the fencing token counter of that lease (INCR on every acquisition)
+# <prefix>kick:<id>:<v>        flag: work arrived while another worker held the lease
+
+EVENTS_MAXLEN = 1000
+JOB_STATES = ("queued", "running", "done", "failed")
+
+_ENQUEUE_JOB = """
+redis.call('HSET', KEYS[2], 'state', 'queued', 'done', 0, 'total', 0, 'session', ARGV[2],
+           'options', ARGV[3], 'created', ARGV[4])
+redis.call('XADD', KEYS[1], '*', 'kind', 'reprocess', 'job', ARGV[1], 'session', ARGV[2], 'options', ARGV[3])
+return 1
+"""
+
+
+def register_stream(prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the registration-kick stream."""
+    return f"{prefix}register"
+
+
+def jobs_stream(prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the reprocess-job stream."""
+    return f"{prefix}jobs"
+
+
+def dead_stream(prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the dead-letter stream."""
+    return f"{prefix}dead"
+
+
+def delayed_key(prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the ZSET of delayed jobs."""
+    return f"{prefix}delayed"
+
+
+def events_stream(session_id: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of a session's event stream (SSE ids are its entry ids)."""
+    return f"{prefix}events:{session_id}"
+
+
+def metrics_key(prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the metrics hash."""
+    return f"{prefix}metrics"
+
+
+def job_key(job_id: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of a reprocess job's state hash."""
+    return f"{prefix}job:{job_id}"
+
+
+def batch_key(batch_id: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of a batch's hash."""
+    return f"{prefix}batch:{batch_id}"
+
+
+def lease_key(session_id: str, version: int, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the registration lease of (session, version)."""
+    return f"{prefix}lease:{session_id}:{int(version)}"
+
+
+def fence_key(session_id: str, version: int, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the fencing-token counter of (session, version)."""
+    return f"{prefix}fence:{session_id}:{int(version)}"
+
+
+def kick_key(session_id: str, version: int, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the "work arrived while leased" flag of (session, version)."""
+    return f"{prefix}kick:{session_id}:{int(version)}"
+
+
+def worker_streams(prefix: str = DEFAULT_PREFIX) -> tuple[str, str, str]:
+    """Return the streams workers read with the consumer group: frames, register, jobs."""
+    return frames_stream(prefix), register_stream(prefix), jobs_stream(prefix)
+
+
+def ensure_groups(r: redis.Redis, prefix: str = DEFAULT_PREFIX) -> None:
+    """Create the consumer group "workers" on every worker stream (frames, register, jobs); idempotent."""
+    for stream in worker_streams(prefix):
+        try:
+            r.xgroup_create(stream, GROUP, id="0", mkstream=True)
+        except redis.ResponseError as exc:
+            if "BUSYGROUP" not in str(exc):
+                raise
+
+
+def ack_delete(r: redis.Redis, stream: str, *entry_ids: str | bytes) -> None:
+    """Acknowledge entries of the group and delete them from the stream (so XLEN = outstanding work)."""
+    if not entry_ids:
+        return
+    pipe = r.pipeline(transaction=True)
+    pipe.xack(stream, GROUP, *entry_ids)
+    pipe.xdel(stream, *entry_ids)
+    pipe.execute()
+
+
+def enqueue_register(r: redis.Redis, session_id: str, version: int, prefix: str = DEFAULT_PREFIX) -> str:
+    """Put a registration kick for (session, version) on the register stream; return the entry id."""
+    entry = r.xadd(register_stream(prefix), {"kind": "register", "session": session_id, "version": str(version)})
+    return entry.decode() if isinstance(entry, bytes) else str(entry)
+
+
+def enqueue_reprocess(
+    r: redis.Redis, job_id: str, session_id: str, options_json: str, now: float, prefix: str = DEFAULT_PREFIX
+) -> None:
+    """Create job `job_id` (state queued) and put it on the jobs stream, atomically."""
+    keys = [jobs_stream(prefix), job_key(job_id, prefix)]
+    r.eval(_ENQUEUE_JOB, 2, *keys, job_id, session_id, options_json, repr(float(now)))
+
+
+def read_job(r: redis.Redis, job_id: str, prefix: str = DEFAULT_PREFIX) -> dict[str, str] | None:
+    """Return a job's hash as str -> str (state, done, total, session, version, error, ...), or None."""
+    raw = r.hgetall(job_key(job_id, prefix))
+    if not raw:
+        return None
+    return {
+        (k.decode() if isinstance(k, bytes) else k): (v.decode() if isinstance(v, bytes) else v) for k, v in raw.items()
+    }
+
+
+def incr_metric(r: redis.Redis, name: str, amount: float = 1, prefix: str = DEFAULT_PREFIX) -> None:
+    """Add `amount` to the counter `name` of the metrics hash (integer or float)."""
+    if float(amount).is_integer():
+        r.hincrby(metrics_key(prefix), name, int(amount))
+    else:
+        r.hincrbyfloat(metrics_key(prefix), name, float(amount))

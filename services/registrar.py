@@ -16,7 +16,7 @@ from services.features import Features
 from services.frame_prep import PreparedFrame
 from services.methods import MethodOptions
 from services.pose_graph import Edge, optimise_poses, place_node
-from services.registration import IDENTITY, Similarity, estimate_similarity, match_features
+from services.registration import IDENTITY, Similarity, SimilarityFit, estimate_similarity, match_features
 
 STATUS_OK, STATUS_LOST, STATUS_REJECTED = "ok", "lost", "rejected"
 MOVED_MM = 0.02  # a refined pose that moves a frame by less than this does not re-render its tiles
@@ -99,45 +99,33 @@ class Registrar:
                     chosen.append(pool.pop(0))
         return chosen
 
-    def _pairwise(self, pf: PreparedFrame, other: int) -> tuple[Similarity, int, float] | None:
-        iq, it = match_features(
-            pf.features, self.features[other], self.options.ratio, same_point=2.0 / self.px_per_mm
-        )
-        fit = estimate_similarity(
-            pf.features.points_px[iq],
-            self.features[other].points_px[it],
-            self.ransac_mm,
-            seed=pf.index,
-            min_inliers=self.options.min_inliers,
-            dedupe_radius=2.0 / self.px_per_mm,
-        )
-        if fit is None:
-            return None
-        return fit.transform, fit.inliers, fit.rms
-
-    def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity) -> tuple[Similarity, int] | None:
-        """Match against the mosaic's features around the prediction (the paper's registration)."""
-        near = self._candidates(predicted, 6, 1.6 * self.window_radius_mm)
-        pts, desc = [], []
-        for i in near:
-            f = self.features[i]
-            pts.append(self.poses[i].apply(f.points_px))
-            desc.append(f.descriptors)
-        if not pts:
-            return None
-        train = Features(np.concatenate(pts), np.concatenate(desc), np.zeros(sum(len(p) for p in pts)))
-        iq, it = match_features(pf.features, train, self.options.ratio, same_point=2.0 / self.px_per_mm)
-        fit = estimate_similarity(
+    def _match(self, pf: PreparedFrame, train: Features) -> SimilarityFit | None:
+        """Return the similarity from the frame's mm to the train features' mm, or None on weak evidence."""
+        same_place = 2.0 / self.px_per_mm
+        iq, it = match_features(pf.features, train, self.options.ratio, same_point=same_place)
+        return estimate_similarity(
             pf.features.points_px[iq],
             train.points_px[it],
             self.ransac_mm,
             seed=pf.index,
             min_inliers=self.options.min_inliers,
-            dedupe_radius=2.0 / self.px_per_mm,
+            dedupe_radius=same_place,
         )
-        if fit is None:
+
+    def _pairwise(self, pf: PreparedFrame, other: int) -> tuple[Similarity, int, float] | None:
+        fit = self._match(pf, self.features[other])
+        return None if fit is None else (fit.transform, fit.inliers, fit.rms)
+
+    def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity) -> tuple[Similarity, int] | None:
+        """Match against the mosaic's features around the prediction (the paper's registration)."""
+        near = self._candidates(predicted, 6, 1.6 * self.window_radius_mm)
+        pts = [self.poses[i].apply(self.features[i].points_px) for i in near]
+        desc = [self.features[i].descriptors for i in near]
+        if not pts:
             return None
-        return fit.transform, fit.inliers
+        train = Features(np.concatenate(pts), np.concatenate(desc), np.zeros(sum(len(p) for p in pts)))
+        fit = self._match(pf, train)
+        return None if fit is None else (fit.transform, fit.inliers)
 
     def _plausible(self, pose: Similarity, predicted: Similarity, lost_for: int) -> bool:
         if len(self.order) < 2:  # no velocity yet: anything the window could still overlap
@@ -172,9 +160,7 @@ class Registrar:
             return self._accept(pf, pose, [], n, blurred)
         return self._add_keyframes(pf, predicted, lost_for, blurred)
 
-    def _add_keyframes(
-        self, pf: PreparedFrame, predicted: Similarity, lost_for: int, blurred: bool
-    ) -> FrameResult:
+    def _add_keyframes(self, pf: PreparedFrame, predicted: Similarity, lost_for: int, blurred: bool) -> FrameResult:
         latest = self.order[-1]
         edges: list[Edge] = []
         anchor: Similarity | None = None
@@ -221,9 +207,7 @@ class Registrar:
         if len(self.order) < 3 or not self.edges:
             return ()
         solution = optimise_poses(self.poses, self.edges, fixed=self.order[0])
-        moved = tuple(
-            i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM and i in self.poses
-        )
+        moved = tuple(i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM and i in self.poses)
         self.poses.update(solution.poses)
         return moved
 

@@ -73,9 +73,7 @@ def _read_csv(
         raise ScanFormatError(name, 1, f"expected the header {','.join(header)}, got an empty line")
     got = tuple(c.strip() for c in lines[0].split(","))
     if got != header:
-        raise ScanFormatError(
-            name, 1, f"expected the header {','.join(header)}, got {lines[0].strip()[:80]!r}"
-        )
+        raise ScanFormatError(name, 1, f"expected the header {','.join(header)}, got {lines[0].strip()[:80]!r}")
     rows: list[tuple[int, list[float]]] = []
     want = f"expected {len(header)} numbers ({','.join(header)})"
     for lineno, text in enumerate(lines[1:], start=2):
@@ -97,9 +95,7 @@ def _read_csv(
             try:
                 v = float(cell)
             except ValueError:
-                raise ScanFormatError(
-                    name, lineno, f"{header[col]} must be a number, got {cell[:30]!r}"
-                ) from None
+                raise ScanFormatError(name, lineno, f"{header[col]} must be a number, got {cell[:30]!r}") from None
             if not math.isfinite(v):
                 raise ScanFormatError(name, lineno, f"{header[col]} must be finite, got {cell[:30]!r}")
             values.append(v)
@@ -167,9 +163,7 @@ def _read_frame_table(folder: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     return seq_arr, t_arr, names
 
 
-def _read_stream(
-    folder: Path, name: str, header: tuple[str, ...], min_rows: int
-) -> tuple[np.ndarray, np.ndarray]:
+def _read_stream(folder: Path, name: str, header: tuple[str, ...], min_rows: int) -> tuple[np.ndarray, np.ndarray]:
     rows = _read_csv(folder, name, header)
     if len(rows) < min_rows:
         raise ScanFormatError(name, None, f"expected at least {min_rows} samples, got {len(rows)}")
@@ -194,15 +188,11 @@ def _read_reference(folder: Path, seq: np.ndarray) -> np.ndarray:
 
 def _check_image(img: np.ndarray | None, name: str, size: tuple[int, int], what: str) -> np.ndarray:
     if img is None:
-        raise ScanFormatError(
-            name, None, f"cannot be read as an image (expected 8- or 16-bit grayscale {what})"
-        )
+        raise ScanFormatError(name, None, f"cannot be read as an image (expected 8- or 16-bit grayscale {what})")
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim != 2:
-        raise ScanFormatError(
-            name, None, f"colour image ({img.shape[2]} channels); expected 8- or 16-bit grayscale"
-        )
+        raise ScanFormatError(name, None, f"colour image ({img.shape[2]} channels); expected 8- or 16-bit grayscale")
     if img.dtype not in (np.uint8, np.uint16):
         raise ScanFormatError(name, None, f"pixel type {img.dtype}; expected 8- or 16-bit grayscale")
     w, h = size
@@ -327,9 +317,7 @@ def write_scan_folder(
             raise FileExistsError("scan folder exists and is not empty (pass overwrite=True to replace it)")
         _remove_stale(folder)
     (folder / "frames").mkdir(parents=True, exist_ok=True)
-    (folder / "calibration.json").write_text(
-        json.dumps(scan.calibration.to_dict(), indent=2) + "\n", encoding="utf-8"
-    )
+    (folder / "calibration.json").write_text(json.dumps(scan.calibration.to_dict(), indent=2) + "\n", encoding="utf-8")
     seqs = [int(s) for s in scan.frame_seq]
     _write_csv(
         folder / "frames.csv",
@@ -339,9 +327,7 @@ def write_scan_folder(
     for index, seq in enumerate(seqs):
         img = np.asarray(scan.frame(index))
         if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
-            raise ValueError(
-                f"frame {seq}: expected a 2-D uint8 or uint16 array, got {img.dtype} {img.shape}"
-            )
+            raise ValueError(f"frame {seq}: expected a 2-D uint8 or uint16 array, got {img.dtype} {img.shape}")
         name = folder / frame_name(seq, frame_ext)
         if not cv2.imwrite(str(name), img):
             raise OSError(f"could not write {frame_name(seq, frame_ext)}")
@@ -362,13 +348,7 @@ def write_scan_folder(
         cv2.imwrite(str(folder / "mask.png"), np.where(np.asarray(scan.mask) > 0, 255, 0).astype(np.uint8))
     if scan.reference_mm is not None:
         ref = np.asarray(scan.reference_mm, dtype=np.float64).reshape(len(seqs), 2)
-        rows = [
-            [str(s), _num(x), _num(y)]
-            for s, (x, y) in zip(seqs, ref, strict=True)
-            if np.isfinite([x, y]).all()
-        ]
+        rows = [[str(s), _num(x), _num(y)] for s, (x, y) in zip(seqs, ref, strict=True) if np.isfinite([x, y]).all()]
         _write_csv(folder / "reference.csv", REFERENCE_HEADER, rows)
     if scan.truth:
-        (folder / "truth.json").write_text(
-            json.dumps(_jsonable(scan.truth), indent=1) + "\n", encoding="utf-8"
-        )
+        (folder / "truth.json").write_text(json.dumps(_jsonable(scan.truth), indent=1) + "\n", encoding="utf-8")

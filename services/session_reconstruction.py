@@ -68,7 +68,6 @@ class SessionReconstruction:
     compliance: ComplianceFit | None = None
     gauge: float = 1.0
     finished: bool = False
-    _weights: dict[bytes, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.registrar = Registrar(self.options, self.calibration.px_per_mm, self.window_radius_mm)
@@ -115,13 +114,9 @@ class SessionReconstruction:
         return fit_compliance(scales, loads, self.calibration.compliance_per_n)
 
     def _layers(self, pf: PreparedFrame) -> FrameLayers:
-        key = pf.mask.tobytes()[:: max(1, pf.mask.size // 4096)]
-        weight = self._weights.get(key)
-        if weight is None:
-            weight = self._weights.setdefault(key, blend_weight(pf.mask))
         return FrameLayers(
             intensity=pf.image.astype(np.float32) / 255.0,
-            weight=weight,
+            weight=blend_weight(pf.mask),
             force_n=load_map_n(self.calibration, pf.load),
             centre_px=self.calibration.principal_point,
             px_per_mm=self.calibration.px_per_mm,

@@ -73,9 +73,7 @@ def sensor_forces(
     return np.stack([quarter - dx, quarter + dx, quarter - dy, quarter + dy], axis=-1)
 
 
-def smooth_noise(
-    rng: np.random.Generator, n: int, sigma: float, lo: float = -1.0, hi: float = 1.0
-) -> np.ndarray:
+def smooth_noise(rng: np.random.Generator, n: int, sigma: float, lo: float = -1.0, hi: float = 1.0) -> np.ndarray:
     """Return n samples of Gaussian-smoothed white noise (sigma in samples) rescaled to span [lo, hi]."""
     pad = int(4 * sigma) + 1
     raw = gaussian_filter1d(rng.standard_normal(n + 2 * pad), max(sigma, 1e-6), mode="reflect")[pad : pad + n]
@@ -148,9 +146,7 @@ def dense_grid(frame_t_s: np.ndarray) -> np.ndarray:
     return t0 + GRID_DT_S * np.arange(n)
 
 
-def smooth_load(
-    rng: np.random.Generator, grid_t_s: np.ndarray, lo_n: float, hi_n: float, tau_s: float
-) -> np.ndarray:
+def smooth_load(rng: np.random.Generator, grid_t_s: np.ndarray, lo_n: float, hi_n: float, tau_s: float) -> np.ndarray:
     """Return a smooth random total load F_Z (T,) in N with time scale tau_s, spanning [lo_n, hi_n] over the
     frames (the grid's GRID_MARGIN_S ends are clipped to the same range)."""
     raw = smooth_noise(rng, len(grid_t_s), tau_s / GRID_DT_S)
@@ -183,9 +179,7 @@ def smooth_tilts(
     return tx, ty
 
 
-def held_series(
-    grid_t_s: np.ndarray, frame_t_s: np.ndarray, values: np.ndarray, hold_s: float = 0.04
-) -> np.ndarray:
+def held_series(grid_t_s: np.ndarray, frame_t_s: np.ndarray, values: np.ndarray, hold_s: float = 0.04) -> np.ndarray:
     """Return a series on the grid that holds values[k] within +-hold_s of frame k and ramps in between."""
     knots_t = np.stack([frame_t_s - hold_s, frame_t_s + hold_s], axis=1).ravel()
     knots_v = np.repeat(np.asarray(values, dtype=np.float64), 2)
@@ -249,9 +243,7 @@ def free_hand_motion(
     """Return a ProbeMotion along spec.route_mm with wobble, yaw drift, speed variation, load and tilts."""
     n = spec.n_frames
     yaw0 = rng.uniform(-30.0, 30.0)
-    pos = sample_route(
-        rng, spec.route_mm, n, spec.corner_sigma_mm, spec.speed_variation, spec.speed_tau_frames
-    )
+    pos = sample_route(rng, spec.route_mm, n, spec.corner_sigma_mm, spec.speed_variation, spec.speed_tau_frames)
     pos = pos + wobble(rng, n, spec.wobble_mm, spec.wobble_tau_frames)
     pos = pos - pos[0]
     if spec.target_length_mm is not None:

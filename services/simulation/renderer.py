@@ -127,9 +127,7 @@ def motion_blur_kernel(length_px: int, angle_deg: float) -> np.ndarray:
     return kernel / kernel.sum()
 
 
-def apply_imaging(
-    scene: np.ndarray, geometry: FrameGeometry, imaging: Imaging, rng: np.random.Generator
-) -> np.ndarray:
+def apply_imaging(scene: np.ndarray, geometry: FrameGeometry, imaging: Imaging, rng: np.random.Generator) -> np.ndarray:
     """Return the recorded frame (uint8 or uint16, H x W): blur, vignetting, window, noise, quantisation."""
     img = scene
     if imaging.blur_kernel is not None:

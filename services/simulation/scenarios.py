@@ -37,9 +37,7 @@ FORCE_OFFSET_N = 0.1  # per-sensor constant offset, uniform in [-0.1, 0.1] N
 IMU_RATE_HZ = 50.0
 IMU_NOISE_DEG = 0.01
 STREAM_MARGIN_S = 0.5  # force and IMU streams start this long before the first frame and end after the last
-WORLD_MARGIN_MM = (
-    45.0  # the world extends this far beyond every frame centre (half-diagonal of the view + slack)
-)
+WORLD_MARGIN_MM = 45.0  # the world extends this far beyond every frame centre (half-diagonal of the view + slack)
 
 
 @dataclass(frozen=True)
@@ -111,8 +109,7 @@ def simulate(scenario: str, seed: int) -> Scan:
         raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(SCENARIOS)}")
     cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)
     rng_const, rng_path, rng_world, rng_img, rng_stream = (
-        np.random.default_rng(s)
-        for s in np.random.SeedSequence([int(seed), SCENARIOS.index(scenario)]).spawn(5)
+        np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), SCENARIOS.index(scenario)]).spawn(5)
     )
     calib = nominal_calibration()
     e_true, kappa_true = draw_true_constants(rng_const)
@@ -146,9 +143,7 @@ def simulate(scenario: str, seed: int) -> Scan:
             dtype=spec.dtype,
         )
         state = LoadState(float(fz[k]), float(tx[k]), float(ty[k]))
-        scene = render_scene(
-            world, geometry, motion.centre_mm[k], float(motion.yaw_deg[k]), state, true_calib
-        )
+        scene = render_scene(world, geometry, motion.centre_mm[k], float(motion.yaw_deg[k]), state, true_calib)
         frames.append(apply_imaging(scene, geometry, imaging, rng_img))
 
     t_first, t_last = float(motion.frame_t_s[0]), float(motion.frame_t_s[-1])

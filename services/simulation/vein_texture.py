@@ -54,9 +54,7 @@ def band_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float
     sh, sw = h // factor + 3, w // factor + 3
     small = rng.standard_normal((sh, sw), dtype=np.float32)
     small = cv2.GaussianBlur(small, (0, 0), sigma_px / factor, borderType=cv2.BORDER_REFLECT)
-    full = (
-        small if factor == 1 else cv2.resize(small, (sw * factor, sh * factor), interpolation=cv2.INTER_CUBIC)
-    )
+    full = small if factor == 1 else cv2.resize(small, (sw * factor, sh * factor), interpolation=cv2.INTER_CUBIC)
     full = full[:h, :w]
     return ((full - full.mean()) / max(float(full.std()), 1e-12)).astype(np.float32)
 
@@ -139,9 +137,7 @@ def vein_network(rng: np.random.Generator, bounds_mm: tuple[float, float, float,
     return vessels
 
 
-def _largest_gap(
-    vessels: list[Vessel], bounds_mm: tuple[float, float, float, float]
-) -> tuple[float, np.ndarray]:
+def _largest_gap(vessels: list[Vessel], bounds_mm: tuple[float, float, float, float]) -> tuple[float, np.ndarray]:
     """Return (distance mm, position mm) of the point of bounds_mm farthest from every centreline."""
     x0, y0, x1, y1 = bounds_mm
     w, h = int(np.ceil(x1 - x0)) + 1, int(np.ceil(y1 - y0)) + 1
@@ -183,9 +179,7 @@ def vein_darkness(
     return dark
 
 
-def make_world(
-    rng: np.random.Generator, bounds_mm: tuple[float, float, float, float], px_per_mm: float = 8.0
-) -> World:
+def make_world(rng: np.random.Generator, bounds_mm: tuple[float, float, float, float], px_per_mm: float = 8.0) -> World:
     """Return a World covering bounds_mm (x_min, y_min, x_max, y_max in mm) at px_per_mm."""
     x0, y0, x1, y1 = bounds_mm
     w = int(np.ceil((x1 - x0) * px_per_mm))

@@ -56,9 +56,7 @@ def test_mask_filters_keypoints_for_every_kind(textured: np.ndarray, window: np.
 
 
 @pytest.mark.parametrize("kind", ["modified-asift", "asift"])
-def test_affine_feature_alone_leaks_outside_the_mask(
-    textured: np.ndarray, window: np.ndarray, kind: str
-) -> None:
+def test_affine_feature_alone_leaks_outside_the_mask(textured: np.ndarray, window: np.ndarray, kind: str) -> None:
     # Why detect_features filters: OpenCV's AffineFeature does not apply the mask to its unwarped view, so
     # the raw detector returns keypoints outside it (if OpenCV ever fixes this, the filter is merely redundant)
     keypoints, _ = _detector(kind, 0, 0.03).detectAndCompute(textured, window)

@@ -19,9 +19,7 @@ def _circle_truth() -> dict[int, Similarity]:
     """True poses of a 30-frame probe loop: a 30 mm radius circle back to the start, yaw wobbling +-0.3 rad."""
     ang = np.linspace(0, 2 * np.pi, N, endpoint=False)
     poses = {
-        k: Similarity(
-            cmath.exp(1j * 0.3 * np.sin(ang[k])), complex(30 * np.cos(ang[k]) - 30, 30 * np.sin(ang[k]))
-        )
+        k: Similarity(cmath.exp(1j * 0.3 * np.sin(ang[k])), complex(30 * np.cos(ang[k]) - 30, 30 * np.sin(ang[k])))
         for k in range(N)
     }
     poses[0] = IDENTITY

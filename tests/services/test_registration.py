@@ -46,9 +46,7 @@ def test_compose_known_answer() -> None:
     assert c.a == pytest.approx(1j, abs=TOL.float64_abs)
     assert c.t == pytest.approx(1 + 7j, abs=TOL.float64_abs)
     p = np.array([[0.3, -2.0], [5.0, 1.5]])
-    np.testing.assert_allclose(
-        c.apply(p), S.apply(Similarity(0.5 + 0j, 3 + 0j).apply(p)), atol=TOL.float64_abs
-    )
+    np.testing.assert_allclose(c.apply(p), S.apply(Similarity(0.5 + 0j, 3 + 0j).apply(p)), atol=TOL.float64_abs)
 
 
 def test_inverse_known_answer_and_round_trip() -> None:
@@ -105,7 +103,7 @@ def test_estimate_similarity_returns_none_without_enough_inliers() -> None:
 def test_unique_pairs_merges_repeated_matches() -> None:
     rng = np.random.default_rng(2)
     src = rng.uniform(0, 400, (50, 2))
-    dst = src + (30.0, -12.0)
+    dst = src + np.array([30.0, -12.0])
     # 20 A-SIFT duplicates: the same match seen in another view, both ends moved by < 1 px
     dup = rng.choice(50, 20, replace=False)
     jitter = rng.uniform(-0.9, 0.9, (20, 2))

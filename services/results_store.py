@@ -1,0 +1,392 @@
+"""Durable results of a session, per results version, on local disk next to the raw uploads.
+
+Layout under data_dir/sessions/<id>/results/:
+    current                     the version the API serves (text, an int; written atomically)
+    reference.csv               spec §4 reference track, stored once per session (raw text), used by every version
+    <v>/options.json            the options the version was made with ({"method": ..., ...})
+    <v>/setup.npz               window mask (uint8 0/255) and flat field (float32) or none
+    <v>/prepared/<seq>.npz      a PreparedFrame (written once: the first writer wins, later writers are no-ops)
+    <v>/poison/<seq>.json       a frame that could not be prepared (dead-lettered): registered as "rejected"
+    <v>/path.json               spec §4 path rows (null where a frame was not registered)
+    <v>/mosaic.json             spec §4 fields + version, revisions, dzi, extent_mm, frames, status
+    <v>/tiles/<layer>/<level>/<col>_<row>.png   Deep Zoom tiles, layer "vein" or "force"
+    <v>/{mosaic,force,paths,errors}.png, <v>/report.json, <v>/state.json
+Version 1 is the live run; reprocess makes 2, 3, ... Every write is atomic (storage.atomic_write_bytes), so
+readers (the API, other workers) see a whole old or a whole new file, never a part.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import fcntl
+import io
+import json
+import math
+import os
+import re
+import uuid
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.features import Features
+from services.force_model import LoadState
+from services.frame_prep import PreparedFrame
+from services.session_reconstruction import PATH_COLUMNS, PathRow
+from services.storage import atomic_write_bytes, fsync_dir
+
+LAYERS = ("vein", "force")
+IMAGE_NAMES = ("mosaic.png", "force.png", "paths.png", "errors.png")
+LIVE_VERSION = 1
+_SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
+REFERENCE_HEADER = ("seq", "x_mm", "y_mm")
+
+
+def _json_bytes(doc: Any) -> bytes:
+    return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode()
+
+
+def write_once(path: Path, data: bytes) -> bool:
+    """Create `path` with `data` durably unless it exists; return True if this call created it.
+
+    The bytes go to a fsynced temporary file that is hard-linked into place (link fails if the target
+    exists), so concurrent writers never overwrite each other and readers never see a partial file.
+    """
+    path = Path(path)
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o640)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            return False
+        fsync_dir(path.parent)
+        return True
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+
+
+def _npz_bytes(**arrays: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
+def prepared_to_bytes(pf: PreparedFrame) -> bytes:
+    """Return a PreparedFrame as .npz bytes (lossless; descriptors as uint8 when they are whole 0..255)."""
+    desc = np.asarray(pf.features.descriptors)
+    if desc.size == 0 or (
+        np.all(np.isfinite(desc)) and desc.min() >= 0 and desc.max() <= 255 and np.array_equal(desc, np.round(desc))
+    ):
+        desc_stored = desc.astype(np.uint8)
+    else:
+        desc_stored = desc.astype(np.float32)
+    return _npz_bytes(
+        meta=np.array([pf.index, pf.seq], np.int64),
+        scalars=np.array(
+            [pf.t_s, pf.load.fz_n, pf.load.theta_x_rad, pf.load.theta_y_rad, pf.stretch, pf.sharpness], np.float64
+        ),
+        desc_float=np.array([desc.dtype == np.float32], bool),
+        forces_n=np.asarray(pf.forces_n, np.float64),
+        image=pf.image,
+        mask=pf.mask,
+        points_px=np.asarray(pf.features.points_px, np.float64),
+        descriptors=desc_stored,
+        desc_width=np.array([desc.shape[1] if desc.ndim == 2 else 128], np.int64),
+        sizes_px=np.asarray(pf.features.sizes_px, np.float64),
+    )
+
+
+def prepared_from_bytes(data: bytes) -> PreparedFrame:
+    """Return the PreparedFrame stored by `prepared_to_bytes`."""
+    z = np.load(io.BytesIO(data), allow_pickle=False)
+    index, seq = (int(v) for v in z["meta"])
+    t_s, fz, tx, ty, stretch, sharpness = (float(v) for v in z["scalars"])
+    desc = z["descriptors"]
+    desc = desc.astype(np.float32).reshape(-1, int(z["desc_width"][0]))
+    features = Features(z["points_px"].reshape(-1, 2), desc, z["sizes_px"])
+    return PreparedFrame(
+        index=index,
+        seq=seq,
+        t_s=t_s,
+        forces_n=z["forces_n"],
+        load=LoadState(fz, tx, ty),
+        stretch=stretch,
+        image=z["image"],
+        mask=z["mask"],
+        features=features,
+        sharpness=sharpness,
+    )
+
+
+def path_rows_json(rows: Sequence[PathRow]) -> list[dict[str, Any]]:
+    """Return path rows as spec §4 dicts (null where a value is not finite, i.e. the frame was not placed)."""
+    out = []
+    for r in rows:
+        d: dict[str, Any] = {}
+        for c in PATH_COLUMNS:
+            v = getattr(r, c)
+            if isinstance(v, float | np.floating):
+                v = float(v) if math.isfinite(v) else None
+            elif isinstance(v, np.integer):
+                v = int(v)
+            d[c] = v
+        out.append(d)
+    return out
+
+
+def parse_reference_csv(text: str, seqs: Sequence[int]) -> np.ndarray:
+    """Return the reference track (len(seqs), 2) in mm aligned to `seqs`, NaN rows where it has no row.
+
+    Raises ValueError naming the line for a wrong header, a non-number, a seq that is not a frame or a repeat.
+    """
+    index = {int(s): i for i, s in enumerate(seqs)}
+    out = np.full((len(index), 2), np.nan)
+    lines = text.lstrip("\ufeff").splitlines()
+    if not lines or tuple(c.strip() for c in lines[0].split(",")) != REFERENCE_HEADER:
+        raise ValueError(f"reference.csv line 1: expected the header {','.join(REFERENCE_HEADER)}")
+    seen: set[int] = set()
+    for lineno, cells in enumerate(csv.reader(lines[1:]), start=2):
+        if not cells or not "".join(cells).strip():
+            continue
+        if len(cells) != 3:
+            raise ValueError(f"reference.csv line {lineno}: expected 3 values (seq,x_mm,y_mm), got {len(cells)}")
+        try:
+            seq = int(cells[0].strip())
+            x, y = float(cells[1]), float(cells[2])
+        except ValueError:
+            raise ValueError(f"reference.csv line {lineno}: seq must be an integer and x_mm, y_mm numbers") from None
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ValueError(f"reference.csv line {lineno}: x_mm and y_mm must be finite")
+        if seq not in index:
+            raise ValueError(f"reference.csv line {lineno}: seq {seq} is not a frame of this session")
+        if seq in seen:
+            raise ValueError(f"reference.csv line {lineno}: seq {seq} repeats")
+        seen.add(seq)
+        out[index[seq]] = (x, y)
+    return out
+
+
+class ResultsStore:
+    """Results of sessions under data_dir/sessions/<id>/results (layout in the module docstring)."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.data_dir = Path(data_dir)
+        self.root = self.data_dir / "sessions"
+
+    # ----- versions -----------------------------------------------------------------------------------------
+    def results_dir(self, sid: str) -> Path:
+        """Return <session>/results (created if missing); ValueError for a malformed session id."""
+        if not isinstance(sid, str) or not _SESSION_ID.match(sid):
+            raise ValueError("malformed session id")
+        path = self.root / sid / "results"
+        if not path.is_dir():
+            if not (self.root / sid).is_dir():
+                raise FileNotFoundError("no such session")
+            path.mkdir(exist_ok=True)
+        return path
+
+    def version_dir(self, sid: str, v: int) -> Path:
+        """Return the directory of results version v (not created here)."""
+        if isinstance(v, bool) or not isinstance(v, int | np.integer) or int(v) < 1:
+            raise ValueError(f"version must be a positive integer, got {v!r}")
+        return self.results_dir(sid) / str(int(v))
+
+    @contextlib.contextmanager
+    def _locked(self, sid: str) -> Iterator[Path]:
+        rdir = self.results_dir(sid)
+        with open(rdir / ".lock", "a+b") as fh:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+            try:
+                yield rdir
+            finally:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+    def current_version(self, sid: str) -> int | None:
+        """Return the version the API serves, or None before any version exists."""
+        try:
+            return int((self.results_dir(sid) / "current").read_text().strip())
+        except (FileNotFoundError, ValueError):
+            return None
+
+    def list_versions(self, sid: str) -> list[int]:
+        """Return the existing versions, ascending."""
+        return sorted(int(p.name) for p in self.results_dir(sid).iterdir() if p.name.isdigit() and p.is_dir())
+
+    def _make_version(self, rdir: Path, v: int, options: dict[str, Any]) -> None:
+        vdir = rdir / str(v)
+        for sub in ("prepared", "poison", "tiles"):
+            (vdir / sub).mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(vdir / "options.json", _json_bytes(options))
+        fsync_dir(rdir)
+
+    def create_version(self, sid: str, options: dict[str, Any]) -> int:
+        """Create the next free version (>= 2 when the live version 1 exists) and make it current; return it."""
+        with self._locked(sid) as rdir:
+            existing = [int(p.name) for p in rdir.iterdir() if p.name.isdigit()]
+            v = max([LIVE_VERSION, *existing]) + 1 if existing else LIVE_VERSION + 1
+            (rdir / str(v)).mkdir()
+            self._make_version(rdir, v, options)
+            atomic_write_bytes(rdir / "current", str(v).encode())
+            return v
+
+    def ensure_version(self, sid: str, v: int, options: dict[str, Any]) -> bool:
+        """Create version v if missing (current when no version is current yet); return True if created now."""
+        with self._locked(sid) as rdir:
+            vdir = rdir / str(int(v))
+            if (vdir / "options.json").exists():
+                return False
+            vdir.mkdir(exist_ok=True)
+            self._make_version(rdir, int(v), options)
+            if self.current_version(sid) is None:
+                atomic_write_bytes(rdir / "current", str(int(v)).encode())
+            return True
+
+    def read_options(self, sid: str, v: int) -> dict[str, Any] | None:
+        """Return the options.json of version v, or None."""
+        return self._read_json(self.version_dir(sid, v) / "options.json")
+
+    # ----- setup and prepared frames ---------------------------------------------------------------------------
+    def write_setup(self, sid: str, v: int, mask: np.ndarray, flat: np.ndarray | None) -> None:
+        """Write (replace) the window mask and flat field of version v."""
+        atomic_write_bytes(self.version_dir(sid, v) / "setup.npz", self._setup_bytes(mask, flat))
+
+    def write_setup_once(
+        self, sid: str, v: int, mask: np.ndarray, flat: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Write the setup unless one exists; return the stored one (the first writer's), so all agree."""
+        write_once(self.version_dir(sid, v) / "setup.npz", self._setup_bytes(mask, flat))
+        got = self.read_setup(sid, v)
+        assert got is not None
+        return got
+
+    @staticmethod
+    def _setup_bytes(mask: np.ndarray, flat: np.ndarray | None) -> bytes:
+        arrays = {"mask": np.asarray(mask, np.uint8)}
+        if flat is not None:
+            arrays["flat"] = np.asarray(flat, np.float32)
+        return _npz_bytes(**arrays)
+
+    def read_setup(self, sid: str, v: int) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """Return (mask uint8, flat float32 or None) of version v, or None if not computed yet."""
+        try:
+            data = (self.version_dir(sid, v) / "setup.npz").read_bytes()
+        except FileNotFoundError:
+            return None
+        z = np.load(io.BytesIO(data), allow_pickle=False)
+        return z["mask"], (z["flat"] if "flat" in z.files else None)
+
+    def prepared_path(self, sid: str, v: int, seq: int) -> Path:
+        """Return the file of a prepared frame."""
+        return self.version_dir(sid, v) / "prepared" / f"{int(seq):06d}.npz"
+
+    def write_prepared(self, sid: str, v: int, pf: PreparedFrame) -> bool:
+        """Store a prepared frame unless it is stored already (first writer wins); return True if written now."""
+        return write_once(self.prepared_path(sid, v, pf.seq), prepared_to_bytes(pf))
+
+    def has_prepared(self, sid: str, v: int, seq: int) -> bool:
+        """Return True if frame seq is prepared."""
+        return self.prepared_path(sid, v, seq).exists()
+
+    def read_prepared(self, sid: str, v: int, seq: int) -> PreparedFrame | None:
+        """Return the prepared frame seq, or None if it is not prepared (yet)."""
+        try:
+            data = self.prepared_path(sid, v, seq).read_bytes()
+        except FileNotFoundError:
+            return None
+        return prepared_from_bytes(data)
+
+    def mark_poison(self, sid: str, v: int, seq: int, reason: str = "") -> None:
+        """Record that frame seq cannot be prepared (it is registered as rejected)."""
+        path = self.version_dir(sid, v) / "poison" / f"{int(seq):06d}.json"
+        atomic_write_bytes(path, _json_bytes({"seq": int(seq), "reason": reason[:200]}))
+
+    def is_poison(self, sid: str, v: int, seq: int) -> bool:
+        """Return True if frame seq was marked poison."""
+        return (self.version_dir(sid, v) / "poison" / f"{int(seq):06d}.json").exists()
+
+    # ----- path, state, mosaic meta, report -------------------------------------------------------------------
+    def _read_json(self, path: Path) -> Any | None:
+        try:
+            return json.loads(path.read_bytes())
+        except FileNotFoundError:
+            return None
+
+    def write_path(self, sid: str, v: int, rows: Sequence[PathRow]) -> None:
+        """Write path.json (spec §4 rows)."""
+        atomic_write_bytes(self.version_dir(sid, v) / "path.json", _json_bytes(path_rows_json(rows)))
+
+    def read_path(self, sid: str, v: int) -> list[dict[str, Any]] | None:
+        """Return the path rows of version v (dicts with the spec §4 columns), or None before any."""
+        return self._read_json(self.version_dir(sid, v) / "path.json")
+
+    def write_state(self, sid: str, v: int, doc: dict[str, Any]) -> None:
+        """Write state.json (registration cursor, fence token, finished, lost/rejected seqs)."""
+        atomic_write_bytes(self.version_dir(sid, v) / "state.json", _json_bytes(doc))
+
+    def read_state(self, sid: str, v: int) -> dict[str, Any] | None:
+        """Return state.json of version v, or None."""
+        return self._read_json(self.version_dir(sid, v) / "state.json")
+
+    def write_mosaic_meta(self, sid: str, v: int, doc: dict[str, Any]) -> None:
+        """Write mosaic.json of version v."""
+        atomic_write_bytes(self.version_dir(sid, v) / "mosaic.json", _json_bytes(doc))
+
+    def read_mosaic_meta(self, sid: str, v: int) -> dict[str, Any] | None:
+        """Return mosaic.json of version v, or None before the first flush."""
+        return self._read_json(self.version_dir(sid, v) / "mosaic.json")
+
+    def write_report(self, sid: str, v: int, doc: dict[str, Any]) -> None:
+        """Write report.json (accuracy report, spec §4) of version v."""
+        atomic_write_bytes(self.version_dir(sid, v) / "report.json", _json_bytes(doc))
+
+    def read_report(self, sid: str, v: int) -> dict[str, Any] | None:
+        """Return report.json of version v, or None."""
+        return self._read_json(self.version_dir(sid, v) / "report.json")
+
+    def write_reference(self, sid: str, csv_text: str) -> None:
+        """Store the session's reference.csv (raw text; one per session, used by every version)."""
+        atomic_write_bytes(self.results_dir(sid) / "reference.csv", csv_text.encode())
+
+    def read_reference(self, sid: str) -> str | None:
+        """Return the stored reference.csv text, or None."""
+        try:
+            return (self.results_dir(sid) / "reference.csv").read_text()
+        except FileNotFoundError:
+            return None
+
+    # ----- images and tiles -------------------------------------------------------------------------------------
+    def image_path(self, sid: str, v: int, name: str) -> Path:
+        """Return the path of a whole image (mosaic.png, force.png, paths.png, errors.png) of version v."""
+        if name not in IMAGE_NAMES:
+            raise ValueError(f"image name must be one of {IMAGE_NAMES}")
+        return self.version_dir(sid, v) / name
+
+    def write_image(self, sid: str, v: int, name: str, png: bytes) -> None:
+        """Write a whole image of version v."""
+        atomic_write_bytes(self.image_path(sid, v, name), png)
+
+    def tile_path(self, sid: str, v: int, layer: str, level: int, col: int, row: int) -> Path:
+        """Return the file of a Deep Zoom tile (it exists only where the tile has data)."""
+        if layer not in LAYERS:
+            raise ValueError(f"layer must be one of {LAYERS}")
+        return self.version_dir(sid, v) / "tiles" / layer / str(int(level)) / f"{int(col)}_{int(row)}.png"
+
+    def write_tile(self, sid: str, v: int, layer: str, level: int, col: int, row: int, png: bytes) -> None:
+        """Write a Deep Zoom tile."""
+        path = self.tile_path(sid, v, layer, level, col, row)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(path, png)
+
+    def delete_tile(self, sid: str, v: int, layer: str, level: int, col: int, row: int) -> None:
+        """Remove a tile that no longer has data (the API then serves a blank tile)."""
+        with contextlib.suppress(FileNotFoundError):
+            self.tile_path(sid, v, layer, level, col, row).unlink()
