@@ -91,3 +91,59 @@ class Health(Strict):
 
     status: Literal["ok"]
     checks: dict[str, bool] = Field(default_factory=dict)
+
+
+# ----- results, reprocess and jobs (issue 3) ---------------------------------------------------------------------
+
+
+class ReprocessRequest(Strict):
+    """POST /v1/sessions/{id}/reprocess body: {"options": {"method": ..., <method options>, "calibration": {...}}}."""
+
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class BatchReprocessRequest(Strict):
+    """POST /v1/reprocess body: the sessions to reprocess (1..500, each visible to the key) and the options."""
+
+    sessions: list[str] = Field(min_length=1, max_length=500)
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class JobAccepted(Strict):
+    """202 answer to a reprocess request: the job id and where to follow it."""
+
+    job: str
+    session: str
+    status_url: str
+
+
+class BatchAccepted(Strict):
+    """202 answer to a batch reprocess request: the batch id and one job per session (in request order)."""
+
+    batch: str
+    jobs: list[str]
+    status_url: str
+
+
+class JobState(Strict):
+    """GET /v1/jobs/{id}: state queued|running|done|failed, progress done/total frames, the results version."""
+
+    id: str
+    state: str
+    session: str
+    version: int | None = None
+    done: int = 0
+    total: int = 0
+    progress: float | None = None
+    error: str | None = None
+    created: float | None = None
+    batch: str | None = None
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class BatchState(Strict):
+    """GET /v1/batches/{id}: the batch's jobs and an overall state (done when every job is done or failed)."""
+
+    batch: str
+    state: str
+    jobs: list[JobState]

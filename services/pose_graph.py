@@ -2,7 +2,7 @@
 
 Poses are similarities T_k: p -> a_k p + t_k (complex, frame k's mm -> mosaic mm). An edge (i, j) measures
 T_ij = T_i^-1 T_j, so a_j = a_i a_ij and t_j = t_i + a_i t_ij. Both equations are *linear* in the unknowns
-(a, t), so each robust iteration (IRLS with Huber weights) is one sparse linear least-squares solve.
+(a, t), so each robust iteration (IRLS with Cauchy weights) is one sparse linear least-squares solve.
 """
 
 from __future__ import annotations
@@ -14,6 +14,8 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.linalg import lsqr
 
 from services.registration import Similarity
+
+DROP_WEIGHT = 1e-2  # an edge down-weighted below this is an outlier: it gets no pull at all
 
 
 @dataclass(frozen=True)
@@ -52,7 +54,8 @@ def edge_residuals_mm(poses: dict[int, Similarity], edges: list[Edge], lever_mm:
 def robust_weights(residuals_mm: np.ndarray, edges: list[Edge], scale_mm: float) -> np.ndarray:
     """Return IRLS weights in (0, 1]: Cauchy on residual / (edge sigma + scale_mm), so gross outliers vanish."""
     sig = np.array([e.sigma_mm for e in edges]) + scale_mm
-    return 1.0 / (1.0 + (residuals_mm / sig) ** 2)
+    w = 1.0 / (1.0 + (residuals_mm / sig) ** 2)
+    return np.where(w < DROP_WEIGHT, 0.0, w)
 
 
 def optimise_poses(
@@ -60,13 +63,13 @@ def optimise_poses(
     edges: list[Edge],
     fixed: int,
     lever_mm: float = 20.0,
-    huber_mm: float = 0.5,
+    robust_mm: float = 0.5,
     iterations: int = 10,
 ) -> GraphSolution:
-    """Return poses minimising the robust (Huber) sum of edge misfits with node `fixed` held at its pose.
+    """Return poses minimising the robust (Cauchy) sum of edge misfits with node `fixed` held at its pose.
 
     Residual rows per edge (spec-free, beyond the paper): (a_j - a_i a_ij) * lever_mm and
-    t_j - t_i - a_i t_ij, each divided by the edge's sigma_mm; Huber threshold huber_mm on the edge norm.
+    t_j - t_i - a_i t_ij, each divided by the edge's sigma_mm; Cauchy scale sigma + robust_mm on the edge norm.
     """
     nodes = sorted(initial)
     free = [n for n in nodes if n != fixed]
@@ -74,7 +77,7 @@ def optimise_poses(
     anchor = initial[fixed]
     usable = [e for e in edges if e.i in initial and e.j in initial]
     poses = dict(initial)
-    weights = robust_weights(edge_residuals_mm(poses, usable, lever_mm), usable, huber_mm)
+    weights = robust_weights(edge_residuals_mm(poses, usable, lever_mm), usable, robust_mm)
     if not free or not usable:
         return GraphSolution(poses, weights, np.zeros(len(usable)), 0)
     x0 = np.zeros(4 * len(free))
@@ -128,7 +131,7 @@ def optimise_poses(
         for n in free:
             v = x0[col[n] : col[n] + 4]
             poses[n] = Similarity(complex(v[0], v[1]), complex(v[2], v[3]))
-        new_w = robust_weights(edge_residuals_mm(poses, usable, lever_mm), usable, huber_mm)
+        new_w = robust_weights(edge_residuals_mm(poses, usable, lever_mm), usable, robust_mm)
         if np.allclose(new_w, weights, atol=1e-3) and it > 1:
             weights = new_w
             break

@@ -72,8 +72,8 @@ class Registrar:
         return Similarity(p1.a * (p1.a / p0.a) ** k, p1.t + (p1.t - p0.t) * k)
 
     def _is_blurred(self, pf: PreparedFrame) -> bool:
+        """Return True when the frame is much less sharp than the recent sharp, placed frames."""
         history = self.sharpness[-30:]
-        self.sharpness.append(pf.sharpness)
         if len(history) < 5:
             return False
         return pf.sharpness < self.options.blur_ratio * float(np.median(history))
@@ -220,6 +220,8 @@ class Registrar:
         self.stretches[pf.index] = pf.stretch
         self.edges.extend(edges)
         self.order.append(pf.index)
+        if not blurred:  # only sharp, placed frames set the reference (noise frames would inflate it)
+            self.sharpness.append(pf.sharpness)
         return FrameResult(pf.index, STATUS_OK, pose, inliers, blurred)
 
     def _reject(self, pf: PreparedFrame, status: str, blurred: bool) -> FrameResult:

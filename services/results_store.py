@@ -228,15 +228,27 @@ class ResultsStore:
         atomic_write_bytes(vdir / "options.json", _json_bytes(options))
         fsync_dir(rdir)
 
-    def create_version(self, sid: str, options: dict[str, Any]) -> int:
-        """Create the next free version (>= 2 when the live version 1 exists) and make it current; return it."""
+    def create_version(self, sid: str, options: dict[str, Any], make_current: bool = True) -> int:
+        """Create the next free version (2, 3, ...; 1 is the live run's) and, by default, make it current.
+
+        Reprocessing passes make_current=False and calls set_current when the version is complete, so the
+        API keeps serving the previous complete version meanwhile.
+        """
         with self._locked(sid) as rdir:
             existing = [int(p.name) for p in rdir.iterdir() if p.name.isdigit()]
-            v = max([LIVE_VERSION, *existing]) + 1 if existing else LIVE_VERSION + 1
+            v = max([LIVE_VERSION, *existing]) + 1
             (rdir / str(v)).mkdir()
             self._make_version(rdir, v, options)
-            atomic_write_bytes(rdir / "current", str(v).encode())
+            if make_current:
+                atomic_write_bytes(rdir / "current", str(v).encode())
             return v
+
+    def set_current(self, sid: str, v: int) -> None:
+        """Make version v the one the API serves."""
+        if not (self.version_dir(sid, v) / "options.json").exists():
+            raise ValueError(f"version {v} does not exist")
+        with self._locked(sid) as rdir:
+            atomic_write_bytes(rdir / "current", str(int(v)).encode())
 
     def ensure_version(self, sid: str, v: int, options: dict[str, Any]) -> bool:
         """Create version v if missing (current when no version is current yet); return True if created now."""

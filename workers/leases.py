@@ -9,12 +9,13 @@ wakes some worker after the holder dies, so a session is taken over even when no
 
 from __future__ import annotations
 
-import json
+import time
 from dataclasses import dataclass
 
 import redis
 
 from services import queue
+from workers import delayed
 
 _ACQUIRE = """
 local cur = redis.call('GET', KEYS[1])
@@ -22,6 +23,7 @@ if not cur then
   local token = redis.call('INCR', KEYS[2])
   redis.call('SET', KEYS[1], ARGV[1] .. ':' .. token, 'PX', ARGV[2])
   redis.call('DEL', KEYS[3])
+  redis.call('ZADD', KEYS[4], ARGV[5], ARGV[4])
   return token
 end
 local prefix = ARGV[1] .. ':'
@@ -44,20 +46,31 @@ return 0
 
 _RELEASE = """
 if redis.call('GET', KEYS[1]) ~= ARGV[1] then return -1 end
-if ARGV[2] == '0' and redis.call('EXISTS', KEYS[3]) == 1 then
+if ARGV[2] == 'normal' and redis.call('EXISTS', KEYS[3]) == 1 then
   redis.call('DEL', KEYS[3])
   return 0
 end
 redis.call('DEL', KEYS[1])
-if ARGV[3] ~= '' then redis.call('ZREM', KEYS[2], ARGV[3]) end
+if ARGV[2] == 'handoff' then
+  redis.call('ZADD', KEYS[2], ARGV[4], ARGV[3])
+else
+  redis.call('ZREM', KEYS[2], ARGV[3])
+end
+if ARGV[2] == 'final' then redis.call('DEL', KEYS[3]) end
 return 1
 """
+
+RELEASE_MODES = ("normal", "handoff", "final")
 
 
 def watchdog_member(session_id: str, version: int, prefix: str) -> str:
     """Return the delayed-ZSET member of a session's registration kick (see workers.delayed)."""
-    fields = {"kind": "register", "session": session_id, "version": str(int(version))}
-    return json.dumps({"s": queue.register_stream(prefix), "f": fields}, sort_keys=True, separators=(",", ":"))
+    return delayed.member(queue.register_stream(prefix), kick_fields(session_id, version))
+
+
+def kick_fields(session_id: str, version: int) -> dict[str, str]:
+    """Return the fields of a registration kick entry."""
+    return {"kind": "register", "session": session_id, "version": str(int(version))}
 
 
 @dataclass
@@ -90,14 +103,18 @@ class Lease:
         due = repr(float(watchdog_due)) if watchdog_due is not None else "0"
         return bool(r.eval(_RENEW, 2, *keys, self.value, int(ttl_ms), due, member))
 
-    def release(self, r: redis.Redis, force: bool = False) -> int:
-        """Release: 1 released, 0 refused because work arrived meanwhile (flag cleared), -1 not ours any more.
+    def release(self, r: redis.Redis, mode: str = "normal", handoff_delay_s: float = 0.0) -> int:
+        """Release the lease: 1 released, 0 refused (work arrived meanwhile; flag cleared), -1 not ours any more.
 
-        force=True releases even when work arrived (graceful stop: another worker will pick it up), and
-        keeps the watchdog so that some worker wakes for the session.
+        normal: refuse while the kick flag is set (the caller runs another pass), else release and drop the
+        watchdog. handoff: release even so, and schedule the session's kick after handoff_delay_s so some
+        worker continues (graceful stop, failures). final: release for good (session done or gone).
         """
-        member = "" if force else watchdog_member(self.session_id, self.version, self.prefix)
-        return int(r.eval(_RELEASE, 3, *self.keys(), self.value, "1" if force else "0", member))
+        if mode not in RELEASE_MODES:
+            raise ValueError(f"mode must be one of {RELEASE_MODES}")
+        member = watchdog_member(self.session_id, self.version, self.prefix)
+        due = repr(time.time() + handoff_delay_s)
+        return int(r.eval(_RELEASE, 3, *self.keys(), self.value, mode, member, due))
 
     def held(self, r: redis.Redis) -> bool:
         """Return True if Redis still holds our value."""
@@ -106,15 +123,27 @@ class Lease:
 
 
 def acquire(
-    r: redis.Redis, session_id: str, version: int, consumer: str, ttl_ms: int, prefix: str, kick_ttl_ms: int = 60_000
+    r: redis.Redis,
+    session_id: str,
+    version: int,
+    consumer: str,
+    ttl_ms: int,
+    prefix: str,
+    kick_ttl_ms: int = 60_000,
 ) -> Lease | None:
-    """Take the lease (or keep ours, same token); None when another consumer holds it (kick flag set)."""
+    """Take the lease (or keep ours, same token); None when another consumer holds it (kick flag set then).
+
+    Taking it also sets the watchdog kick at now + 2 ttl (pushed forward by every renewal).
+    """
     keys = [
         queue.lease_key(session_id, version, prefix),
         queue.fence_key(session_id, version, prefix),
         queue.kick_key(session_id, version, prefix),
+        queue.delayed_key(prefix),
     ]
-    token = int(r.eval(_ACQUIRE, 3, *keys, consumer, int(ttl_ms), int(kick_ttl_ms)))
+    due = repr(time.time() + 2.0 * ttl_ms / 1000.0)
+    member = watchdog_member(session_id, version, prefix)
+    token = int(r.eval(_ACQUIRE, 4, *keys, consumer, int(ttl_ms), int(kick_ttl_ms), member, due))
     if token < 0:
         return None
     return Lease(session_id, int(version), consumer, token, prefix)

@@ -1,9 +1,33 @@
 """HTTP routers of the v1 API; `ROUTERS` is what api.app includes."""
 
+from api.routes.events import router as events_router
 from api.routes.health import router as health_router
 from api.routes.ingest import router as ingest_router
+from api.routes.metrics import router as metrics_router
+from api.routes.reprocess import router as reprocess_router
+from api.routes.results import router as results_router
 from api.routes.sessions import router as sessions_router
+from api.routes.viewer import router as viewer_router
 
-ROUTERS = (health_router, sessions_router, ingest_router)
+ROUTERS = (
+    health_router,
+    metrics_router,
+    sessions_router,
+    ingest_router,
+    results_router,
+    events_router,
+    reprocess_router,
+    viewer_router,
+)
 
-__all__ = ["ROUTERS", "health_router", "ingest_router", "sessions_router"]
+__all__ = [
+    "ROUTERS",
+    "events_router",
+    "health_router",
+    "ingest_router",
+    "metrics_router",
+    "reprocess_router",
+    "results_router",
+    "sessions_router",
+    "viewer_router",
+]

@@ -80,9 +80,7 @@ def test_distort_agrees_with_opencv_project_points(dist: tuple[float, ...]) -> N
     pts = image_points()
     obj = np.column_stack([(pts[:, 0] - CX) / FX, (pts[:, 1] - CY) / FY, np.ones(len(pts))])
     ref, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), calib.K, calib.D)
-    np.testing.assert_allclose(
-        distort_points_px(pts, calib), ref.reshape(-1, 2), rtol=0, atol=TOL.project_points_px
-    )
+    np.testing.assert_allclose(distort_points_px(pts, calib), ref.reshape(-1, 2), rtol=0, atol=TOL.project_points_px)
 
 
 def test_distort_keeps_leading_shape() -> None:

@@ -125,9 +125,7 @@ def test_combined_tilt_with_unequal_separations() -> None:
     np.testing.assert_allclose(state.normal, [-0.5, -math.sqrt(3) / 4, 0.75], rtol=0, atol=TOL.float64_abs)
     pts = np.array([[3.0, 0.0], [0.0, math.sqrt(3)], [-30.0, 0.0], [-45.0, 0.0], [30.0, 0.0]])
     # Z(3, 0) = 2; Z(0, sqrt3) = 1; Z(-30, 0) = -20; Z(-45, 0) = -30; Z(30, 0) = 20
-    np.testing.assert_allclose(
-        depth_deviation_mm(pts, state), [2.0, 1.0, -20.0, -30.0, 20.0], rtol=0, atol=1e-12 * 30
-    )
+    np.testing.assert_allclose(depth_deviation_mm(pts, state), [2.0, 1.0, -20.0, -30.0, 20.0], rtol=0, atol=1e-12 * 30)
     # F: 22, 21, max(0, 0) = 0, max(0, -10) = 0 (the floor), 40
     np.testing.assert_allclose(local_load_n(pts, state, calib), [22.0, 21.0, 0.0, 0.0, 40.0], atol=1e-11)
 

@@ -51,9 +51,7 @@ def test_paths_over_mosaic_draws_both_paths(tmp_path: Path) -> None:
     estimate, registered, reference = _paths()
     mosaic = np.random.default_rng(0).integers(0, 60, size=(200, 420), dtype=np.uint8)  # dark, no red/blue
     out = tmp_path / "paths.png"
-    plot_paths_over_mosaic(
-        out, estimate, registered, reference, mosaic, px_per_mm=8.0, origin_px=(40.0, 100.0)
-    )
+    plot_paths_over_mosaic(out, estimate, registered, reference, mosaic, px_per_mm=8.0, origin_px=(40.0, 100.0))
     img = _read(out)
     assert img.shape[0] >= 300 and img.shape[1] >= 300
     # Each path is a long line of several hundred pixels of its own colour.
@@ -115,8 +113,6 @@ def test_method_comparison(tmp_path: Path) -> None:
 
 def test_bad_input_is_rejected(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="registered"):
-        plot_paths_over_mosaic(
-            tmp_path / "x.png", np.zeros((3, 2)), np.ones(2, bool), None, None, 8.0, (0, 0)
-        )
+        plot_paths_over_mosaic(tmp_path / "x.png", np.zeros((3, 2)), np.ones(2, bool), None, None, 8.0, (0, 0))
     with pytest.raises(ValueError, match="no method"):
         plot_method_comparison(tmp_path / "y.png", {}, None)

@@ -70,7 +70,7 @@ def test_gross_false_loop_edge_is_down_weighted(chain) -> None:
     rel = _relative(truth, 5, 20)
     bad = Edge(5, 20, Similarity(rel.a, rel.t + 30.0), EDGE_SIGMA_MM, loop=True)  # 30 mm wrong
     robust = optimise_poses(initial, [*edges, loop, bad], fixed=0)
-    plain = optimise_poses(initial, [*edges, loop, bad], fixed=0, huber_mm=1e6)  # ~no robust weighting
+    plain = optimise_poses(initial, [*edges, loop, bad], fixed=0, robust_mm=1e6)  # ~no robust weighting
     assert robust.edge_weights[-1] < 1e-3  # measured 3.4e-4
     assert np.all(robust.edge_weights[:-1] > 0.9)
     # Without robustness the bad edge drags the loop by ~22 mm. The Cauchy weight leaves a bounded pull

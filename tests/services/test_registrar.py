@@ -115,3 +115,12 @@ def test_constant_velocity_prediction() -> None:
     assert registrar.predict(0.2).t == pytest.approx(2 + 1j, abs=1e-12)
     # far ahead: the extrapolation is capped at 3 steps, t = (1 + 0.5i) * 4
     assert registrar.predict(10.0).t == pytest.approx(4 + 2j, abs=1e-12)
+
+
+def test_junk_burst_does_not_make_clean_frames_look_blurred(scan: Scan) -> None:
+    rng = np.random.default_rng(6)
+    burst = range(5, 21)  # 16 noise frames
+    noise = {i: rng.integers(0, 256, scan.mask.shape, dtype=np.uint8) for i in burst}
+    junk = dataclasses.replace(scan, frame_loader=lambda i: noise[i] if i in noise else scan.frame(i))
+    results, _ = _run(junk, method_options("sift-chain"))
+    assert not any(r.blurred for r in results[21:])  # sharp frames (measured 105..147 grey levels^2)

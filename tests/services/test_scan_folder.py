@@ -25,9 +25,7 @@ def small_scan(dtype: type = np.uint8, n: int = 3) -> Scan:
     mask[4:-4, 4:-4] = 255
     ref = np.array([[0.0, 0.0], [np.nan, np.nan], [2.5, -1.0 / 3.0]])[:n]
     return Scan(
-        calibration=default_calibration(
-            W, H, dist_coeffs=(-0.1, 0.01, 0.0, 0.0, 0.0), young_modulus_kpa=15.2
-        ),
+        calibration=default_calibration(W, H, dist_coeffs=(-0.1, 0.01, 0.0, 0.0, 0.0), young_modulus_kpa=15.2),
         frame_seq=np.arange(n),
         frame_t_s=0.1 * np.arange(n) + 1.0 / 3.0,
         force_t_s=np.linspace(0.0, 1.0, 11),
@@ -163,9 +161,7 @@ def test_frame_checks_on_load(folder: Path) -> None:
     scan.frame(0)
     with pytest.raises(ScanFormatError, match=r"^frames/000001\.png: colour image"):
         scan.frame(1)
-    with pytest.raises(
-        ScanFormatError, match=r"^frames/000002\.png: image is 48x33 px; calibration .* 48x32"
-    ):
+    with pytest.raises(ScanFormatError, match=r"^frames/000002\.png: image is 48x33 px; calibration .* 48x32"):
         scan.frame(2)
 
 

@@ -1,0 +1,149 @@
+"""GET /v1/sessions/{id}/events: Server-Sent Events of a session's progress, read from a Redis stream.
+
+The workers XADD {"type": "progress"|"done", "data": <json>} to <prefix>events:<sid>; stream entry ids are
+the SSE ids, so a client that reconnects with Last-Event-ID (the header EventSource sends, or
+?last_event_id=) gets exactly the entries after it. A fresh connection (or one whose Last-Event-ID was
+trimmed away) first gets a "snapshot" event: the current mosaic.json, the whole path and the counters,
+with the id of the newest entry at that moment. Comment lines keep idle connections alive. The stream
+ends after a "done" entry, or at once (after the snapshot) when the session is already done or failed.
+Reads use redis.asyncio with BLOCK, so no thread and no event-loop time is held while waiting.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from collections.abc import AsyncIterator
+from typing import Annotated, Any
+
+import redis
+import redis.asyncio as aioredis
+from fastapi import APIRouter, Header, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import StreamingResponse
+
+from api.deps import AppSettings, RedisClient, Store, ViewSession
+from api.errors import ServiceUnavailable
+from api.routes.results import Results, resolve_version
+from services import queue
+from services.redis_backend import read_embedded_url
+from services.results_store import ResultsStore
+from services.storage import SessionStore
+
+router = APIRouter(prefix="/v1/sessions", tags=["results"])
+log = logging.getLogger("veinmosaic.api")
+
+KEEPALIVE_S = 15.0  # a comment line after this long without an event
+RETRY_MS = 3000  # the reconnection delay suggested to EventSource
+BATCH = 200  # stream entries read per XREAD
+FINAL_STATUSES = ("done", "failed")
+_STREAM_ID = re.compile(r"^\d{1,20}(-\d{1,20})?$")
+
+
+def _id_tuple(stream_id: str) -> tuple[int, int]:
+    ms, _, seq = stream_id.partition("-")
+    return int(ms), int(seq or 0)
+
+
+def sse(event: str, data: str, event_id: str | None = None) -> str:
+    """Return one SSE message (multi-line data split into data: lines)."""
+    head = f"id: {event_id}\n" if event_id is not None else ""
+    body = "".join(f"data: {line}\n" for line in (data.splitlines() or [""]))
+    return f"{head}event: {event}\n{body}\n"
+
+
+def snapshot(store: SessionStore, rs: ResultsStore, r: redis.Redis, sid: str, prefix: str) -> dict[str, Any]:
+    """Return the snapshot event's data: status, counters, mosaic.json (or null) and the path [[seq, x, y, st]]."""
+    meta = store.get_meta(sid)
+    v = resolve_version(rs, sid, None)
+    mosaic = rs.read_mosaic_meta(sid, v) if v is not None else None
+    rows = (rs.read_path(sid, v) if v is not None else None) or []
+    counters = queue.session_counters(r, sid, prefix=prefix)
+    return {
+        "session": sid,
+        "status": meta.status,
+        "results_version": v,
+        "mosaic": None if mosaic is None else {**mosaic, "results_version": v},
+        "path": [[d["seq"], d.get("x_mm"), d.get("y_mm"), d.get("status")] for d in rows],
+        "frames_received": store.count_frames(sid),
+        "frames_processed": counters["processed"],
+        "frames_lost": counters["lost"],
+    }
+
+
+def async_redis_url(settings: Any) -> str:
+    """Return the URL of the Redis server the app uses (REDIS_URL, else the embedded server's socket)."""
+    url = settings.redis_url or read_embedded_url(settings.data_dir)
+    if not url:
+        raise ServiceUnavailable("the event stream is unavailable; retry later", settings.retry_after_s)
+    return url
+
+
+@router.get(
+    "/{session_id}/events",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"text/event-stream": {}}, "description": "snapshot, progress..., done"}},
+)
+async def events(
+    meta: ViewSession,
+    request: Request,
+    store: Store,
+    rs: Results,
+    r: RedisClient,
+    settings: AppSettings,
+    last_event_id: Annotated[str | None, Header(alias="Last-Event-ID")] = None,
+    last_event_id_q: Annotated[str | None, Query(alias="last_event_id", max_length=41)] = None,
+) -> StreamingResponse:
+    """Stream the session's progress as SSE: snapshot, then progress events, then done (see module doc)."""
+    sid, prefix = meta.id, settings.redis_prefix
+    resume = last_event_id or last_event_id_q
+    resume = resume.strip() if resume and _STREAM_ID.match(resume.strip()) else None
+    url = async_redis_url(settings)
+    stream = queue.events_stream(sid, prefix)
+
+    async def generate() -> AsyncIterator[str]:
+        client = aioredis.Redis.from_url(
+            url, decode_responses=True, socket_connect_timeout=2.0, socket_timeout=KEEPALIVE_S + 10.0
+        )
+        try:
+            yield f"retry: {RETRY_MS}\n\n"
+            start = resume
+            if start is not None:
+                first = await client.xrange(stream, count=1)
+                if first and _id_tuple(first[0][0]) > _id_tuple(start) and start != "0-0":
+                    start = None  # entries after Last-Event-ID were trimmed: start over with a snapshot
+            if start is None:
+                newest = await client.xrevrange(stream, count=1)
+                start = newest[0][0] if newest else "0-0"
+                doc = await run_in_threadpool(snapshot, store, rs, r, sid, prefix)
+                yield sse("snapshot", json.dumps(doc, separators=(",", ":"), allow_nan=False), start)
+            idle_checked = False
+            while True:
+                block = None if not idle_checked else int(KEEPALIVE_S * 1000)
+                got = await client.xread({stream: start}, count=BATCH, block=block)
+                entries = got[0][1] if got else []
+                for entry_id, fields in entries:
+                    start = entry_id
+                    kind = fields.get("type", "progress")
+                    yield sse(kind, fields.get("data", "{}"), entry_id)
+                    if kind == "done":
+                        return
+                if entries:
+                    continue
+                # nothing new: if the session is already over, say so and end; else wait (keep-alive)
+                status = (await run_in_threadpool(store.get_meta, sid)).status
+                if status in FINAL_STATUSES:
+                    yield sse("done", json.dumps({"status": status, "session": sid}), start)
+                    return
+                if idle_checked:
+                    yield ": keep-alive\n\n"
+                idle_checked = True
+        except (redis.RedisError, OSError):
+            log.warning("event stream interrupted", extra={"session": sid})
+            yield ": interrupted, reconnect\n\n"
+        finally:
+            await client.aclose()
+
+    headers = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
+    return StreamingResponse(generate(), media_type="text/event-stream", headers=headers)

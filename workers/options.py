@@ -1,0 +1,74 @@
+"""Options of a results version: {"method": name, "method_options": {...}, "calibration": {...overrides}}."""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from typing import Any
+
+from services.calibration import Calibration
+from services.methods import MethodOptions, method_options
+
+USER_KEYS = ("method", "method_options", "calibration")
+SYSTEM_KEYS = ("source", "job")  # written by the workers into options.json
+
+
+def _check_override_types(base: MethodOptions, overrides: dict[str, Any]) -> None:
+    known = {f.name: getattr(base, f.name) for f in fields(base)}
+    for name, value in overrides.items():
+        if name == "name":
+            raise ValueError("method_options: 'name' cannot be overridden; use 'method'")
+        if name not in known:
+            raise ValueError(f"method_options: unknown option {name!r}")
+        default = known[name]
+        if isinstance(default, bool):
+            ok = isinstance(value, bool)
+        elif isinstance(default, int):
+            ok = isinstance(value, int) and not isinstance(value, bool)
+        elif isinstance(default, float):
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+        else:
+            ok = isinstance(value, type(default))
+        if not ok:
+            raise ValueError(f"method_options: {name} must be a {type(default).__name__}")
+
+
+def parse_options(doc: Any, strict: bool = True) -> tuple[MethodOptions, dict[str, Any]]:
+    """Return (method options, calibration overrides) of an options document; ValueError naming the field.
+
+    strict=True (a client's document) rejects keys other than method, method_options, calibration.
+    """
+    if doc is None:
+        doc = {}
+    if not isinstance(doc, dict):
+        raise ValueError("options must be a JSON object")
+    allowed = USER_KEYS if strict else USER_KEYS + SYSTEM_KEYS
+    unknown = sorted(set(doc) - set(allowed))
+    if unknown:
+        raise ValueError(f"options: unknown field(s) {', '.join(unknown)}; expected {', '.join(USER_KEYS)}")
+    name = doc.get("method", "best")
+    if not isinstance(name, str):
+        raise ValueError("options.method must be a string")
+    opts = method_options(name)
+    overrides = doc.get("method_options") or {}
+    if not isinstance(overrides, dict):
+        raise ValueError("options.method_options must be an object")
+    _check_override_types(opts, overrides)
+    opts = opts.with_overrides(
+        {k: (float(v) if isinstance(getattr(opts, k), float) else v) for k, v in overrides.items()}
+    )
+    calib = doc.get("calibration") or {}
+    if not isinstance(calib, dict):
+        raise ValueError("options.calibration must be an object of calibration.json fields")
+    return opts, dict(calib)
+
+
+def apply_calibration(base: Calibration, overrides: dict[str, Any]) -> Calibration:
+    """Return the calibration with overrides applied and validated (CalibrationError names the field)."""
+    return base.with_overrides(**overrides) if overrides else base
+
+
+def validate_options(doc: Any, base: Calibration | None = None) -> None:
+    """Raise ValueError (naming the field) unless `doc` is a valid reprocess options document."""
+    _, calib = parse_options(doc, strict=True)
+    if base is not None:
+        apply_calibration(base, calib)

@@ -1,0 +1,532 @@
+"""Stage 2: register prepared frames of a session in seq order, under a lease, and publish the results.
+
+One worker at a time holds the lease of (session, version) and keeps the session's SessionReconstruction in
+memory; it keeps the lease while the session is active (so the state is not rebuilt on every kick) and polls
+its sessions between reads of the queue. A worker that takes a session over (new, released or crashed
+holder) rebuilds the reconstruction by replaying the prepared frames [0, cursor) in order: registration is
+deterministic, so the result is the same as if one process had done everything. Before every durable write
+the holder checks its fence (its lease value in Redis, and the token in state.json not newer than its own).
+Flushes (path.json, changed tiles, mosaic.json, state.json, counters, one event) happen at most every
+flush_every_s; the whole mosaic.png/force.png at most every image_every_s; both at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import cv2
+import numpy as np
+
+from services import queue
+from services.calibration import Calibration
+from services.deepzoom import DziGeometry, TilePyramid
+from services.methods import MethodOptions
+from services.mosaic import force_to_color
+from services.pipeline import window_radius_mm
+from services.registrar import STATUS_LOST, STATUS_OK, STATUS_REJECTED, FrameResult
+from services.results_store import LAYERS, LIVE_VERSION
+from services.session_reconstruction import PathRow, SessionReconstruction
+from services.storage import SessionNotFoundError
+from workers.config import Context, debug_order_key
+from workers.leases import Lease, acquire
+from workers.options import apply_calibration, parse_options
+from workers.prepare_stage import stored_seqs
+
+log = logging.getLogger("veinmosaic.worker")
+
+
+class LeaseLostError(Exception):
+    """Another worker holds (or took) the session: stop without writing."""
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """Return PNG bytes of an 8-bit image (OpenCV, fast compression)."""
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def _num(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def extent_mm(rows: list[PathRow], radius_mm: float) -> list[float] | None:
+    """Return [xmin, ymin, xmax, ymax] (mm, frame 0's axes) of the placed frames' windows, or None."""
+    pts = np.array([[r.x_mm, r.y_mm] for r in rows if r.status == STATUS_OK and math.isfinite(r.x_mm)])
+    if len(pts) == 0:
+        return None
+    lo, hi = pts.min(axis=0) - radius_mm, pts.max(axis=0) + radius_mm
+    return [float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])]
+
+
+def frame_counts(rows: list[PathRow]) -> dict[str, int]:
+    """Return {"processed", "ok", "lost", "rejected"} of path rows."""
+    c = Counter(r.status for r in rows)
+    return {
+        "processed": len(rows),
+        "ok": c[STATUS_OK],
+        "lost": c[STATUS_LOST],
+        "rejected": c[STATUS_REJECTED],
+    }
+
+
+def publish_event(ctx: Context, sid: str, kind: str, data: dict[str, Any]) -> None:
+    """XADD an event {"type", "data": json} to the session's event stream (capped near EVENTS_MAXLEN)."""
+    ctx.r.xadd(
+        queue.events_stream(sid, ctx.prefix),
+        {"type": kind, "data": json.dumps(data, separators=(",", ":"), allow_nan=False)},
+        maxlen=queue.EVENTS_MAXLEN,
+        approximate=True,
+    )
+
+
+@dataclass
+class HeldSession:
+    """A session whose lease this worker holds, with its in-memory reconstruction and publishing state."""
+
+    sid: str
+    version: int
+    lease: Lease
+    calib: Calibration
+    options: MethodOptions
+    recon: SessionReconstruction
+    geometry: DziGeometry
+    pyramid: TilePyramid
+    cursor: int = 0
+    lost: list[int] = field(default_factory=list)
+    rejected: list[int] = field(default_factory=list)
+    times: dict[int, float] = field(default_factory=dict)  # t_s of frames registered without a PreparedFrame
+    touched: set[tuple[int, int]] = field(default_factory=set)
+    unreported: list[int] = field(default_factory=list)  # seqs handled since the last flush
+    path_reset: bool = False  # an earlier frame moved (refinement): clients should re-read the path
+    dirty: bool = False
+    done: bool = False
+    last_flush: float = 0.0
+    last_image: float = 0.0
+    last_renew: float = 0.0
+    last_progress: float = field(default_factory=time.monotonic)
+
+
+class RegisterStage:
+    """The sessions this worker holds, and the handling of registration kicks."""
+
+    def __init__(self, ctx: Context) -> None:
+        self.ctx = ctx
+        self.held: dict[tuple[str, int], HeldSession] = {}
+
+    # ----- entry points ---------------------------------------------------------------------------------------
+    def on_kick(self, sid: str, version: int) -> None:
+        """Handle a kick: run a pass when this worker holds the session or can take it; else flag the holder."""
+        key = (sid, int(version))
+        held = self.held.get(key)
+        if held is None:
+            cfg = self.ctx.config
+            lease = acquire(self.ctx.r, sid, version, cfg.consumer, cfg.lease_ms, self.ctx.prefix)
+            if lease is None:
+                return  # the holder will see the kick flag before it releases
+            held = self._take_over(lease)
+            if held is None:
+                return
+            self.held[key] = held
+        self._run(held)
+
+    def poll(self) -> None:
+        """Serve every held session: renew, register what became available, flush when due, release idle ones."""
+        for held in list(self.held.values()):
+            if self.ctx.stop.is_set():
+                return
+            self._run(held)
+
+    def release_all(self) -> None:
+        """Flush and release every held session (graceful stop); another worker takes over."""
+        for key, held in list(self.held.items()):
+            try:
+                if held.dirty:
+                    self._flush(held, final=False)
+                held.lease.release(self.ctx.r, mode="handoff")
+            except (LeaseLostError, SessionNotFoundError):
+                pass
+            except Exception:  # keep releasing the others
+                log.exception("release on stop failed")
+            self.held.pop(key, None)
+
+    # ----- take-over and replay ------------------------------------------------------------------------------
+    def _take_over(self, lease: Lease) -> HeldSession | None:
+        ctx, sid, v = self.ctx, lease.session_id, lease.version
+        try:
+            meta = ctx.store.get_meta(sid)
+        except SessionNotFoundError:
+            lease.release(ctx.r, mode="final")
+            return None
+        ctx.results.ensure_version(sid, v, {"method": ctx.config.method, "source": "live"})
+        state = ctx.results.read_state(sid, v) or {}
+        if int(state.get("fence", 0)) > lease.token:
+            lease.release(ctx.r, mode="handoff", handoff_delay_s=1.0)
+            return None
+        if state.get("finished"):
+            if v == LIVE_VERSION and meta.status not in ("done", "failed"):
+                ctx.store.set_status(sid, "done")
+            lease.release(ctx.r, mode="final")
+            return None
+        setup = ctx.results.read_setup(sid, v)
+        if setup is None:
+            if meta.finished_at is not None and ctx.store.count_frames(sid) == 0:
+                self._finish_empty(lease, meta.status)
+            else:
+                lease.release(ctx.r, mode="final")  # the next prepared frame kicks again
+            return None
+        opts, calib_over = parse_options(ctx.results.read_options(sid, v) or {}, strict=False)
+        calib = apply_calibration(ctx.store.calibration(sid), calib_over)
+        recon = SessionReconstruction(calib, opts, window_radius_mm(setup[0], calib), live=True)
+        geometry = DziGeometry.for_mosaic(calib.px_per_mm, ctx.config.half_extent_mm)
+        held = HeldSession(
+            sid=sid,
+            version=v,
+            lease=lease,
+            calib=calib,
+            options=opts,
+            recon=recon,
+            geometry=geometry,
+            pyramid=TilePyramid(geometry),
+            lost=[int(s) for s in state.get("lost", [])],
+            rejected=[int(s) for s in state.get("rejected", [])],
+        )
+        held.last_renew = time.monotonic()
+        self._replay(held, int(state.get("cursor", 0)))
+        return held
+
+    def _replay(self, held: HeldSession, cursor: int) -> None:
+        """Rebuild the reconstruction from frames [0, cursor) in order (deterministic), then the tile pyramid."""
+        lost, rejected = set(held.lost), set(held.rejected)
+        for seq in range(cursor):
+            self._renew_if_due(held)
+            if seq in lost:
+                self._lose(held, seq, replay=True)
+            elif seq in rejected:
+                self._reject(held, seq, replay=True)
+            else:
+                pf = self.ctx.results.read_prepared(held.sid, held.version, seq)
+                if pf is None:  # cannot happen unless files were removed: record it as lost
+                    self._lose(held, seq, replay=True)
+                    held.lost.append(seq)
+                else:
+                    self._add(held, pf, replay=True)
+        held.cursor = cursor
+        held.pyramid.update(held.recon.canvas, set(held.recon.canvas.tiles))
+        held.touched.clear()
+        held.unreported.clear()
+        # counters are idempotent per seq: re-record all, in case the previous holder died before counting
+        self._record_counters(held, list(range(cursor)))
+        log.info("session taken over at cursor %d (token %d)", cursor, held.lease.token)
+
+    # ----- one pass --------------------------------------------------------------------------------------------
+    def _run(self, held: HeldSession) -> None:
+        key = (held.sid, held.version)
+        try:
+            self._renew_if_due(held, force=True)
+            self._pass(held)
+            now = time.monotonic()
+            if held.done:
+                self._drop(key, release=True)
+                return
+            if held.dirty and now - held.last_flush >= self.ctx.config.flush_every_s:
+                self._flush(held, final=False)
+            if now - held.last_progress > self.ctx.config.linger_s:
+                if held.dirty:
+                    self._flush(held, final=False)
+                if held.lease.release(self.ctx.r) != 0:
+                    self.held.pop(key, None)
+        except LeaseLostError:
+            log.warning("lease lost; dropping the session's in-memory state")
+            self.held.pop(key, None)
+        except SessionNotFoundError:
+            self._drop(key, release=True)
+
+    def _drop(self, key: tuple[str, int], release: bool) -> None:
+        held = self.held.pop(key, None)
+        if held is not None and release:
+            held.lease.release(self.ctx.r, mode="final")
+
+    def _renew_if_due(self, held: HeldSession, force: bool = False) -> None:
+        cfg = self.ctx.config
+        now = time.monotonic()
+        if not force and now - held.last_renew < cfg.lease_ms / 3000.0:
+            return
+        if force and now - held.last_renew < cfg.lease_ms / 6000.0:
+            return
+        watchdog = time.time() + 2.0 * cfg.lease_ms / 1000.0
+        if not held.lease.renew(self.ctx.r, cfg.lease_ms, watchdog):
+            raise LeaseLostError
+        held.last_renew = now
+
+    def _pass(self, held: HeldSession) -> None:
+        """Register frames from the cursor while they are available; finish the session when it is complete."""
+        ctx, cfg = self.ctx, self.ctx.config
+        sid, v = held.sid, held.version
+        meta = ctx.store.get_meta(sid)
+        finished = meta.finished_at is not None
+        started = time.monotonic()
+        seqs: list[int] | None = None
+        while not ctx.stop.is_set() and time.monotonic() - started < cfg.pass_budget_s:
+            seq = held.cursor
+            if ctx.results.is_poison(sid, v, seq):
+                self._reject(held, seq)
+                held.rejected.append(seq)
+                self._advance(held)
+                continue
+            pf = ctx.results.read_prepared(sid, v, seq)
+            if pf is not None:
+                try:
+                    self._add(held, pf)
+                except Exception as exc:
+                    self._registration_failed(held, seq, exc)
+                    raise LeaseLostError from exc
+                self._advance(held)
+                if time.monotonic() - held.last_flush >= cfg.flush_every_s:
+                    self._flush(held, final=False)
+                self._renew_if_due(held)
+                continue
+            rec = ctx.store.get_frame(sid, seq)
+            if rec is not None:  # stored, not prepared yet: wait; re-queue if its job seems to have vanished
+                if time.time() - rec.received_at > cfg.lost_timeout_s:
+                    queue.enqueue_frame(ctx.r, sid, seq, ctx.prefix)
+                break
+            seqs = stored_seqs(ctx, sid) if seqs is None or seqs[-1:] <= [seq] else seqs
+            later = [s for s in seqs if s > seq]
+            if not later:
+                break
+            if not finished:
+                nxt = ctx.store.get_frame(sid, later[0])
+                if nxt is None or time.time() - nxt.received_at <= cfg.lost_timeout_s:
+                    break
+            self._lose(held, seq)
+            held.lost.append(seq)
+            self._advance(held)
+        if finished and not ctx.stop.is_set():
+            seqs = stored_seqs(ctx, sid)
+            if not seqs or held.cursor > seqs[-1]:
+                self._complete(held, meta.status)
+
+    def _advance(self, held: HeldSession) -> None:
+        held.cursor += 1
+        held.dirty = True
+        held.last_progress = time.monotonic()
+
+    def _log_order(self, held: HeldSession, seq: int, kind: str) -> None:
+        if self.ctx.config.debug_order:
+            key = debug_order_key(self.ctx.prefix, held.sid, held.version)
+            self.ctx.r.rpush(key, f"{held.lease.token}:{seq}:{kind}")
+
+    def _add(self, held: HeldSession, pf: Any, replay: bool = False) -> None:
+        self._log_order(held, pf.seq, "add")
+        result, touched = held.recon.add(pf)
+        if not replay:
+            held.touched |= touched
+            held.unreported.append(pf.seq)
+            if result.moved:
+                held.path_reset = True
+
+    def _lose(self, held: HeldSession, seq: int, replay: bool = False) -> None:
+        self._log_order(held, seq, "lost")
+        held.recon.lose(seq)
+        self._remember_time(held, seq)
+        if not replay:
+            held.unreported.append(seq)
+
+    def _reject(self, held: HeldSession, seq: int, replay: bool = False) -> None:
+        self._log_order(held, seq, "rejected")
+        held.recon.results[seq] = FrameResult(seq, STATUS_REJECTED, None, 0, False)
+        self._remember_time(held, seq)
+        if not replay:
+            held.unreported.append(seq)
+
+    def _remember_time(self, held: HeldSession, seq: int) -> None:
+        rec = self.ctx.store.get_frame(held.sid, seq)
+        if rec is not None:
+            held.times[seq] = rec.t_s
+
+    def _registration_failed(self, held: HeldSession, seq: int, exc: Exception) -> None:
+        """Count a registration failure of `seq`; after max_deliveries mark it poison; retry via a delayed kick."""
+        ctx = self.ctx
+        log.error("registration of frame %d failed: %s", seq, type(exc).__name__, exc_info=exc)
+        fails = int(ctx.r.hincrby(f"{ctx.prefix}regfail:{held.sid}:{held.version}", str(seq), 1))
+        if fails >= ctx.config.max_deliveries:
+            ctx.results.mark_poison(held.sid, held.version, seq, f"registration failed: {type(exc).__name__}")
+            ctx.r.xadd(
+                queue.dead_stream(ctx.prefix),
+                {
+                    "kind": "register-frame",
+                    "session": held.sid,
+                    "version": str(held.version),
+                    "seq": str(seq),
+                    "error": f"{type(exc).__name__}: {exc}"[:200],
+                },
+            )
+            queue.incr_metric(ctx.r, "dead_letters_total", prefix=ctx.prefix)
+        self.held.pop((held.sid, held.version), None)
+        held.lease.release(ctx.r, mode="handoff", handoff_delay_s=0.5)  # a fresh holder retries
+
+    # ----- publishing ------------------------------------------------------------------------------------------
+    def _rows(self, held: HeldSession) -> list[PathRow]:
+        rows = held.recon.path_rows()
+        return [
+            replace(r, t_s=held.times[r.seq]) if not math.isfinite(r.t_s) and r.seq in held.times else r for r in rows
+        ]
+
+    def _check_fence(self, held: HeldSession) -> None:
+        state = self.ctx.results.read_state(held.sid, held.version) or {}
+        if int(state.get("fence", 0)) > held.lease.token or not held.lease.held(self.ctx.r):
+            raise LeaseLostError
+
+    def _flush(self, held: HeldSession, final: bool) -> None:
+        """Write path, changed tiles, images when due, mosaic.json and state; count frames; publish an event."""
+        ctx, cfg = self.ctx, self.ctx.config
+        sid, v = held.sid, held.version
+        self._renew_if_due(held, force=True)
+        self._check_fence(held)
+        now = time.monotonic()
+        rows = self._rows(held)
+        ctx.results.write_path(sid, v, rows)
+        doc = ctx.results.read_mosaic_meta(sid, v) or {}
+        version = int(doc.get("version", 0)) + 1
+        revisions: dict[str, dict[str, int]] = doc.get("revisions") or {layer: {} for layer in LAYERS}
+        changed = held.pyramid.update(held.recon.canvas, held.touched)
+        held.touched = set()
+        tiles_event: dict[str, dict[str, int]] = {layer: {} for layer in LAYERS}
+        for level, col, row in sorted(changed):
+            name = f"{level}/{col}_{row}"
+            for layer in LAYERS:
+                png = held.pyramid.render_png(level, col, row, layer)
+                if png is None:
+                    ctx.results.delete_tile(sid, v, layer, level, col, row)
+                else:
+                    ctx.results.write_tile(sid, v, layer, level, col, row, png)
+                revisions.setdefault(layer, {})[name] = version
+                tiles_event[layer][name] = version
+        if changed:
+            queue.incr_metric(ctx.r, "tile_renders_total", 2 * len(changed), prefix=ctx.prefix)
+        if final or not doc.get("width") or now - held.last_image >= cfg.image_every_s:
+            mosaic = held.recon.canvas.render()
+            ctx.results.write_image(sid, v, "mosaic.png", encode_png(mosaic.vein))
+            ctx.results.write_image(sid, v, "force.png", encode_png(force_to_color(mosaic.force_n)))
+            doc.update(mosaic.meta())
+            held.last_image = now
+        counts = frame_counts(rows)
+        finished = ctx.store.get_meta(sid).finished_at is not None
+        status = "done" if final else ("processing" if finished else "receiving")
+        doc.update(
+            {
+                "version": version,
+                "results_version": v,
+                "revisions": revisions,
+                "dzi": held.geometry.to_dict(),
+                "extent_mm": extent_mm(rows, held.recon.window_radius_mm),
+                "frames": counts,
+                "status": status,
+                "method": held.options.name,
+            }
+        )
+        if final and held.recon.compliance is not None:
+            doc["compliance_per_n"] = held.recon.compliance.compliance_per_n
+            doc["gauge"] = held.recon.compliance.gauge
+        ctx.results.write_mosaic_meta(sid, v, doc)
+        ctx.results.write_state(
+            sid,
+            v,
+            {
+                "cursor": held.cursor,
+                "fence": held.lease.token,
+                "finished": bool(final),
+                "lost": held.lost,
+                "rejected": held.rejected,
+            },
+        )
+        if v == LIVE_VERSION:
+            self._record_counters(held, held.unreported, rows)
+        by_seq = {r.seq: r for r in rows}
+        tail = [
+            [s, _num(by_seq[s].x_mm), _num(by_seq[s].y_mm), by_seq[s].status]
+            for s in sorted(set(held.unreported))
+            if s in by_seq
+        ]
+        data = {
+            "version": v,
+            "mosaic_version": version,
+            **counts,
+            "tiles": tiles_event,
+            "path_tail": tail,
+            "path_reset": bool(held.path_reset or final),
+            "extent_mm": doc["extent_mm"],
+            "status": status,
+        }
+        publish_event(ctx, sid, "done" if final else "progress", data)
+        held.unreported = []
+        held.path_reset = False
+        held.dirty = False
+        held.last_flush = now
+
+    def _record_counters(self, held: HeldSession, seqs: list[int], rows: list[PathRow] | None = None) -> None:
+        if not seqs or held.version != LIVE_VERSION:
+            return
+        statuses = {s: r.status for s, r in held.recon.results.items()}
+        counted = 0
+        lost_counted = 0
+        for seq in sorted(set(seqs)):
+            status = statuses.get(seq)
+            if status is None:
+                continue
+            if queue.record_frame_result(self.ctx.r, held.sid, seq, status != STATUS_OK, self.ctx.prefix):
+                counted += 1
+                lost_counted += status != STATUS_OK
+        if counted:
+            queue.incr_metric(self.ctx.r, "frames_processed_total", counted, prefix=self.ctx.prefix)
+        if lost_counted:
+            queue.incr_metric(self.ctx.r, "frames_lost_total", lost_counted, prefix=self.ctx.prefix)
+
+    def _complete(self, held: HeldSession, session_status: str) -> None:
+        """Final refinement and compliance fit, final flush and render, status done."""
+        self._renew_if_due(held, force=True)
+        self._check_fence(held)
+        held.touched |= held.recon.finish()
+        self._flush(held, final=True)
+        if held.version == LIVE_VERSION and session_status != "failed":
+            self.ctx.store.set_status(held.sid, "done")
+        held.done = True
+        log.info("session done (%d frames)", len(held.recon.results))
+
+    def _finish_empty(self, lease: Lease, session_status: str) -> None:
+        """A finished session without any frame: empty results, status done."""
+        ctx, sid, v = self.ctx, lease.session_id, lease.version
+        calib = ctx.store.calibration(sid)
+        geometry = DziGeometry.for_mosaic(calib.px_per_mm, ctx.config.half_extent_mm)
+        ctx.results.write_path(sid, v, [])
+        counts = {"processed": 0, "ok": 0, "lost": 0, "rejected": 0}
+        doc = {
+            "px_per_mm": calib.px_per_mm,
+            "origin_px": [0.0, 0.0],
+            "width": 0,
+            "height": 0,
+            "version": 1,
+            "results_version": v,
+            "revisions": {layer: {} for layer in LAYERS},
+            "dzi": geometry.to_dict(),
+            "extent_mm": None,
+            "frames": counts,
+            "status": "done",
+        }
+        ctx.results.write_mosaic_meta(sid, v, doc)
+        ctx.results.write_state(
+            sid, v, {"cursor": 0, "fence": lease.token, "finished": True, "lost": [], "rejected": []}
+        )
+        if session_status != "failed":
+            ctx.store.set_status(sid, "done")
+        data = {"version": v, "mosaic_version": 1, **counts, "tiles": {}, "path_tail": [], "path_reset": True}
+        publish_event(ctx, sid, "done", {**data, "extent_mm": None, "status": "done"})
+        lease.release(ctx.r, mode="final")

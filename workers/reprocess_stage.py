@@ -1,0 +1,231 @@
+"""Reprocess jobs: a new results version of a session by the OFFLINE pipeline over its stored raw uploads.
+
+The raw uploads are never modified. The new version becomes current only when it is complete, so the API
+keeps serving the previous version meanwhile. Progress is in the job hash <prefix>job:<id>.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services import queue
+from services.deepzoom import DziGeometry, TilePyramid
+from services.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas, force_to_color
+from services.pipeline import reconstruct
+from services.registrar import STATUS_REJECTED
+from services.results_store import LAYERS, LIVE_VERSION, parse_reference_csv
+from services.session_reconstruction import PathRow
+from services.storage import SessionNotFoundError
+from workers.config import Context
+from workers.options import apply_calibration, parse_options
+from workers.register_stage import encode_png, frame_counts, publish_event
+from workers.scan_from_store import scan_from_store
+
+log = logging.getLogger("veinmosaic.worker")
+
+
+class JobInterruptedError(Exception):
+    """The worker is stopping: the job goes back on the queue."""
+
+
+def canvas_from_mosaic(mosaic: MosaicImage) -> SparseCanvas:
+    """Return a SparseCanvas holding a rendered mosaic (unit weight per covered pixel) in canvas tile layout."""
+    canvas = SparseCanvas(mosaic.px_per_mm)
+    h, w = mosaic.vein.shape
+    ox, oy = (round(v) for v in mosaic.origin_px)  # the canvas pixel 0 is mosaic pixel origin_px
+    covered = np.isfinite(mosaic.force_n) & (mosaic.coverage > 0)
+    planes = np.zeros((h, w, PLANES), np.float32)
+    planes[..., 0] = np.where(covered, mosaic.vein / 255.0, 0)
+    planes[..., 1] = covered
+    planes[..., 2] = np.where(covered, np.nan_to_num(mosaic.force_n), 0)
+    planes[..., 3] = np.where(covered, mosaic.coverage, 0)
+    c0, r0 = (-ox) // TILE_PX, (-oy) // TILE_PX
+    c1, r1 = (w - 1 - ox) // TILE_PX, (h - 1 - oy) // TILE_PX
+    for r in range(r0, r1 + 1):
+        for c in range(c0, c1 + 1):
+            x0, y0 = c * TILE_PX + ox, r * TILE_PX + oy  # tile origin in mosaic pixels
+            tile = np.zeros((TILE_PX, TILE_PX, PLANES), np.float32)
+            sx0, sy0 = max(0, x0), max(0, y0)
+            sx1, sy1 = min(w, x0 + TILE_PX), min(h, y0 + TILE_PX)
+            if sx1 <= sx0 or sy1 <= sy0:
+                continue
+            tile[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = planes[sy0:sy1, sx0:sx1]
+            if np.any(tile[..., 1] > 0):
+                canvas.tiles[(c, r)] = tile
+    return canvas
+
+
+def _set_job(ctx: Context, job_id: str, **values: Any) -> None:
+    ctx.r.hset(queue.job_key(job_id, ctx.prefix), mapping={k: str(v) for k, v in values.items()})
+
+
+def _plot_bytes(draw: Callable[[Path], None]) -> bytes:
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "plot.png"
+        draw(path)
+        return path.read_bytes()
+
+
+def write_report(ctx: Context, sid: str, v: int, rows: list[PathRow], mosaic: MosaicImage | None) -> dict | None:
+    """Evaluate version v's path against the session's stored reference; write report + plots; None if none."""
+    from services.evaluation import evaluate_path
+    from services.plots import plot_error_along_scan, plot_paths_over_mosaic
+
+    text = ctx.results.read_reference(sid)
+    if text is None or not rows:
+        return None
+    reference = parse_reference_csv(text, [r.seq for r in rows])
+    estimate = np.array([[r.x_mm, r.y_mm] for r in rows], float)
+    registered = np.array([r.status == "ok" for r in rows])
+    report = evaluate_path(estimate, registered, reference)
+    doc = report.to_dict()
+    doc["plots"] = {"paths": "paths.png", "errors": "errors.png"}
+    doc["results_version"] = v
+    if mosaic is not None:
+        png = _plot_bytes(
+            lambda p: plot_paths_over_mosaic(
+                p, estimate, registered, reference, mosaic.vein, mosaic.px_per_mm, mosaic.origin_px
+            )
+        )
+        ctx.results.write_image(sid, v, "paths.png", png)
+    ctx.results.write_image(sid, v, "errors.png", _plot_bytes(lambda p: plot_error_along_scan(p, report)))
+    ctx.results.write_report(sid, v, doc)
+    return doc
+
+
+def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], None]) -> None:
+    """Run one reprocess job to completion (job hash state done or failed); JobInterruptedError on stop."""
+    job_id, sid = fields.get("job", ""), fields.get("session", "")
+    started = time.perf_counter()
+    try:
+        doc = json.loads(fields.get("options") or "{}")
+        opts, calib_over = parse_options(doc, strict=False)
+        calib = apply_calibration(ctx.store.calibration(sid), calib_over)
+    except SessionNotFoundError:
+        _set_job(ctx, job_id, state="failed", error="no such session")
+        return
+    except ValueError as exc:
+        _set_job(ctx, job_id, state="failed", error=f"invalid options: {exc}"[:300])
+        return
+    v = ctx.results.create_version(sid, {**doc, "source": "reprocess", "job": job_id}, make_current=False)
+    _set_job(ctx, job_id, state="running", version=v, started=time.time())
+    try:
+        poison = _live_poison(ctx, sid)
+        scan = scan_from_store(ctx.store, sid, calib, exclude_seqs=poison)
+        _set_job(ctx, job_id, total=len(scan) + len(poison), done=0)
+        last = [0.0]
+
+        def progress(done: int, total: int) -> None:
+            if ctx.stop.is_set():
+                raise JobInterruptedError
+            now = time.monotonic()
+            if now - last[0] >= 0.5 or done == total:
+                last[0] = now
+                _set_job(ctx, job_id, done=done)
+                heartbeat()
+
+        recon = reconstruct(scan, opts, progress=progress)
+        rows = sorted(
+            [*recon.rows, *(_rejected_row(ctx, sid, s) for s in poison)],
+            key=lambda r: r.seq,
+        )
+        write_version(ctx, sid, v, rows, recon.mosaic, recon.method, recon.compliance)
+        heartbeat()
+        write_report(ctx, sid, v, rows, recon.mosaic)
+        ctx.results.set_current(sid, v)
+    except JobInterruptedError:
+        raise
+    except Exception as exc:
+        log.exception("reprocess job failed")
+        _set_job(ctx, job_id, state="failed", error=f"{type(exc).__name__}: {exc}"[:300])
+        return
+    seconds = time.perf_counter() - started
+    _set_job(ctx, job_id, state="done", done=len(rows), finished=time.time())
+    queue.incr_metric(ctx.r, "jobs_done_total", prefix=ctx.prefix)
+    queue.incr_metric(ctx.r, "job_seconds_sum", seconds + 1e-9, prefix=ctx.prefix)
+    queue.incr_metric(ctx.r, "job_seconds_count", prefix=ctx.prefix)
+    meta = ctx.results.read_mosaic_meta(sid, v) or {}
+    publish_event(
+        ctx,
+        sid,
+        "version",
+        {"version": v, "mosaic_version": meta.get("version", 1), "status": "done", "job": job_id, **meta["frames"]},
+    )
+
+
+def _live_poison(ctx: Context, sid: str) -> list[int]:
+    pdir = ctx.results.version_dir(sid, LIVE_VERSION) / "poison"
+    if not pdir.is_dir():
+        return []
+    return sorted(int(p.stem) for p in pdir.glob("*.json") if p.stem.isdigit())
+
+
+def _rejected_row(ctx: Context, sid: str, seq: int) -> PathRow:
+    rec = ctx.store.get_frame(sid, seq)
+    nan = math.nan
+    t = rec.t_s if rec is not None else nan
+    return PathRow(seq, t, nan, nan, nan, nan, nan, nan, nan, 0, STATUS_REJECTED)
+
+
+def write_version(
+    ctx: Context,
+    sid: str,
+    v: int,
+    rows: list[PathRow],
+    mosaic: MosaicImage,
+    method: str,
+    compliance: Any,
+) -> None:
+    """Write a complete version: path, all tiles of both layers, mosaic.png/force.png, mosaic.json, state."""
+    ctx.results.write_path(sid, v, rows)
+    geometry = DziGeometry.for_mosaic(mosaic.px_per_mm, ctx.config.half_extent_mm)
+    pyramid = TilePyramid(geometry)
+    canvas = canvas_from_mosaic(mosaic)
+    changed = pyramid.update(canvas, set(canvas.tiles))
+    revisions: dict[str, dict[str, int]] = {layer: {} for layer in LAYERS}
+    for level, col, row in sorted(changed):
+        for layer in LAYERS:
+            png = pyramid.render_png(level, col, row, layer)
+            if png is not None:
+                ctx.results.write_tile(sid, v, layer, level, col, row, png)
+                revisions[layer][f"{level}/{col}_{row}"] = 1
+    queue.incr_metric(ctx.r, "tile_renders_total", 2 * len(changed), prefix=ctx.prefix)
+    ctx.results.write_image(sid, v, "mosaic.png", encode_png(mosaic.vein))
+    ctx.results.write_image(sid, v, "force.png", encode_png(force_to_color(mosaic.force_n)))
+    doc: dict[str, Any] = dict(mosaic.meta())
+    doc.update(
+        {
+            "version": 1,
+            "results_version": v,
+            "revisions": revisions,
+            "dzi": geometry.to_dict(),
+            "extent_mm": mosaic_extent_mm(mosaic),
+            "frames": frame_counts(rows),
+            "status": "done",
+            "method": method,
+        }
+    )
+    if compliance is not None:
+        doc["compliance_per_n"] = compliance.compliance_per_n
+        doc["gauge"] = compliance.gauge
+    ctx.results.write_mosaic_meta(sid, v, doc)
+    ctx.results.write_state(sid, v, {"cursor": len(rows), "fence": 0, "finished": True, "lost": [], "rejected": []})
+
+
+def mosaic_extent_mm(mosaic: MosaicImage) -> list[float] | None:
+    """Return [xmin, ymin, xmax, ymax] in mm (frame 0's axes) of a rendered mosaic, None when it is empty."""
+    h, w = mosaic.vein.shape
+    if not np.any(mosaic.coverage > 0):
+        return None
+    ox, oy = mosaic.origin_px
+    k = mosaic.px_per_mm
+    return [-ox / k, -oy / k, (w - ox) / k, (h - oy) / k]
