@@ -51,7 +51,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from services.scan_folder import read_scan_folder
 
     scan = read_scan_folder(args.scan)
-    options = method_options(args.method)
+    options = method_options(args.method).with_overrides(_parse_options(args.option))
     with _bar(f"reconstruct ({args.method})", len(scan)) as bar:
         recon = reconstruct(scan, options, progress=_sized(bar))
     report = write_reconstruction(recon, args.out, scan.reference_mm)
@@ -64,6 +64,30 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
             f"{report.path_length_mm:.0f} mm"
         )
     return 0
+
+
+def _parse_options(pairs: list[str]) -> dict[str, object]:
+    """Return method overrides from KEY=VALUE strings, each value typed like the option's default."""
+    from dataclasses import fields
+
+    from services.methods import MethodOptions
+
+    types = {f.name: f.type for f in fields(MethodOptions)}
+    out: dict[str, object] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or key not in types:
+            raise ValueError(f"--option {pair!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(types))}")
+        kind = types[key]
+        if kind == "bool":
+            out[key] = value.lower() in ("1", "true", "yes", "on")
+        elif kind == "int":
+            out[key] = int(value)
+        elif kind == "float":
+            out[key] = float(value)
+        else:
+            out[key] = value
+    return out
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -228,6 +252,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scan", type=Path)
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--method", default="best", choices=["sift-chain", "paper", "best"])
+    p.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a method option, e.g. features=asift (full ASIFT) or refine=false",
+    )
     p.set_defaults(func=cmd_reconstruct)
 
     p = sub.add_parser("calibrate", help="fit E and kappa from a calibration scan")
@@ -272,7 +303,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))
-    except (ScanFormatError, CalibrationError) as exc:
+    except (ScanFormatError, CalibrationError, ValueError) as exc:
         print(f"veinmosaic: error: {exc}", file=sys.stderr)
         return 2
 

@@ -147,8 +147,7 @@ def encode_png_bgra(image: np.ndarray) -> bytes:
 
 def pool2(planes: np.ndarray) -> np.ndarray:
     """Return the 2x2 sum-pool of (2h, 2w, C) planes as (h, w, C)."""
-    h, w, c = planes.shape
-    return planes.reshape(h // 2, 2, w // 2, 2, c).sum(axis=(1, 3))
+    return planes[0::2, 0::2] + planes[1::2, 0::2] + planes[0::2, 1::2] + planes[1::2, 1::2]
 
 
 @dataclass
@@ -189,16 +188,17 @@ class TilePyramid:
         for level in range(top - 1, -1, -1):
             parents = {(col // 2, row // 2) for col, row in current}
             children = self.levels.get(level + 1, {})
+            half = TILE_PX // 2
             for pc, pr in parents:
-                quad = np.zeros((2 * TILE_PX, 2 * TILE_PX, PLANES), np.float32)
+                parent = np.zeros((TILE_PX, TILE_PX, PLANES), np.float32)
                 any_child = False
                 for dy in (0, 1):
                     for dx in (0, 1):
                         child = children.get((2 * pc + dx, 2 * pr + dy))
                         if child is not None:
-                            quad[dy * TILE_PX : (dy + 1) * TILE_PX, dx * TILE_PX : (dx + 1) * TILE_PX] = child
+                            parent[dy * half : (dy + 1) * half, dx * half : (dx + 1) * half] = pool2(child)
                             any_child = True
-                self._set(level, (pc, pr), pool2(quad) if any_child else None)
+                self._set(level, (pc, pr), parent if any_child else None)
                 changed.add((level, pc, pr))
             current = parents
         return changed

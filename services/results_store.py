@@ -74,6 +74,20 @@ def write_once(path: Path, data: bytes) -> bool:
             os.unlink(tmp)
 
 
+def replace_bytes(path: Path, data: bytes) -> None:
+    """Write `path` atomically (temp file + rename) without fsync: readers see the old or the new file."""
+    path = Path(path)
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
+    try:
+        with open(tmp, "xb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
 def _npz_bytes(**arrays: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
@@ -392,11 +406,17 @@ class ResultsStore:
             raise ValueError(f"layer must be one of {LAYERS}")
         return self.version_dir(sid, v) / "tiles" / layer / str(int(level)) / f"{int(col)}_{int(row)}.png"
 
-    def write_tile(self, sid: str, v: int, layer: str, level: int, col: int, row: int, png: bytes) -> None:
-        """Write a Deep Zoom tile."""
+    def write_tile(
+        self, sid: str, v: int, layer: str, level: int, col: int, row: int, png: bytes, durable: bool = True
+    ) -> None:
+        """Write a Deep Zoom tile atomically; durable=False skips the fsyncs (live tiles are rewritten often
+        and can be re-rendered; the final flush of a version writes every tile durably)."""
         path = self.tile_path(sid, v, layer, level, col, row)
         path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(path, png)
+        if durable:
+            atomic_write_bytes(path, png)
+        else:
+            replace_bytes(path, png)
 
     def delete_tile(self, sid: str, v: int, layer: str, level: int, col: int, row: int) -> None:
         """Remove a tile that no longer has data (the API then serves a blank tile)."""

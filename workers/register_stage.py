@@ -407,7 +407,7 @@ class RegisterStage:
                 if png is None:
                     ctx.results.delete_tile(sid, v, layer, level, col, row)
                 else:
-                    ctx.results.write_tile(sid, v, layer, level, col, row, png)
+                    ctx.results.write_tile(sid, v, layer, level, col, row, png, durable=final)
                 revisions.setdefault(layer, {})[name] = version
                 tiles_event[layer][name] = version
         if changed:

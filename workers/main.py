@@ -1,0 +1,287 @@
+"""The worker process: one loop over the job streams (prepare frames, register sessions, reprocess jobs).
+
+Reads <prefix>frames, <prefix>register and (when it holds no session) <prefix>jobs with XREADGROUP (group
+"workers", consumer host:pid); acknowledges and deletes an entry once its results are stored. Every loop it
+moves due delayed jobs back onto their streams and serves the sessions whose registration lease it holds;
+every claim_every_s it XAUTOCLAIMs entries idle longer than claim_idle_ms (a crashed worker's). An entry
+that failed max_deliveries times (delivery count from XPENDING plus the "attempt" field carried across
+re-schedules) goes to <prefix>dead; a dead frame is marked poison and registered as rejected. SIGTERM or
+SIGINT stops the loop after the current entry; held sessions are flushed and handed off.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import redis
+
+from services import queue
+from services.redis_backend import close, connect
+from services.results_store import LIVE_VERSION, ResultsStore
+from services.storage import SessionStore
+from workers import delayed
+from workers.config import Context, WorkerConfig
+from workers.prepare_stage import Retry, handle_frame, live_options
+from workers.register_stage import RegisterStage
+from workers.reprocess_stage import JobInterruptedError, handle_job
+
+log = logging.getLogger("veinmosaic.worker")
+
+
+def _text(fields: dict[Any, Any]) -> dict[str, str]:
+    return {
+        (k.decode() if isinstance(k, bytes) else str(k)): (v.decode() if isinstance(v, bytes) else str(v))
+        for k, v in fields.items()
+    }
+
+
+def _id(entry_id: Any) -> str:
+    return entry_id.decode() if isinstance(entry_id, bytes) else str(entry_id)
+
+
+class Worker:
+    """One worker's loop and dispatch."""
+
+    def __init__(self, ctx: Context) -> None:
+        self.ctx = ctx
+        self.register = RegisterStage(ctx)
+        self.frames, self.kicks, self.jobs = queue.worker_streams(ctx.prefix)
+        self._last_claim = 0.0
+
+    # ----- the loop --------------------------------------------------------------------------------------------
+    def run(self, max_seconds: float | None = None) -> None:
+        """Serve until the stop flag is set (or max_seconds pass)."""
+        ctx = self.ctx
+        queue.ensure_groups(ctx.r, ctx.prefix)
+        deadline = None if max_seconds is None else time.monotonic() + max_seconds
+        log.info("worker %s started", ctx.config.consumer)
+        try:
+            while not ctx.stop.is_set() and (deadline is None or time.monotonic() < deadline):
+                try:
+                    self.step()
+                except (redis.ConnectionError, redis.TimeoutError) as exc:
+                    log.warning("redis unavailable (%s); retrying", type(exc).__name__)
+                    ctx.stop.wait(1.0)
+                except redis.ResponseError as exc:
+                    if "NOGROUP" in str(exc):
+                        queue.ensure_groups(ctx.r, ctx.prefix)
+                    else:
+                        log.exception("redis error")
+                        ctx.stop.wait(0.5)
+        finally:
+            with contextlib.suppress(redis.RedisError, OSError):
+                self.register.release_all()
+            log.info("worker %s stopped", ctx.config.consumer)
+
+    def step(self) -> None:
+        """One iteration: delayed jobs, claims, held sessions, then one blocking read and its entries."""
+        ctx, cfg = self.ctx, self.ctx.config
+        delayed.move_due(ctx.r, ctx.prefix)
+        if time.monotonic() - self._last_claim >= cfg.claim_every_s:
+            self._last_claim = time.monotonic()
+            self.autoclaim()
+        self.register.poll()
+        if ctx.stop.is_set():
+            return
+        streams = {self.frames: ">", self.kicks: ">"}
+        if not self.register.held:
+            streams[self.jobs] = ">"
+        block = cfg.held_block_ms if self.register.held else cfg.block_ms
+        resp = ctx.r.xreadgroup(queue.GROUP, cfg.consumer, streams, count=1, block=block)
+        for stream, entries in resp or []:
+            for entry_id, fields in entries:
+                self.handle(_id(stream), _id(entry_id), _text(fields or {}), delivered=1)
+
+    def autoclaim(self) -> None:
+        """Take over entries other consumers left pending longer than claim_idle_ms, and handle them."""
+        ctx, cfg = self.ctx, self.ctx.config
+        for stream in (self.frames, self.kicks, self.jobs):
+            start = "0-0"
+            for _ in range(10):  # at most 10 pages per round
+                res = ctx.r.xautoclaim(stream, queue.GROUP, cfg.consumer, cfg.claim_idle_ms, start_id=start, count=10)
+                start = _id(res[0])
+                for entry_id, fields in res[1]:
+                    eid = _id(entry_id)
+                    if not fields:  # deleted from the stream while pending
+                        ctx.r.xack(stream, queue.GROUP, eid)
+                        continue
+                    pend = ctx.r.xpending_range(stream, queue.GROUP, min=eid, max=eid, count=1)
+                    delivered = int(pend[0]["times_delivered"]) if pend else 1
+                    log.info("claimed an entry idle > %d ms (delivery %d)", cfg.claim_idle_ms, delivered)
+                    self.handle(stream, eid, _text(fields), delivered=delivered)
+                if start == "0-0":
+                    break
+
+    # ----- dispatch --------------------------------------------------------------------------------------------
+    def handle(self, stream: str, entry_id: str, fields: dict[str, str], delivered: int) -> None:
+        """Handle one entry; ack+delete it when done, re-schedule it, or dead-letter it after too many failures."""
+        ctx, cfg = self.ctx, self.ctx.config
+        attempt = int(fields.get("attempt", "0") or 0)
+        failures = attempt + max(0, delivered - 1)
+        if failures >= cfg.max_deliveries:
+            self.dead_letter(stream, entry_id, fields, f"failed {failures} times")
+            return
+        try:
+            outcome = self.dispatch(stream, entry_id, fields)
+        except JobInterruptedError:
+            self._requeue(stream, entry_id, fields, 0.0, attempt)
+            return
+        except Exception as exc:
+            log.error("job of kind %s failed: %s", fields.get("kind"), type(exc).__name__, exc_info=exc)
+            if failures + 1 >= cfg.max_deliveries:
+                self.dead_letter(stream, entry_id, fields, f"{type(exc).__name__}: {exc}")
+            else:
+                self._requeue(stream, entry_id, fields, 0.5 * (failures + 1), failures + 1)
+            return
+        if isinstance(outcome, Retry):
+            self._requeue(stream, entry_id, fields, outcome.delay_s, failures)
+            return
+        queue.ack_delete(ctx.r, stream, entry_id)
+
+    def _requeue(self, stream: str, entry_id: str, fields: dict[str, str], delay_s: float, attempt: int) -> None:
+        """Put a copy of the entry back after delay_s (atomically enough: schedule first, then ack)."""
+        new = dict(fields)
+        if attempt:
+            new["attempt"] = str(attempt)
+        else:
+            new.pop("attempt", None)
+        delayed.schedule(self.ctx.r, stream, new, delay_s, self.ctx.prefix)
+        queue.ack_delete(self.ctx.r, stream, entry_id)
+
+    def dispatch(self, stream: str, entry_id: str, fields: dict[str, str]) -> Retry | str | None:
+        """Run the stage an entry belongs to."""
+        ctx = self.ctx
+        kind = fields.get("kind")
+        sid = fields.get("session", "")
+        if kind == "frame":
+            return handle_frame(ctx, sid, int(fields["seq"]))
+        if kind == "finish":
+            self.register.on_kick(sid, LIVE_VERSION)
+            return None
+        if kind == "register":
+            self.register.on_kick(sid, int(fields.get("version", LIVE_VERSION)))
+            return None
+        if kind == "reprocess":
+
+            def heartbeat() -> None:  # keep the entry from looking abandoned while the job runs
+                ctx.r.xclaim(stream, queue.GROUP, ctx.config.consumer, 0, [entry_id], justid=True)
+
+            handle_job(ctx, fields, heartbeat)
+            return None
+        log.warning("entry of unknown kind dropped")
+        return None
+
+    def dead_letter(self, stream: str, entry_id: str, fields: dict[str, str], error: str) -> None:
+        """Move an entry to the dead-letter stream; a frame becomes poison (rejected), a job fails."""
+        ctx = self.ctx
+        log.error("dead-lettering an entry of kind %s: %s", fields.get("kind"), error[:200])
+        ctx.r.xadd(
+            queue.dead_stream(ctx.prefix),
+            {**fields, "stream": stream, "entry": entry_id, "error": error[:300], "at": repr(time.time())},
+        )
+        queue.incr_metric(ctx.r, "dead_letters_total", prefix=ctx.prefix)
+        kind, sid = fields.get("kind"), fields.get("session", "")
+        try:
+            if kind == "frame":
+                live_options(ctx, sid)  # makes sure version 1 exists
+                ctx.results.mark_poison(sid, LIVE_VERSION, int(fields["seq"]), error)
+                queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
+            elif kind == "reprocess" and fields.get("job"):
+                ctx.r.hset(queue.job_key(fields["job"], ctx.prefix), mapping={"state": "failed", "error": error[:300]})
+        except Exception:
+            log.exception("dead-letter follow-up failed")
+        queue.ack_delete(ctx.r, stream, entry_id)
+
+
+def run_worker(
+    data_dir: Path | str,
+    redis_url: str | None = None,
+    *,
+    prefix: str = "vm:",
+    consumer: str | None = None,
+    stop: threading.Event | None = None,
+    max_seconds: float | None = None,
+    handle_signals: bool = True,
+    **options: Any,
+) -> int:
+    """Run one worker until SIGTERM/SIGINT (or `stop` is set, or max_seconds pass); return the exit code 0.
+
+    options: any other WorkerConfig field (lost_timeout_s, lease_ms, claim_idle_ms, claim_every_s, method,
+    flush_every_s, image_every_s, max_deliveries, linger_s, half_extent_mm, debug_order, ...).
+    """
+    cfg_args: dict[str, Any] = {"data_dir": Path(data_dir), "redis_url": redis_url, "prefix": prefix, **options}
+    if consumer:
+        cfg_args["consumer"] = consumer
+    cfg = WorkerConfig(**cfg_args)
+    r = connect(redis_url, cfg.data_dir)
+    ctx = Context(cfg, r, SessionStore(cfg.data_dir), ResultsStore(cfg.data_dir), stop or threading.Event())
+    if handle_signals and threading.current_thread() is threading.main_thread():
+
+        def on_signal(_signum: int, _frame: object) -> None:
+            ctx.stop.set()
+
+        signal.signal(signal.SIGTERM, on_signal)
+        signal.signal(signal.SIGINT, on_signal)
+    try:
+        Worker(ctx).run(max_seconds=max_seconds)
+    finally:
+        close(r)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the worker's argument parser (defaults from api.settings.Settings and VEINMOSAIC_WORKER_*)."""
+    p = argparse.ArgumentParser(prog="veinmosaic worker", description="Run one veinmosaic worker process.")
+    p.add_argument("--data-dir", type=Path, default=None, help="default: VEINMOSAIC_DATA_DIR")
+    p.add_argument("--redis-url", default=None, help="default: REDIS_URL (else the embedded server)")
+    p.add_argument("--prefix", default=None, help="Redis key prefix; default VEINMOSAIC_REDIS_PREFIX or vm:")
+    p.add_argument("--consumer", default=None, help="consumer name; default host:pid")
+    p.add_argument(
+        "--config-json",
+        default=os.environ.get("VEINMOSAIC_WORKER_CONFIG", ""),
+        help='JSON of WorkerConfig fields, e.g. {"lost_timeout_s": 5}; env VEINMOSAIC_WORKER_CONFIG',
+    )
+    p.add_argument("--lost-timeout-s", type=float, default=None)
+    p.add_argument("--lease-ms", type=int, default=None)
+    p.add_argument("--claim-idle-ms", type=int, default=None)
+    p.add_argument("--max-seconds", type=float, default=None, help="exit after this long (tests)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run a worker configured from the environment (api.settings.Settings) and the command line."""
+    from api.settings import Settings
+
+    args = build_parser().parse_args(argv)
+    settings = Settings()
+    logging.basicConfig(
+        level=getattr(logging, str(settings.log_level).upper(), logging.INFO),
+        format="%(asctime)s %(levelname)s %(name)s %(process)d: %(message)s",
+    )
+    options: dict[str, Any] = json.loads(args.config_json) if args.config_json else {}
+    for name in ("lost_timeout_s", "lease_ms", "claim_idle_ms"):
+        value = getattr(args, name)
+        if value is not None:
+            options[name] = value
+    return run_worker(
+        args.data_dir or settings.data_dir,
+        args.redis_url or settings.redis_url,
+        prefix=args.prefix or settings.redis_prefix,
+        consumer=args.consumer,
+        max_seconds=args.max_seconds,
+        **options,
+    )
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
