@@ -27,6 +27,7 @@ class MethodOptions:
     ratio: float = 0.8  # Lowe ratio test
     neighbours: int = 4  # keyframes matched per frame (keyframes registration)
     loop_gap: int = 25  # an edge spanning more frames than this is a loop closure
+    refine_every: int = 10  # re-optimise the pose graph after this many frames with loop closures
     max_jump_mm: float = 15.0  # a pose farther than this from the prediction is implausible
     blur_ratio: float = 0.35  # sharpness below this fraction of the running median = blurred frame
 

@@ -2,7 +2,8 @@
 
 Poses are similarities T_k: p -> a_k p + t_k (complex, frame k's mm -> mosaic mm). An edge (i, j) measures
 T_ij = T_i^-1 T_j, so a_j = a_i a_ij and t_j = t_i + a_i t_ij. Both equations are *linear* in the unknowns
-(a, t), so each robust iteration (IRLS with Cauchy weights) is one sparse linear least-squares solve.
+(a, t), so each robust iteration (IRLS with Cauchy weights) is one sparse linear least-squares solve
+(normal equations, sparse LU).
 """
 
 from __future__ import annotations
@@ -10,11 +11,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.linalg import lsqr
+from scipy.sparse import csr_matrix, identity
+from scipy.sparse.linalg import spsolve
 
 from services.registration import Similarity
 
+RIDGE = 1e-9  # relative to unit-sigma rows: far below any real constraint
 DROP_WEIGHT = 1e-2  # an edge down-weighted below this is an outlier: it gets no pull at all
 
 
@@ -126,7 +128,9 @@ def optimise_poses(
                 rhs.extend(b.tolist())
                 r += 2
         A = csr_matrix((vals, (rows, cols)), shape=(r, 4 * len(free)))
-        dx = lsqr(A, np.asarray(rhs) - A @ x0, atol=1e-12, btol=1e-12, iter_lim=20000)[0]
+        # normal equations, solved directly (SuperLU); the tiny ridge keeps a node without edges where it is
+        normal = (A.T @ A + RIDGE * identity(A.shape[1], format="csr")).tocsc()
+        dx = spsolve(normal, A.T @ (np.asarray(rhs) - A @ x0))
         x0 = x0 + dx
         for n in free:
             v = x0[col[n] : col[n] + 4]

@@ -19,7 +19,7 @@ from services.pose_graph import Edge, optimise_poses, place_node
 from services.registration import IDENTITY, Similarity, SimilarityFit, estimate_similarity, match_features
 
 STATUS_OK, STATUS_LOST, STATUS_REJECTED = "ok", "lost", "rejected"
-MOVED_MM = 0.02  # a refined pose that moves a frame by less than this does not re-render its tiles
+MOVED_MM = 0.05  # a refined pose that moves a frame by less than this (0.4 px) does not re-render its tiles
 
 
 @dataclass(frozen=True)
@@ -190,7 +190,7 @@ class Registrar:
         result = self._accept(pf, pose, edges, total, blurred)
         if any(e.loop for e in edges):
             self.loops_since_refine += 1
-        if self.options.refine and self.loops_since_refine and (self.loops_since_refine >= 3 or not blurred):
+        if self.options.refine and self.loops_since_refine >= self.options.refine_every:
             return FrameResult(pf.index, result.status, result.pose, total, blurred, self.refine())
         return result
 

@@ -86,23 +86,25 @@ def match_features(
         knn = matcher.knnMatch(query.descriptors, train.descriptors, k=k, mask=allowed)
     else:
         knn = matcher.knnMatch(query.descriptors, train.descriptors, k=k)
-    iq, it = [], []
+    rows = [row for row in knn if row]
+    if not rows:
+        return np.zeros(0, int), np.zeros(0, int)
+    # pad every row to k candidates (missing = +inf distance) and test all rows at once
+    idx = np.zeros((len(rows), k), int)
+    dist = np.full((len(rows), k), np.inf)
+    for r, row in enumerate(rows):
+        for c, m in enumerate(row):
+            idx[r, c], dist[r, c] = m.trainIdx, m.distance
+    iq = np.array([row[0].queryIdx for row in rows])
     tp = train.points_px
-    for row in knn:
-        if not row:
-            continue
-        best = row[0]
-        second = None
-        for m in row[1:]:
-            if np.hypot(*(tp[m.trainIdx] - tp[best.trainIdx])) > same_point:
-                second = m
-                break
-        # no candidate at another place: unambiguous; else Lowe's ratio against the other place
-        second_ok = second is None or best.distance < ratio * second.distance
-        if second_ok:
-            iq.append(best.queryIdx)
-            it.append(best.trainIdx)
-    return np.asarray(iq, int), np.asarray(it, int)
+    gap = np.linalg.norm(tp[idx] - tp[idx[:, :1]], axis=2)  # each candidate's distance from the best's place
+    elsewhere = (gap > same_point) & np.isfinite(dist)
+    elsewhere[:, 0] = False
+    has_second = elsewhere.any(axis=1)
+    second = np.where(has_second, dist[np.arange(len(rows)), elsewhere.argmax(axis=1)], np.inf)
+    # no candidate at another place: unambiguous; else Lowe's ratio against the best other place
+    keep = ~has_second | (dist[:, 0] < ratio * second)
+    return iq[keep], idx[keep, 0]
 
 
 def unique_pairs(src: np.ndarray, dst: np.ndarray, radius: float = 2.0) -> np.ndarray:

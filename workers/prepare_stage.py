@@ -97,6 +97,8 @@ def ensure_setup(
         return None
     frames = _setup_frames(ctx, sid, first, calib)
     if not frames:
+        if finished:
+            raise ValueError("none of the first frames can be decoded at the calibration's image size")
         return None
     mask = estimate_window_mask(frames)
     flat = estimate_flat_field(frames, mask) if opts.flat_field else None

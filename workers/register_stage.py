@@ -109,6 +109,8 @@ class HeldSession:
     dirty: bool = False
     done: bool = False
     last_flush: float = 0.0
+    flush_interval: float = 0.0  # max(flush_every_s, 2 x the last flush's duration): flushing stays <= 1/3
+    deferred: set[tuple[int, int, int]] = field(default_factory=set)  # whole-canvas levels, rendered with images
     last_image: float = 0.0
     last_renew: float = 0.0
     last_progress: float = field(default_factory=time.monotonic)
@@ -131,7 +133,11 @@ class RegisterStage:
             lease = acquire(self.ctx.r, sid, version, cfg.consumer, cfg.lease_ms, self.ctx.prefix)
             if lease is None:
                 return  # the holder will see the kick flag before it releases
-            held = self._take_over(lease)
+            try:
+                held = self._take_over(lease)
+            except BaseException:
+                lease.release(self.ctx.r, mode="final")  # the kick is retried (then dead-lettered) by the loop
+                raise
             if held is None:
                 return
             self.held[key] = held
@@ -177,8 +183,9 @@ class RegisterStage:
             return None
         setup = ctx.results.read_setup(sid, v)
         if setup is None:
-            if meta.finished_at is not None and ctx.store.count_frames(sid) == 0:
-                self._finish_empty(lease, meta.status)
+            seqs = stored_seqs(ctx, sid)
+            if meta.finished_at is not None and all(ctx.results.is_poison(sid, v, s) for s in seqs):
+                self._finish_empty(lease, meta.status, seqs)
             else:
                 lease.release(ctx.r, mode="final")  # the next prepared frame kicks again
             return None
@@ -236,7 +243,7 @@ class RegisterStage:
             if held.done:
                 self._drop(key, release=True)
                 return
-            if held.dirty and now - held.last_flush >= self.ctx.config.flush_every_s:
+            if held.dirty and now - held.last_flush >= held.flush_interval:
                 self._flush(held, final=False)
             if now - held.last_progress > self.ctx.config.linger_s:
                 if held.dirty:
@@ -289,7 +296,7 @@ class RegisterStage:
                     self._registration_failed(held, seq, exc)
                     raise LeaseLostError from exc
                 self._advance(held)
-                if time.monotonic() - held.last_flush >= cfg.flush_every_s:
+                if time.monotonic() - held.last_flush >= held.flush_interval:
                     self._flush(held, final=False)
                 self._renew_if_due(held)
                 continue
@@ -397,8 +404,14 @@ class RegisterStage:
         doc = ctx.results.read_mosaic_meta(sid, v) or {}
         version = int(doc.get("version", 0)) + 1
         revisions: dict[str, dict[str, int]] = doc.get("revisions") or {layer: {} for layer in LAYERS}
-        changed = held.pyramid.update(held.recon.canvas, held.touched)
+        images_due = final or not doc.get("width") or now - held.last_image >= cfg.image_every_s
+        held.deferred |= held.pyramid.update(held.recon.canvas, held.touched)
         held.touched = set()
+        # levels where one tile holds the whole canvas are only seen zoomed far out: refresh them with the images
+        small = held.geometry.tiles_at(0) == (1, 1)
+        whole = {k for k in held.deferred if held.geometry.tiles_at(k[0]) == (1, 1)} if small else set()
+        changed = held.deferred if images_due else held.deferred - whole
+        held.deferred = set() if images_due else whole
         tiles_event: dict[str, dict[str, int]] = {layer: {} for layer in LAYERS}
         for level, col, row in sorted(changed):
             name = f"{level}/{col}_{row}"
@@ -412,7 +425,7 @@ class RegisterStage:
                 tiles_event[layer][name] = version
         if changed:
             queue.incr_metric(ctx.r, "tile_renders_total", 2 * len(changed), prefix=ctx.prefix)
-        if final or not doc.get("width") or now - held.last_image >= cfg.image_every_s:
+        if images_due:
             mosaic = held.recon.canvas.render()
             ctx.results.write_image(sid, v, "mosaic.png", encode_png(mosaic.vein))
             ctx.results.write_image(sid, v, "force.png", encode_png(force_to_color(mosaic.force_n)))
@@ -470,7 +483,8 @@ class RegisterStage:
         held.unreported = []
         held.path_reset = False
         held.dirty = False
-        held.last_flush = now
+        held.last_flush = time.monotonic()
+        held.flush_interval = max(cfg.flush_every_s, 2.0 * (held.last_flush - now))
 
     def _record_counters(self, held: HeldSession, seqs: list[int], rows: list[PathRow] | None = None) -> None:
         if not seqs or held.version != LIVE_VERSION:
@@ -501,13 +515,20 @@ class RegisterStage:
         held.done = True
         log.info("session done (%d frames)", len(held.recon.results))
 
-    def _finish_empty(self, lease: Lease, session_status: str) -> None:
-        """A finished session without any frame: empty results, status done."""
+    def _finish_empty(self, lease: Lease, session_status: str, rejected: list[int] | None = None) -> None:
+        """A finished session with no usable frame (none, or all poison): rows rejected, no mosaic, status done."""
         ctx, sid, v = self.ctx, lease.session_id, lease.version
+        rejected = sorted(rejected or [])
         calib = ctx.store.calibration(sid)
         geometry = DziGeometry.for_mosaic(calib.px_per_mm, ctx.config.half_extent_mm)
-        ctx.results.write_path(sid, v, [])
-        counts = {"processed": 0, "ok": 0, "lost": 0, "rejected": 0}
+        nan = math.nan
+        rows = []
+        for seq in rejected:
+            rec = ctx.store.get_frame(sid, seq)
+            t = rec.t_s if rec is not None else nan
+            rows.append(PathRow(seq, t, nan, nan, nan, nan, nan, nan, nan, 0, STATUS_REJECTED))
+        ctx.results.write_path(sid, v, rows)
+        counts = frame_counts(rows)
         doc = {
             "px_per_mm": calib.px_per_mm,
             "origin_px": [0.0, 0.0],
@@ -522,11 +543,17 @@ class RegisterStage:
             "status": "done",
         }
         ctx.results.write_mosaic_meta(sid, v, doc)
-        ctx.results.write_state(
-            sid, v, {"cursor": 0, "fence": lease.token, "finished": True, "lost": [], "rejected": []}
-        )
+        cursor = rejected[-1] + 1 if rejected else 0
+        state = {"cursor": cursor, "fence": lease.token, "finished": True, "lost": [], "rejected": rejected}
+        ctx.results.write_state(sid, v, state)
+        if v == LIVE_VERSION:
+            done = [queue.record_frame_result(ctx.r, sid, seq, True, ctx.prefix) for seq in rejected]
+            if any(done):
+                queue.incr_metric(ctx.r, "frames_processed_total", sum(done), prefix=ctx.prefix)
+                queue.incr_metric(ctx.r, "frames_lost_total", sum(done), prefix=ctx.prefix)
         if session_status != "failed":
             ctx.store.set_status(sid, "done")
-        data = {"version": v, "mosaic_version": 1, **counts, "tiles": {}, "path_tail": [], "path_reset": True}
+        tail = [[r.seq, None, None, r.status] for r in rows]
+        data = {"version": v, "mosaic_version": 1, **counts, "tiles": {}, "path_tail": tail, "path_reset": True}
         publish_event(ctx, sid, "done", {**data, "extent_mm": None, "status": "done"})
         lease.release(ctx.r, mode="final")

@@ -118,6 +118,9 @@ async def events(
                 start = newest[0][0] if newest else "0-0"
                 doc = await run_in_threadpool(snapshot, store, rs, r, sid, prefix)
                 yield sse("snapshot", json.dumps(doc, separators=(",", ":"), allow_nan=False), start)
+                if newest and newest[0][1].get("type") == "done":  # the run is over: nothing more will come
+                    yield sse("done", newest[0][1].get("data", "{}"), start)
+                    return
             idle_checked = False
             while True:
                 block = None if not idle_checked else int(KEEPALIVE_S * 1000)

@@ -432,7 +432,7 @@
       return current;
     },
     idle: function () {
-      return current !== null && pending === null && !dirty && current.getFullyLoaded();
+      return current !== null && pending === null && !state.loading && !dirty && current.getFullyLoaded();
     },
   };
 

@@ -1,0 +1,157 @@
+"""Reprocess jobs: validation of options (422 naming the field), enqueueing, job state, batches and visibility."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+from api_helpers import INGEST, auth, calibration_doc, frame_bytes, upload
+from fastapi.testclient import TestClient
+
+from services import queue
+
+
+def _error(resp: Any) -> dict[str, Any]:
+    body = resp.json()
+    assert set(body) == {"error"}
+    return body["error"]
+
+
+def finished_session(client: TestClient, key: dict[str, str] = INGEST) -> str:
+    """Return the id of a finished session with one frame, owned by `key`."""
+    sid = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=key).json()["id"]
+    assert upload(client, sid, 0, frame_bytes(0), headers=key).status_code == 202
+    assert client.post(f"/v1/sessions/{sid}/finish", headers=key).status_code == 202
+    return sid
+
+
+def _r_prefix(client: TestClient) -> tuple[Any, str]:
+    return client.app.state.redis, client.app.state.settings.redis_prefix  # type: ignore[attr-defined]
+
+
+def jobs_on_stream(client: TestClient) -> list[dict[str, str]]:
+    """Return the entries of the jobs stream as str dicts."""
+    r, prefix = _r_prefix(client)
+    out = []
+    for _, fields in r.xrange(queue.jobs_stream(prefix)):
+        out.append({k.decode(): v.decode() for k, v in fields.items()})
+    return out
+
+
+def test_reprocess_enqueues_a_job(client: TestClient) -> None:
+    sid = finished_session(client)
+    options = {"method": "paper", "method_options": {"min_inliers": 25}, "calibration": {"young_modulus_kpa": 15.0}}
+    resp = client.post(f"/v1/sessions/{sid}/reprocess", json={"options": options}, headers=INGEST)
+    assert resp.status_code == 202, resp.text
+    body = resp.json()
+    job = body["job"]
+    assert body["session"] == sid and body["status_url"] == f"/v1/jobs/{job}"
+    (entry,) = jobs_on_stream(client)
+    assert entry["kind"] == "reprocess" and entry["job"] == job and entry["session"] == sid
+    assert json.loads(entry["options"]) == options
+    state = client.get(f"/v1/jobs/{job}", headers=INGEST).json()
+    assert state["state"] == "queued" and state["session"] == sid and state["progress"] is None
+    assert state["options"]["method"] == "paper" and state["version"] is None
+
+    # a worker reports progress in the job hash
+    r, prefix = _r_prefix(client)
+    r.hset(queue.job_key(job, prefix), mapping={"state": "running", "done": 5, "total": 20, "version": 2})
+    state = client.get(f"/v1/jobs/{job}", headers=INGEST).json()
+    assert (state["state"], state["progress"], state["version"]) == ("running", 0.25, 2)
+
+
+def test_default_options_are_best(client: TestClient) -> None:
+    sid = finished_session(client)
+    resp = client.post(f"/v1/sessions/{sid}/reprocess", json={}, headers=INGEST)
+    assert resp.status_code == 202
+    assert json.loads(jobs_on_stream(client)[0]["options"]) == {"method": "best"}
+
+
+@pytest.mark.parametrize(
+    ("options", "code", "needle"),
+    [
+        ({"method": "magic"}, "invalid_options", "magic"),
+        ({"method": 3}, "invalid_options", "method"),
+        ({"method_options": {"turbo": True}}, "invalid_options", "turbo"),
+        ({"method_options": {"min_inliers": "many"}}, "invalid_options", "min_inliers"),
+        ({"method_options": {"refine": 1}}, "invalid_options", "refine"),
+        ({"method_options": {"features": "orb"}}, "invalid_options", "features"),
+        ({"method_options": {"ransac_px": -1.0}}, "invalid_options", "ransac_px"),
+        ({"method_options": {"name": "x"}}, "invalid_options", "name"),
+        ({"calibration": {"young_modulus_kpa": -2}}, "invalid_calibration", "young_modulus_kpa"),
+        ({"calibration": {"colour": "red"}}, "invalid_calibration", "colour"),
+        ({"calibration": {"image_size": [10, 10]}}, "invalid_options", "image_size"),
+        ({"speed": "fast"}, "invalid_options", "speed"),
+    ],
+)
+def test_bad_options_are_422_naming_the_field(client: TestClient, options: dict, code: str, needle: str) -> None:
+    sid = finished_session(client)
+    resp = client.post(f"/v1/sessions/{sid}/reprocess", json={"options": options}, headers=INGEST)
+    assert resp.status_code == 422, resp.text
+    err = _error(resp)
+    assert err["code"] == code and needle in err["message"], err
+    assert jobs_on_stream(client) == []  # nothing queued
+
+
+def test_reprocess_preconditions_and_auth(client: TestClient, session_id: str) -> None:
+    resp = client.post(f"/v1/sessions/{session_id}/reprocess", json={}, headers=INGEST)
+    assert resp.status_code == 409 and _error(resp)["code"] == "not_finished"
+    sid = finished_session(client)
+    url = f"/v1/sessions/{sid}/reprocess"
+    assert client.post(url, json={}).status_code == 401
+    assert client.post(url, json={}, headers=auth("ingest-key-b")).status_code == 404
+    assert client.post(url, json={}, headers=auth("view-key")).status_code == 403
+    token = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()
+    assert client.post(url, json={}, headers={"Authorization": f"Bearer {token['viewer_token']}"}).status_code == 401
+    assert client.post(url, json={"options": {}, "extra": 1}, headers=INGEST).status_code == 422
+    assert client.post(url, json={}, headers=auth("admin-key")).status_code == 202
+    empty = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()["id"]
+    client.post(f"/v1/sessions/{empty}/finish", headers=INGEST)
+    resp = client.post(f"/v1/sessions/{empty}/reprocess", json={}, headers=INGEST)
+    assert resp.status_code == 409 and _error(resp)["code"] == "no_frames"
+
+
+def test_job_visibility(client: TestClient) -> None:
+    sid = finished_session(client)
+    job = client.post(f"/v1/sessions/{sid}/reprocess", json={}, headers=INGEST).json()["job"]
+    url = f"/v1/jobs/{job}"
+    assert client.get(url, headers=INGEST).status_code == 200
+    assert client.get(url, headers=auth("admin-key")).status_code == 200
+    assert client.get(url, headers=auth("ingest-key-b")).status_code == 404
+    assert client.get(url, headers=auth("view-key")).status_code == 404
+    assert client.get(url).status_code == 401
+    assert client.get("/v1/jobs/0123456789abcdef0123456789abcdef", headers=INGEST).status_code == 404
+    assert client.get("/v1/jobs/..%2Fsecret", headers=INGEST).status_code == 404
+
+
+def test_batch_reprocess(client: TestClient) -> None:
+    a1, a2 = finished_session(client), finished_session(client)
+    b1 = finished_session(client, key=auth("ingest-key-b"))
+    body = {"sessions": [a1, a2, a1], "options": {"method": "sift-chain"}}
+    resp = client.post("/v1/reprocess", json=body, headers=INGEST)
+    assert resp.status_code == 202, resp.text
+    batch = resp.json()
+    assert len(batch["jobs"]) == 2  # duplicates are reprocessed once
+    assert [e["session"] for e in jobs_on_stream(client)] == [a1, a2]
+    state = client.get(batch["status_url"], headers=INGEST).json()
+    assert state["state"] == "queued" and [j["session"] for j in state["jobs"]] == [a1, a2]
+    assert client.get(batch["status_url"], headers=auth("ingest-key-b")).status_code == 404
+    assert client.get(f"/v1/jobs/{batch['jobs'][0]}", headers=INGEST).json()["batch"] == batch["batch"]
+
+    # a session of another key: 404 for the whole batch, nothing queued
+    resp = client.post("/v1/reprocess", json={"sessions": [a1, b1]}, headers=INGEST)
+    assert resp.status_code == 404 and len(jobs_on_stream(client)) == 2
+    assert client.post("/v1/reprocess", json={"sessions": ["nope"]}, headers=INGEST).status_code == 404
+    assert client.post("/v1/reprocess", json={"sessions": []}, headers=INGEST).status_code == 422
+    bad = client.post("/v1/reprocess", json={"sessions": [a1], "options": {"method": "x"}}, headers=INGEST)
+    assert bad.status_code == 422 and len(jobs_on_stream(client)) == 2
+    # admin may batch sessions of several owners
+    resp = client.post("/v1/reprocess", json={"sessions": [a1, b1]}, headers=auth("admin-key"))
+    assert resp.status_code == 202 and len(jobs_on_stream(client)) == 4
+
+    r, prefix = _r_prefix(client)
+    for job in batch["jobs"]:
+        r.hset(queue.job_key(job, prefix), mapping={"state": "done", "done": 1, "total": 1})
+    done = client.get(batch["status_url"], headers=INGEST).json()
+    assert done["state"] == "done" and all(j["progress"] == 1.0 for j in done["jobs"])

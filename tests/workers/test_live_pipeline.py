@@ -1,0 +1,219 @@
+"""End to end with real worker processes: live results equal the offline pipeline, exactly-once counting,
+seq-ordered registration, two sessions at once, a crashed worker's session taken over, a poison frame and a
+lost frame that do not block the session, and reprocessing into a new version."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import signal
+import time
+from collections.abc import Callable
+from functools import cache
+from typing import Any
+
+import numpy as np
+import pytest
+
+from services import queue
+from services.methods import method_options
+from services.pipeline import Reconstruction, reconstruct
+from services.results_store import ResultsStore
+from services.scan import Scan
+from services.simulation.scenarios import simulate
+from services.storage import SessionStore
+from tests.workers.conftest import Backend, store_scan, wait_for
+from workers.config import debug_order_key
+
+pytestmark = pytest.mark.slow
+
+# Live and offline feed the same prepared frames (same bytes, forces, mask, flat field) in the same order to
+# the same deterministic registration, so the paths should agree to floating-point noise; 1e-6 mm is far
+# below anything that matters (the probe path's accuracy is ~1 mm) yet catches any change of input or order.
+PATH_TOL_MM = 1e-6
+YAW_TOL_DEG = 1e-6
+DONE_TIMEOUT_S = 90.0
+
+
+@cache
+def scan_of(seed: int) -> Scan:
+    """The simulated "short" scan (40 frames); no mask.png, as in a live session (the window is estimated)."""
+    return dataclasses.replace(simulate("short", seed), mask=None)
+
+
+@cache
+def offline_of(seed: int) -> Reconstruction:
+    """The offline pipeline's reconstruction of scan_of(seed) by the "best" method."""
+    return reconstruct(scan_of(seed), method_options("best"))
+
+
+def path_arrays(rows: list[dict[str, Any]]) -> tuple[np.ndarray, list[str]]:
+    """Return (N, 3) x_mm, y_mm, yaw_deg (NaN for null) and the statuses of path.json rows."""
+    xyz = np.array([[np.nan if r[c] is None else r[c] for c in ("x_mm", "y_mm", "yaw_deg")] for r in rows], float)
+    return xyz, [r["status"] for r in rows]
+
+
+def assert_matches_offline(rows: list[dict[str, Any]], seed: int) -> None:
+    """Assert a live path equals the offline path within PATH_TOL_MM / YAW_TOL_DEG, statuses identical."""
+    off = offline_of(seed)
+    live, statuses = path_arrays(rows)
+    assert [r["seq"] for r in rows] == [r.seq for r in off.rows]
+    assert statuses == [r.status for r in off.rows]
+    want = np.array([[r.x_mm, r.y_mm, r.yaw_deg] for r in off.rows])
+    assert np.array_equal(np.isnan(live), np.isnan(want))
+    ok = ~np.isnan(want[:, 0])
+    assert np.max(np.abs(live[ok, :2] - want[ok, :2])) <= PATH_TOL_MM
+    assert np.max(np.abs(live[ok, 2] - want[ok, 2])) <= YAW_TOL_DEG
+
+
+def order_log(backend: Backend, sid: str) -> list[tuple[int, int, str]]:
+    """Return the (token, seq, kind) of every frame handed to registration, in order."""
+    raw = backend.r.lrange(debug_order_key(backend.prefix, sid, 1), 0, -1)
+    out = []
+    for item in raw:
+        token, seq, kind = item.decode().split(":")
+        out.append((int(token), int(seq), kind))
+    return out
+
+
+def wait_done(store: SessionStore, sid: str, timeout_s: float = DONE_TIMEOUT_S) -> None:
+    """Wait until the session's status is done."""
+    wait_for(lambda: store.get_meta(sid).status == "done", timeout_s, "status done")
+
+
+def metric(backend: Backend, name: str) -> int:
+    """Return an integer metric (0 when unset)."""
+    v = backend.r.hget(queue.metrics_key(backend.prefix), name)
+    return int(float(v)) if v is not None else 0
+
+
+def test_two_workers_out_of_order_equal_offline_then_reprocess(
+    backend: Backend, spawn_worker: Callable[..., Any]
+) -> None:
+    started = time.monotonic()
+    spawn_worker("a")
+    spawn_worker("b")
+    store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
+    scan = scan_of(1)
+    order = [int(i) for i in np.random.default_rng(7).permutation(len(scan))]
+    assert order != sorted(order)
+    sid = store_scan(store, scan, backend.r, backend.prefix, order=order)
+    wait_done(store, sid)
+    live_s = time.monotonic() - started
+    rows = results.read_path(sid, 1)
+    assert_matches_offline(rows, 1)
+    # every frame prepared once and counted once
+    assert queue.session_counters(backend.r, sid, backend.prefix) == {"processed": 40, "lost": 0}
+    assert metric(backend, "frames_prepared_total") == 40 and metric(backend, "frames_processed_total") == 40
+    # one holder registered the frames, in seq order, each once
+    log = order_log(backend, sid)
+    assert [seq for _, seq, _ in log] == list(range(40)) and len({t for t, _, _ in log}) == 1
+    meta = results.read_mosaic_meta(sid, 1)
+    assert meta["status"] == "done" and meta["frames"] == {"processed": 40, "ok": 40, "lost": 0, "rejected": 0}
+    assert meta["dzi"]["max_level"] == 12 and meta["dzi"]["origin_px"] == [1792, 1792]
+    assert meta["width"] > 0 and meta["extent_mm"][0] < 0 < meta["extent_mm"][2]
+    revs = meta["revisions"]["vein"]
+    assert revs and all(results.tile_path(sid, 1, "vein", *_key(k)).exists() for k in revs)
+    assert all(results.tile_path(sid, 1, "force", *_key(k)).exists() for k in meta["revisions"]["force"])
+    assert results.image_path(sid, 1, "mosaic.png").exists() and results.image_path(sid, 1, "force.png").exists()
+    events = backend.r.xrange(queue.events_stream(sid, backend.prefix))
+    kinds = [e[1][b"type"] for e in events]
+    assert kinds[-1] == b"done" and b"progress" in kinds
+    tails = [s for e in events for s, *_ in json.loads(e[1][b"data"])["path_tail"]]
+    assert sorted(set(tails)) == list(range(40))
+    assert live_s < 60, f"live processing took {live_s:.1f} s"
+
+    # reprocess: a new version by the offline pipeline over the stored uploads; current only when complete
+    queue.enqueue_reprocess(backend.r, "job-1", sid, json.dumps({"method": "best"}), time.time(), backend.prefix)
+    wait_for(lambda: (queue.read_job(backend.r, "job-1", backend.prefix) or {}).get("state") in ("done", "failed"),
+             DONE_TIMEOUT_S, "job done")  # fmt: skip
+    job = queue.read_job(backend.r, "job-1", backend.prefix)
+    assert job["state"] == "done", job
+    assert job["version"] == "2" and results.current_version(sid) == 2
+    assert_matches_offline(results.read_path(sid, 2), 1)
+    meta2 = results.read_mosaic_meta(sid, 2)
+    assert meta2["status"] == "done" and meta2["frames"]["ok"] == 40
+    assert (meta2["width"], meta2["height"]) == (meta["width"], meta["height"])
+    assert metric(backend, "jobs_done_total") == 1
+
+
+def _key(name: str) -> tuple[int, int, int]:
+    level, rest = name.split("/")
+    col, row = rest.split("_")
+    return int(level), int(col), int(row)
+
+
+def test_two_sessions_concurrently(backend: Backend, spawn_worker: Callable[..., Any]) -> None:
+    spawn_worker("a")
+    spawn_worker("b")
+    store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
+    s1 = store_scan(store, scan_of(1), backend.r, backend.prefix, finish=False)
+    s2 = store_scan(store, scan_of(2), backend.r, backend.prefix, finish=False)
+    for sid in (s1, s2):
+        store.finish(sid)
+        queue.enqueue_finish(backend.r, sid, backend.prefix)
+    wait_done(store, s1)
+    wait_done(store, s2)
+    assert_matches_offline(results.read_path(s1, 1), 1)
+    assert_matches_offline(results.read_path(s2, 1), 2)
+    for sid in (s1, s2):
+        assert queue.session_counters(backend.r, sid, backend.prefix)["processed"] == 40
+        assert [seq for _, seq, _ in order_log(backend, sid)] == list(range(40))
+
+
+def test_crashed_worker_session_is_taken_over(backend: Backend, spawn_worker: Callable[..., Any]) -> None:
+    store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
+    victim = spawn_worker("victim")
+    time.sleep(1.0)  # let it start before uploads begin
+    scan = scan_of(1)
+    # upload at ~25 frames/s while the victim works; kill it once it has registered some frames
+    import threading
+
+    sids: list[str] = []
+    uploader = threading.Thread(
+        target=lambda: sids.append(store_scan(store, scan, backend.r, backend.prefix, pause_s=0.04)), daemon=True
+    )
+    uploader.start()
+    wait_for(lambda: bool(sids) or len(store.list_sessions()) == 1, 20, "session created")
+    sid = store.list_sessions()[0]
+    wait_for(lambda: (results.read_state(sid, 1) or {}).get("cursor", 0) >= 8, 30, "victim registered 8 frames")
+    victim.send_signal(signal.SIGKILL)
+    victim.wait(timeout=10)
+    cursor_at_kill = results.read_state(sid, 1)["cursor"]
+    assert cursor_at_kill < 40 and not (results.read_state(sid, 1) or {}).get("finished")
+    spawn_worker("heir")
+    uploader.join(timeout=30)
+    wait_done(store, sid)
+    assert_matches_offline(results.read_path(sid, 1), 1)  # the same path as without the crash
+    assert queue.session_counters(backend.r, sid, backend.prefix) == {"processed": 40, "lost": 0}
+    log = order_log(backend, sid)
+    tokens = sorted({t for t, _, _ in log})
+    assert len(tokens) >= 2  # the heir took the lease with a newer fencing token
+    for token in tokens:  # every holder handed frames to registration strictly in seq order from 0
+        seqs = [s for t, s, _ in log if t == token]
+        assert seqs == list(range(len(seqs)))
+    assert [s for t, s, _ in log if t == tokens[-1]][-1] == 39
+    assert metric(backend, "frames_prepared_total") == 40  # a re-delivered prepare job keeps the first file
+
+
+def test_poison_and_lost_frames_do_not_block(backend: Backend, spawn_worker: Callable[..., Any]) -> None:
+    solo = spawn_worker("solo", lost_timeout_s=1.0)
+    store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
+    scan = scan_of(1)
+    bad = np.full((80, 100), 128, np.uint8)  # a valid PNG of the wrong size: prepare raises every time
+    sid = store_scan(store, scan, backend.r, backend.prefix, skip=(12,), replace_frames={7: bad})
+    wait_done(store, sid)
+    rows = results.read_path(sid, 1)
+    assert [r["seq"] for r in rows] == list(range(40))
+    assert rows[7]["status"] == "rejected" and rows[7]["x_mm"] is None
+    assert rows[7]["t_s"] == pytest.approx(float(scan.frame_t_s[7]))  # the stored time, though never prepared
+    assert rows[12]["status"] == "lost"
+    assert sum(r["status"] == "ok" for r in rows) >= 35  # the rest registers around the two gaps
+    dead = backend.r.xrange(queue.dead_stream(backend.prefix))
+    assert len(dead) == 1 and dead[0][1][b"seq"] == b"7" and dead[0][1][b"session"] == sid.encode()
+    counters = queue.session_counters(backend.r, sid, backend.prefix)
+    assert counters["processed"] == 40 and counters["lost"] == sum(r["status"] != "ok" for r in rows)
+    meta = results.read_mosaic_meta(sid, 1)
+    assert meta["frames"]["rejected"] == 1 and meta["frames"]["lost"] >= 1
+    solo.send_signal(signal.SIGTERM)  # graceful stop: the loop ends after the current entry
+    assert solo.wait(timeout=10) == 0

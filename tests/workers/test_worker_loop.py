@@ -1,0 +1,124 @@
+"""The worker loop in-process: retries then dead-letter of a failing frame, XAUTOCLAIM of abandoned entries,
+delivery counts, and reprocess options validation."""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from services import queue
+from services.calibration import default_calibration
+from services.results_store import ResultsStore
+from services.storage import SessionStore
+from tests.workers.conftest import Backend
+from workers.config import Context, WorkerConfig
+from workers.main import Worker
+from workers.options import parse_options, validate_options
+
+
+def _worker(backend: Backend, **cfg: object) -> Worker:
+    config = WorkerConfig(
+        data_dir=backend.data_dir, prefix=backend.prefix, consumer="unit", block_ms=50, held_block_ms=20, **cfg
+    )
+    ctx = Context(config, backend.r, SessionStore(backend.data_dir), ResultsStore(backend.data_dir))
+    return Worker(ctx)
+
+
+def _png(img: np.ndarray) -> bytes:
+    return cv2.imencode(".png", img)[1].tobytes()
+
+
+def test_failing_frame_is_retried_then_dead_lettered(backend: Backend) -> None:
+    r, p = backend.r, backend.prefix
+    store = SessionStore(backend.data_dir)
+    calib = default_calibration()
+    sid = store.create_session("o" * 64, "x", calib).id
+    rng = np.random.default_rng(0)
+    store.put_forces(sid, [[0.0, 1, 1, 1, 1], [10.0, 1, 1, 1, 1]])
+    store.put_frame(sid, 0, 0.1, _png(rng.integers(0, 255, (320, 400), dtype=np.uint8)), "png")
+    store.put_frame(sid, 1, 0.2, _png(np.full((80, 100), 128, np.uint8)), "png")  # decodes, wrong size
+    store.finish(sid)
+    worker = _worker(backend, max_deliveries=3, claim_every_s=60.0)
+    queue.ensure_groups(r, p)
+    queue.enqueue_frame(r, sid, 1, p)
+    deadline = time.monotonic() + 20
+    while not r.xlen(queue.dead_stream(p)) and time.monotonic() < deadline:
+        worker.step()
+    dead = r.xrange(queue.dead_stream(p))
+    assert len(dead) == 1
+    fields = dead[0][1]
+    assert fields[b"kind"] == b"frame" and fields[b"seq"] == b"1" and fields[b"attempt"] == b"2"
+    assert b"differs from calibration" in fields[b"error"]  # the third failure's message (no patient data)
+    assert ResultsStore(backend.data_dir).is_poison(sid, 1, 1)
+    assert int(r.hget(queue.metrics_key(p), "dead_letters_total")) == 1
+    assert r.xlen(queue.frames_stream(p)) == 0  # acknowledged and deleted
+    assert r.xpending(queue.frames_stream(p), queue.GROUP)["pending"] == 0
+
+
+def test_autoclaim_handles_abandoned_entries_and_counts_deliveries(backend: Backend) -> None:
+    r, p = backend.r, backend.prefix
+    queue.ensure_groups(r, p)
+    jobs = queue.jobs_stream(p)
+    queue.enqueue_reprocess(r, "job-a", "b" * 32, "{}", time.time(), p)
+    got = r.xreadgroup(queue.GROUP, "ghost", {jobs: ">"}, count=1)  # a worker that then dies
+    ((entry_id, _),) = got[0][1]
+    for _ in range(2):  # two more deliveries (e.g. claimed by workers that died too)
+        r.xclaim(jobs, queue.GROUP, "ghost2", 0, [entry_id])
+    worker = _worker(backend, claim_idle_ms=0, max_deliveries=3)
+    worker.autoclaim()
+    # the 4th delivery exceeds max_deliveries: dead-lettered, the job failed, the entry gone
+    assert r.xlen(queue.dead_stream(p)) == 1
+    assert queue.read_job(r, "job-a", p)["state"] == "failed"
+    assert r.xpending(jobs, queue.GROUP)["pending"] == 0 and r.xlen(jobs) == 0
+    # an abandoned entry with deliveries left is simply handled (here: a frame of an unknown session, dropped)
+    queue.enqueue_frame(r, "c" * 32, 0, p)
+    r.xreadgroup(queue.GROUP, "ghost", {queue.frames_stream(p): ">"}, count=1)
+    worker.autoclaim()
+    assert r.xpending(queue.frames_stream(p), queue.GROUP)["pending"] == 0
+    assert r.xlen(queue.dead_stream(p)) == 1
+
+
+def test_parse_options() -> None:
+    opts, calib = parse_options({"method": "paper", "method_options": {"min_inliers": 12, "ransac_px": 3}})
+    assert opts.name == "paper" and opts.min_inliers == 12 and opts.ransac_px == 3.0
+    assert isinstance(opts.ransac_px, float) and calib == {}
+    assert parse_options(None)[0].name == "best"
+    _, calib = parse_options({"calibration": {"young_modulus_kpa": 20.0}})
+    assert calib == {"young_modulus_kpa": 20.0}
+    validate_options({"calibration": {"young_modulus_kpa": 20.0}}, default_calibration())
+    for doc, needle in [
+        ({"method": "nope"}, "unknown method"),
+        ({"colour": 1}, "unknown field"),
+        ({"method_options": {"min_inliers": "x"}}, "min_inliers must be a int"),
+        ({"method_options": {"refine": 1}}, "refine must be a bool"),
+        ({"method_options": {"bogus": 1}}, "unknown option"),
+        ({"method_options": {"name": "x"}}, "cannot be overridden"),
+        ([], "JSON object"),
+    ]:
+        with pytest.raises(ValueError, match=needle):
+            parse_options(doc)
+    with pytest.raises(ValueError, match="young_modulus"):
+        validate_options({"calibration": {"young_modulus_kpa": -1.0}}, default_calibration())
+    assert parse_options({"method": "best", "source": "live"}, strict=False)[0].name == "best"
+
+
+def test_finished_session_without_frames_is_done(backend: Backend) -> None:
+    store = SessionStore(backend.data_dir)
+    sid = store.create_session("o" * 64, "x", default_calibration()).id
+    store.finish(sid)
+    queue.enqueue_finish(backend.r, sid, backend.prefix)
+    worker = _worker(backend)
+    queue.ensure_groups(backend.r, backend.prefix)
+    deadline = time.monotonic() + 10
+    while store.get_meta(sid).status != "done" and time.monotonic() < deadline:
+        worker.step()
+    assert store.get_meta(sid).status == "done"
+    results = ResultsStore(backend.data_dir)
+    assert results.read_path(sid, 1) == [] and results.read_mosaic_meta(sid, 1)["status"] == "done"
+    events = backend.r.xrange(queue.events_stream(sid, backend.prefix))
+    assert [e[1][b"type"] for e in events] == [b"done"]
+    assert not worker.register.held  # nothing kept in memory, the lease released for good
+    assert backend.r.get(queue.lease_key(sid, 1, backend.prefix)) is None
