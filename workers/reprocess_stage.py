@@ -143,6 +143,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         write_report(ctx, sid, v, rows, recon.mosaic)
         ctx.results.set_current(sid, v)
     except JobInterruptedError:
+        _set_job(ctx, job_id, state="queued", done=0)  # back on the queue; the half-made version is never current
         raise
     except Exception as exc:
         log.exception("reprocess job failed")

@@ -345,6 +345,9 @@
     source.addEventListener("progress", function (e) {
       applyProgress(JSON.parse(e.data));
     });
+    source.addEventListener("version", function () {
+      reloadMosaic().catch(showError); // a reprocess made a new results version current
+    });
     source.addEventListener("done", function (e) {
       const data = JSON.parse(e.data);
       source.close();

@@ -390,6 +390,10 @@ def test_reference_report_and_plots(ready: tuple[TestClient, str, dict], bundle:
         assert _decode(plot.content).shape[0] > 200
         assert client.get(f"{url}&token={created['viewer_token']}").status_code == 200
 
+    for url in (f"/v1/sessions/{sid}/report", report["plots"]["paths"]):
+        assert client.get(url).status_code == 401
+        assert client.get(url, headers=auth("ingest-key-b")).status_code == 404
+        assert client.get(url, headers=auth("admin-key")).status_code == 200
     got = client.get(f"/v1/sessions/{sid}/report", headers=INGEST)
     assert got.status_code == 200 and got.json()["rmse_mm"] == report["rmse_mm"]
     assert client.get(f"/v1/sessions/{sid}/report?token={created['viewer_token']}").status_code == 200

@@ -267,3 +267,31 @@ def test_viewer_live_in_chromium(service: Service, scan: Scan) -> None:
             with contextlib.suppress(Exception):
                 browser.close()
     client.close()
+
+
+def test_reference_and_reprocess_end_to_end(service: Service, scan: Scan) -> None:
+    """A whole scan through the real service, then reference.csv, a reprocess job and the new version."""
+    client = VeinmosaicClient(service.base_url, KEY)
+    sid = client.create_session(scan.calibration.to_dict(), "")["id"]
+    upload_frames(client, sid, scan, range(len(scan)))
+    client.finish(sid)
+    assert client.wait_done(sid, timeout_s=WAIT_S)["status"] == "done"
+    truth = np.asarray(scan.truth["poses"], float)
+    reference = "seq,x_mm,y_mm\n" + "".join(f"{i},{x:.6f},{y:.6f}\n" for i, (x, y, _) in enumerate(truth))
+    report = client.post_reference(sid, reference)
+    assert report["n_compared"] == len(scan) and report["rmse_mm"] < 2.0  # the short scan: about 1 mm or better
+    assert client.request("GET", report["plots"]["paths"]).content.startswith(b"\x89PNG")
+
+    job = client.request("POST", f"/v1/sessions/{sid}/reprocess", json={"options": {"method": "sift-chain"}}).json()
+    state = wait_until(
+        lambda: (s := client.request("GET", f"/v1/jobs/{job['job']}").json())["state"] in ("done", "failed") and s,
+        "the reprocess job",
+    )
+    assert state["state"] == "done" and state["version"] == 2 and state["progress"] == 1.0, state
+    doc = client.request("GET", f"/v1/sessions/{sid}/mosaic.json").json()
+    assert doc["results_version"] == 2
+    v2 = client.request("GET", f"/v1/sessions/{sid}/report").json()  # evaluated by the worker for version 2
+    assert v2["results_version"] == 2 and v2["n_frames"] == len(scan)
+    v1 = client.request("GET", f"/v1/sessions/{sid}/report?v=1").json()
+    assert v1["rmse_mm"] == report["rmse_mm"]
+    client.close()
