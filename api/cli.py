@@ -171,7 +171,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     keys[key] = ["ingest", "view", "admin"]
     if args.port == 0:
         args.port = _free_port(args.host)
-    service = _service(args, {"VEINMOSAIC_API_KEYS": json.dumps(keys)})
+    # the demo's own output is the story; the service logs only warnings (JSON lines on stderr)
+    service = _service(args, {"VEINMOSAIC_API_KEYS": json.dumps(keys), "VEINMOSAIC_LOG_LEVEL": "WARNING"})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with service, tempfile.TemporaryDirectory() as tmp:
@@ -202,7 +203,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         for name, url in [
             ("mosaic.png", f"/v1/sessions/{sid}/mosaic.png"),
             ("force.png", f"/v1/sessions/{sid}/mosaic.png?layer=force"),
-            *[(Path(u).name, u) for u in report.get("plots", {}).values() if isinstance(u, str) and u.startswith("/")],
+            *[(Path(u.split("?")[0]).name, u) for u in report.get("plots", {}).values() if str(u).startswith("/")],
         ]:
             with contextlib.suppress(httpx.HTTPError, RuntimeError):
                 (out / name).write_bytes(client.request("GET", url).content)

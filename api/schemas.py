@@ -38,7 +38,7 @@ class SessionCreated(Strict):
 
 
 class SessionState(Strict):
-    """GET /v1/sessions/{id}: status and frame counters (processed includes lost); extent null for now."""
+    """GET /v1/sessions/{id}: status, frame counters (processed includes lost) and the mosaic extent (mm)."""
 
     id: str
     status: Literal["receiving", "processing", "done", "failed"]

@@ -25,6 +25,7 @@ from api.errors import (
     UnsupportedMediaType,
     Validation,
 )
+from api.routes.metrics import incr
 from api.schemas import ForceBatch, ForcesAccepted, FrameAccepted, FrameMeta
 from services import queue
 
@@ -160,6 +161,7 @@ def upload_frame(
     if outcome == "duplicate":
         response.status_code = status.HTTP_200_OK
         return FrameAccepted(seq=frame.seq, status="duplicate")
+    incr(r, prefix, "uploads_total")
     log.info("frame accepted", extra={"session": session.id, "seq": frame.seq, "bytes": len(data)})
     return FrameAccepted(seq=frame.seq, status="accepted")
 

@@ -17,6 +17,7 @@ from api.deps import (
     ViewSession,
 )
 from api.errors import Validation
+from api.routes.results import extent_of, get_results
 from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
 from services import queue
 from services.calibration import CalibrationError, parse_calibration
@@ -55,7 +56,12 @@ def create_session(
 
 @router.get("/{session_id}", response_model=SessionState)
 def get_session(
-    meta: ViewSession, principal: ViewPrincipal, store: Store, r: RedisClient, settings: AppSettings
+    meta: ViewSession,
+    principal: ViewPrincipal,
+    store: Store,
+    r: RedisClient,
+    settings: AppSettings,
+    request: Request,
 ) -> SessionState:
     """Return the session's status and frame counters (received from storage, processed/lost from workers)."""
     counters = queue.session_counters(r, meta.id, prefix=settings.redis_prefix)
@@ -68,7 +74,7 @@ def get_session(
         frames_received=store.count_frames(meta.id),
         frames_processed=counters["processed"],
         frames_lost=counters["lost"],
-        extent=None,
+        extent=extent_of(get_results(request), meta.id),
     )
 
 

@@ -466,3 +466,5 @@ def test_extent_helper(ready: tuple[TestClient, str, dict], bundle: Bundle) -> N
     assert ext is not None and ext["results_version"] == 1
     assert ext["width_mm"] == pytest.approx(bundle.doc["extent_mm"][2] - bundle.doc["extent_mm"][0])
     assert re.match(r"^[0-9a-f]{32}$", sid)
+    state = client.get(f"/v1/sessions/{sid}", headers=INGEST).json()  # the session state carries it too
+    assert state["extent"] == ext
