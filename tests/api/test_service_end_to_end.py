@@ -1,0 +1,95 @@
+"""The whole service for real: `veinmosaic serve`'s launcher (API process, two worker processes, Redis —
+REDIS_URL when set, else the embedded one), two sessions uploaded concurrently over HTTP with frames out of
+order. Every frame is processed exactly once, in seq order per session, and each path equals the offline
+`reconstruct` of the same scan folder."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from api.client import VeinmosaicClient
+from api.launcher import Service
+from services.methods import method_options
+from services.pipeline import reconstruct
+from services.redis_backend import connect, read_embedded_url
+from services.scan_folder import frame_name, read_scan_folder, write_scan_folder
+from services.simulation.scenarios import simulate
+from workers.config import debug_order_key
+
+# Live and offline feed identical prepared frames in identical order to the same deterministic code, so the
+# paths agree to rounding; 1e-6 mm is far below anything that matters yet catches any change of input or order.
+PATH_TOL_MM = 1e-6
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def upload_out_of_order(client: VeinmosaicClient, folder: Path, seed: int) -> str:
+    """Create a session, send all forces, then the frames in a shuffled order (4 in flight), then finish."""
+    scan = read_scan_folder(folder)
+    sid = client.create_session(json.loads((folder / "calibration.json").read_text()), "e2e")["id"]
+    client.upload_forces(sid, np.column_stack([scan.force_t_s, scan.forces_n]))
+    order = np.random.default_rng(seed).permutation(len(scan))
+    assert list(order) != sorted(order)
+
+    def send(i: int) -> int:
+        seq = int(scan.frame_seq[i])
+        data = (folder / frame_name(seq)).read_bytes()
+        return client.upload_frame(sid, seq, float(scan.frame_t_s[i]), data, f"{seq:06d}.png")
+
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        assert set(pool.map(send, order)) == {202}
+    client.finish(sid)
+    return sid
+
+
+@pytest.mark.slow
+def test_two_sessions_two_workers_out_of_order_equal_offline(tmp_path: Path) -> None:
+    folders = []
+    for seed in (1, 2):
+        folder = tmp_path / f"scan{seed}"
+        write_scan_folder(simulate("short", seed), folder)
+        (folder / "mask.png").unlink()  # the HTTP API carries no mask: both sides find it from the frames
+        folders.append(folder)
+    key, prefix = f"k-{uuid.uuid4().hex}", f"vmtest{uuid.uuid4().hex[:8]}:"
+    env = {
+        "VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view"]}),
+        "VEINMOSAIC_REDIS_PREFIX": prefix,
+        "VEINMOSAIC_WORKER_CONFIG": json.dumps({"debug_order": True}),
+        "VEINMOSAIC_LOG_LEVEL": "WARNING",
+    }
+    redis_url = os.environ.get("REDIS_URL") or None
+    service = Service(tmp_path / "data", port=free_port(), workers=2, redis_url=redis_url, extra_env=env)
+    with service:
+        client = VeinmosaicClient(service.base_url, key)
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            sids = list(pool.map(upload_out_of_order, [client] * 2, folders, [11, 12]))
+        states = [client.wait_done(sid, timeout_s=180) for sid in sids]
+        paths = [client.request("GET", f"/v1/sessions/{sid}/path").json() for sid in sids]
+        r = connect(redis_url or read_embedded_url(service.data_dir), service.data_dir)
+        orders = [
+            [int(x.decode().split(":")[1]) for x in r.lrange(debug_order_key(prefix, sid, 1), 0, -1)] for sid in sids
+        ]
+        if redis_url:
+            for k in r.scan_iter(f"{prefix}*"):
+                r.delete(k)
+        r.close()
+    for folder, state, path, order in zip(folders, states, paths, orders, strict=True):
+        assert state["status"] == "done"
+        assert state["frames_received"] == state["frames_processed"] == 40 and state["frames_lost"] == 0
+        assert order == list(range(40)), "each frame registered exactly once, in seq order"
+        offline = reconstruct(read_scan_folder(folder), method_options("best"))
+        live_xy = np.array([[row["x_mm"], row["y_mm"]] for row in path], float)
+        assert [row["status"] for row in path] == [row.status for row in offline.rows]
+        np.testing.assert_allclose(live_xy, offline.estimate_mm, atol=PATH_TOL_MM, rtol=0)
