@@ -16,10 +16,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.frame_prep import prepare_frame
 from services.methods import method_options
 from services.mosaic import PLANES, TILE_PX
-from services.pipeline import flat_field, frame_forces, reconstruct, window_mask, window_radius_mm
+from services.pipeline import flat_field, frame_forces, prepare_scan_frame, reconstruct, window_mask, window_radius_mm
 from services.scan import Scan, in_memory_loader
 from services.session_reconstruction import SessionReconstruction
 from services.simulation.scenarios import simulate
@@ -48,20 +47,7 @@ def stage_costs(scan: Scan, method: str) -> tuple[float, float, SessionReconstru
     forces, mask = frame_forces(scan), window_mask(scan)
     flat = flat_field(scan, mask, options)
     t0 = time.process_time()
-    prepared = [
-        prepare_frame(
-            scan.frame(i),
-            index=i,
-            seq=int(scan.frame_seq[i]),
-            t_s=float(scan.frame_t_s[i]),
-            forces_n=forces[i],
-            calib=scan.calibration,
-            mask=mask,
-            flat=flat,
-            options=options,
-        )
-        for i in range(len(scan))
-    ]
+    prepared = [prepare_scan_frame(scan, i, forces[i], mask, flat, options) for i in range(len(scan))]
     t1 = time.process_time()
     session = SessionReconstruction(scan.calibration, options, window_radius_mm(mask, scan.calibration))
     for pf in prepared:

@@ -73,23 +73,30 @@ def window_radius_mm(mask: np.ndarray, calib: Calibration) -> float:
     return math.sqrt(float(np.count_nonzero(mask)) / math.pi) / calib.px_per_mm
 
 
+def prepare_scan_frame(
+    scan: Scan, index: int, forces_n: np.ndarray, mask: np.ndarray, flat: np.ndarray | None, options: MethodOptions
+) -> PreparedFrame:
+    """Return frame `index` of a scan prepared for registration (see frame_prep.prepare_frame)."""
+    return prepare_frame(
+        scan.frame(index),
+        index=index,
+        seq=int(scan.frame_seq[index]),
+        t_s=float(scan.frame_t_s[index]),
+        forces_n=forces_n,
+        calib=scan.calibration,
+        mask=mask,
+        flat=flat,
+        options=options,
+    )
+
+
 def prepared_frames(
     scan: Scan, forces: np.ndarray, mask: np.ndarray, flat: np.ndarray | None, options: MethodOptions
 ) -> Iterator[PreparedFrame]:
     """Yield prepared frames in order, preparing up to a few ahead on a thread pool (OpenCV frees the GIL)."""
 
     def job(i: int) -> PreparedFrame:
-        return prepare_frame(
-            scan.frame(i),
-            index=i,
-            seq=int(scan.frame_seq[i]),
-            t_s=float(scan.frame_t_s[i]),
-            forces_n=forces[i],
-            calib=scan.calibration,
-            mask=mask,
-            flat=flat,
-            options=options,
-        )
+        return prepare_scan_frame(scan, i, forces[i], mask, flat, options)
 
     with ThreadPoolExecutor(max_workers=2) as pool:
         ahead = 4

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import fcntl
 import io
 import json
 import math
@@ -36,7 +35,7 @@ from services.features import Features
 from services.force_model import LoadState
 from services.frame_prep import PreparedFrame
 from services.session_reconstruction import PATH_COLUMNS, PathRow
-from services.storage import atomic_write_bytes, fsync_dir
+from services.storage import atomic_write_bytes, directory_lock, fsync_dir
 
 LAYERS = ("vein", "force")
 IMAGE_NAMES = ("mosaic.png", "force.png", "paths.png", "errors.png")
@@ -217,12 +216,8 @@ class ResultsStore:
     @contextlib.contextmanager
     def _locked(self, sid: str) -> Iterator[Path]:
         rdir = self.results_dir(sid)
-        with open(rdir / ".lock", "a+b") as fh:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
-            try:
-                yield rdir
-            finally:
-                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+        with directory_lock(rdir):
+            yield rdir
 
     def current_version(self, sid: str) -> int | None:
         """Return the version the API serves, or None before any version exists."""

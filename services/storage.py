@@ -97,6 +97,17 @@ def fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+@contextlib.contextmanager
+def directory_lock(path: Path) -> Iterator[None]:
+    """Hold an exclusive advisory lock on path/.lock (across processes) for the duration of the block."""
+    with open(path / ".lock", "a+b") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write `data` to `path` durably: temp file in the same directory, fsync, rename, fsync the directory.
 
@@ -169,12 +180,8 @@ class SessionStore:
     @contextlib.contextmanager
     def _locked(self, session_id: str) -> Iterator[Path]:
         path = self.session_dir(session_id)
-        with open(path / ".lock", "a+b") as fh:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
-            try:
-                yield path
-            finally:
-                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+        with directory_lock(path):
+            yield path
 
     # ----- sessions ------------------------------------------------------------------------------------
     def create_session(self, owner: str, label: str, calibration: Calibration, now: float | None = None) -> SessionMeta:
