@@ -116,9 +116,11 @@ class Registrar:
         fit = self._match(pf, self.features[other])
         return None if fit is None else (fit.transform, fit.inliers, fit.rms)
 
-    def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity) -> tuple[Similarity, int] | None:
+    def _mosaic_match(
+        self, pf: PreparedFrame, predicted: Similarity, lost_for: int
+    ) -> tuple[Similarity, int] | None:
         """Match against the mosaic's features around the prediction (the paper's registration)."""
-        near = self._candidates(predicted, 6, 1.6 * self.window_radius_mm)
+        near = self._candidates(predicted, 6, 1.6 * self.window_radius_mm * (1 + lost_for))
         pts = [self.poses[i].apply(self.features[i].points_px) for i in near]
         desc = [self.features[i].descriptors for i in near]
         if not pts:
@@ -150,12 +152,13 @@ class Registrar:
             pose = self.poses[self.order[-1]].compose(rel.rigid())
             return self._accept(pf, pose, [], n, blurred)
         if kind == "mosaic":
-            found_m = self._mosaic_match(pf, predicted)
+            found_m = self._mosaic_match(pf, predicted, lost_for)
             if found_m is None:
                 return self._reject(pf, STATUS_REJECTED if blurred else STATUS_LOST, blurred)
             pose, n = found_m
             pose = pose.rigid()
-            if not self._plausible(pose, predicted, lost_for):
+            reach = 2 * self.window_radius_mm * (1 + lost_for)  # the paper checks no motion model: only overlap
+            if abs(pose.t - self.poses[self.order[-1]].t) > reach:
                 return self._reject(pf, STATUS_REJECTED, blurred)
             return self._accept(pf, pose, [], n, blurred)
         return self._add_keyframes(pf, predicted, lost_for, blurred)
