@@ -16,18 +16,19 @@ EDGE_THRESHOLD = 10.0
 
 @dataclass(frozen=True)
 class Features:
-    """Keypoints of one image: positions (N, 2) float64 in pixels, descriptors (N, D) float32, scales (N,) px."""
+    """Keypoints: positions (N, 2) float64 (pixels from detect_features; frame_prep turns them into mm about the
+    principal point), descriptors (N, D) float32, detection scales (N,) in pixels."""
 
-    points_px: np.ndarray
+    points: np.ndarray
     descriptors: np.ndarray
     sizes_px: np.ndarray
 
     def __len__(self) -> int:
-        return len(self.points_px)
+        return len(self.points)
 
     def subset(self, keep: np.ndarray) -> Features:
         """Return the features selected by a boolean mask or index array."""
-        return Features(self.points_px[keep], self.descriptors[keep], self.sizes_px[keep])
+        return Features(self.points[keep], self.descriptors[keep], self.sizes_px[keep])
 
 
 def empty_features(descriptor_size: int = 128) -> Features:

@@ -108,7 +108,7 @@ def prepare_frame(
     rect_mask = cv2.remap(mask, map_x, map_y, cv2.INTER_NEAREST, borderValue=0)
     inner = cv2.erode(rect_mask, np.ones((2 * FEATURE_MARGIN_PX + 1,) * 2, np.uint8))
     found = detect_features(image, inner, options.features, options.max_features)
-    features = Features(px_to_mm(found.points_px, calib), found.descriptors, found.sizes_px)
+    features = Features(px_to_mm(found.points, calib), found.descriptors, found.sizes_px)
     lap = cv2.Laplacian(image, cv2.CV_32F)
     sharpness = float(np.var(lap[inner > 0])) if np.any(inner) else 0.0
     return PreparedFrame(

@@ -104,8 +104,8 @@ class Registrar:
         same_place = 2.0 / self.px_per_mm
         iq, it = match_features(pf.features, train, self.options.ratio, same_point=same_place)
         return estimate_similarity(
-            pf.features.points_px[iq],
-            train.points_px[it],
+            pf.features.points[iq],
+            train.points[it],
             self.ransac_mm,
             seed=pf.index,
             min_inliers=self.options.min_inliers,
@@ -116,12 +116,10 @@ class Registrar:
         fit = self._match(pf, self.features[other])
         return None if fit is None else (fit.transform, fit.inliers, fit.rms)
 
-    def _mosaic_match(
-        self, pf: PreparedFrame, predicted: Similarity, lost_for: int
-    ) -> tuple[Similarity, int] | None:
+    def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity, lost_for: int) -> tuple[Similarity, int] | None:
         """Match against the mosaic's features around the prediction (the paper's registration)."""
         near = self._candidates(predicted, 6, 1.6 * self.window_radius_mm * (1 + lost_for))
-        pts = [self.poses[i].apply(self.features[i].points_px) for i in near]
+        pts = [self.poses[i].apply(self.features[i].points) for i in near]
         desc = [self.features[i].descriptors for i in near]
         if not pts:
             return None

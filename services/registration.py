@@ -96,7 +96,7 @@ def match_features(
         for c, m in enumerate(row):
             idx[r, c], dist[r, c] = m.trainIdx, m.distance
     iq = np.array([row[0].queryIdx for row in rows])
-    tp = train.points_px
+    tp = train.points
     gap = np.linalg.norm(tp[idx] - tp[idx[:, :1]], axis=2)  # each candidate's distance from the best's place
     elsewhere = (gap > same_point) & np.isfinite(dist)
     elsewhere[:, 0] = False

@@ -111,7 +111,7 @@ def prepared_to_bytes(pf: PreparedFrame) -> bytes:
         forces_n=np.asarray(pf.forces_n, np.float64),
         image=pf.image,
         mask=pf.mask,
-        points_px=np.asarray(pf.features.points_px, np.float64),
+        points=np.asarray(pf.features.points, np.float64),
         descriptors=desc_stored,
         desc_width=np.array([desc.shape[1] if desc.ndim == 2 else 128], np.int64),
         sizes_px=np.asarray(pf.features.sizes_px, np.float64),
@@ -125,7 +125,7 @@ def prepared_from_bytes(data: bytes) -> PreparedFrame:
     t_s, fz, tx, ty, stretch, sharpness = (float(v) for v in z["scalars"])
     desc = z["descriptors"]
     desc = desc.astype(np.float32).reshape(-1, int(z["desc_width"][0]))
-    features = Features(z["points_px"].reshape(-1, 2), desc, z["sizes_px"])
+    features = Features(z["points"].reshape(-1, 2), desc, z["sizes_px"])
     return PreparedFrame(
         index=index,
         seq=seq,

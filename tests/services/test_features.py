@@ -50,7 +50,7 @@ def test_mask_filters_keypoints_for_every_kind(textured: np.ndarray, window: np.
     everywhere = detect_features(textured, None, kind)
     assert len(found) > 20
     assert len(everywhere) > 2 * len(found)  # the texture outside the mask has keypoints too
-    assert np.all(_inside(found.points_px, window))
+    assert np.all(_inside(found.points, window))
     assert found.descriptors.shape == (len(found), 128) and found.descriptors.dtype == np.float32
     assert found.sizes_px.shape == (len(found),)
 

@@ -113,7 +113,7 @@ def _prepare(scan: Scan, forces: np.ndarray, rectify: bool = True, index: int = 
 def test_features_are_in_mm_about_the_principal_point(scan: Scan) -> None:
     calib = scan.calibration
     pf = _prepare(scan, np.full(4, 1.5))
-    pts = pf.features.points_px  # named px by the Features type, but in mm here (see PreparedFrame)
+    pts = pf.features.points  # mm about the principal point here (see PreparedFrame)
     assert len(pts) > 100
     half_w, half_h = WINDOW_SIZE_PX[0] / 2 / calib.px_per_mm, WINDOW_SIZE_PX[1] / 2 / calib.px_per_mm
     assert np.all(np.abs(pts[:, 0]) < half_w) and np.all(np.abs(pts[:, 1]) < half_h)  # 23.1 x 18.1 mm

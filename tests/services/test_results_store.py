@@ -62,7 +62,7 @@ def _assert_same(a: PreparedFrame, b: PreparedFrame) -> None:
         (a.forces_n, b.forces_n),
         (a.image, b.image),
         (a.mask, b.mask),
-        (a.features.points_px, b.features.points_px),
+        (a.features.points, b.features.points),
         (a.features.descriptors, b.features.descriptors),
         (a.features.sizes_px, b.features.sizes_px),
     ]:
