@@ -8,21 +8,20 @@ access_log=False: its access log prints raw URLs; create_app disables "uvicorn.a
 
 from __future__ import annotations
 
-import contextvars
-import json
 import logging
 import re
 import time
 import uuid
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Any, TextIO
+from typing import Any
 
 from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.auth import key_table
 from api.errors import add_exception_handlers, error_response
+from api.log_format import configure_json_logging, request_id_var
 from api.routes import ROUTERS
 from api.settings import Settings, get_settings, token_secret_bytes
 from services import queue
@@ -31,54 +30,12 @@ from services.storage import SessionStore
 
 API_VERSION = "1.0.0"
 log = logging.getLogger("veinmosaic.api")
-request_id_var: contextvars.ContextVar[str] = contextvars.ContextVar("request_id", default="-")
 _SANE_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
-_LOG_FIELDS = ("session", "seq", "bytes", "frames", "method", "route", "status", "duration_ms")
-
-
-class RequestIdFilter(logging.Filter):
-    """Stamp each record with the current request id (taken when the record is made, not when formatted)."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        """Add record.request_id; keep every record."""
-        if not hasattr(record, "request_id"):
-            record.request_id = request_id_var.get()
-        return True
-
-
-class JsonFormatter(logging.Formatter):
-    """One JSON object per line: ts, level, logger, msg, request_id and the whitelisted extra fields."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        """Return the record as a JSON line."""
-        doc: dict[str, Any] = {
-            "ts": round(record.created, 3),
-            "level": record.levelname,
-            "logger": record.name,
-            "msg": record.getMessage(),
-            "request_id": getattr(record, "request_id", "-"),
-        }
-        doc.update({k: getattr(record, k) for k in _LOG_FIELDS if hasattr(record, k)})
-        if record.exc_info:
-            doc["exc"] = self.formatException(record.exc_info)
-        return json.dumps(doc, default=str)
-
-
-def make_log_handler(stream: TextIO | None = None) -> logging.Handler:
-    """Return a handler writing JSON lines with request ids to `stream` (stderr by default)."""
-    handler = logging.StreamHandler(stream)
-    handler.setFormatter(JsonFormatter())
-    handler.addFilter(RequestIdFilter())
-    return handler
 
 
 def configure_logging(level: str) -> None:
     """Send "veinmosaic" logs to stderr as JSON lines (idempotent); silence uvicorn's raw-URL access log."""
-    root = logging.getLogger("veinmosaic")
-    root.setLevel(level.upper())
-    if not any(isinstance(h.formatter, JsonFormatter) for h in root.handlers):
-        root.addHandler(make_log_handler())
-        root.propagate = False
+    configure_json_logging(level)
     logging.getLogger("uvicorn.access").disabled = True
 
 

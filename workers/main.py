@@ -260,14 +260,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run a worker configured from the environment (api.settings.Settings) and the command line."""
+    from api.log_format import configure_json_logging
     from api.settings import Settings
 
     args = build_parser().parse_args(argv)
     settings = Settings()
-    logging.basicConfig(
-        level=getattr(logging, str(settings.log_level).upper(), logging.INFO),
-        format="%(asctime)s %(levelname)s %(name)s %(process)d: %(message)s",
-    )
+    configure_json_logging(str(settings.log_level))
     options: dict[str, Any] = json.loads(args.config_json) if args.config_json else {}
     for name in ("lost_timeout_s", "lease_ms", "claim_idle_ms"):
         value = getattr(args, name)

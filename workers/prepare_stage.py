@@ -110,7 +110,7 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
     try:
         meta = ctx.store.get_meta(sid)
     except SessionNotFoundError:
-        log.warning("frame job for an unknown session dropped")
+        log.warning("frame job for an unknown session dropped", extra={"session": sid})
         return DONE
     opts, calib = live_options(ctx, sid)
     v = LIVE_VERSION
@@ -119,7 +119,7 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
         return DONE
     rec = ctx.store.get_frame(sid, seq)
     if rec is None:
-        log.warning("frame job for a frame that is not stored dropped (seq %d)", seq)
+        log.warning("frame job for a frame that is not stored dropped", extra={"session": sid, "seq": seq})
         return DONE
     setup = ensure_setup(ctx, sid, meta, opts, calib)
     if setup is None:

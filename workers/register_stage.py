@@ -231,7 +231,7 @@ class RegisterStage:
         held.unreported.clear()
         # counters are idempotent per seq: re-record all, in case the previous holder died before counting
         self._record_counters(held, list(range(cursor)))
-        log.info("session taken over at cursor %d (token %d)", cursor, held.lease.token)
+        log.info("session taken over at cursor %d (token %d)", cursor, held.lease.token, extra={"session": held.sid})
 
     # ----- one pass --------------------------------------------------------------------------------------------
     def _run(self, held: HeldSession) -> None:
@@ -251,7 +251,7 @@ class RegisterStage:
                 if held.lease.release(self.ctx.r) != 0:
                     self.held.pop(key, None)
         except LeaseLostError:
-            log.warning("lease lost; dropping the session's in-memory state")
+            log.warning("lease lost; dropping the session's in-memory state", extra={"session": held.sid})
             self.held.pop(key, None)
         except SessionNotFoundError:
             self._drop(key, release=True)
@@ -362,7 +362,7 @@ class RegisterStage:
     def _registration_failed(self, held: HeldSession, seq: int, exc: Exception) -> None:
         """Count a registration failure of `seq`; after max_deliveries mark it poison; retry via a delayed kick."""
         ctx = self.ctx
-        log.error("registration of frame %d failed: %s", seq, type(exc).__name__, exc_info=exc)
+        log.error("registration failed: %s", type(exc).__name__, exc_info=exc, extra={"session": held.sid, "seq": seq})
         fails = int(ctx.r.hincrby(f"{ctx.prefix}regfail:{held.sid}:{held.version}", str(seq), 1))
         if fails >= ctx.config.max_deliveries:
             ctx.results.mark_poison(held.sid, held.version, seq, f"registration failed: {type(exc).__name__}")
@@ -513,7 +513,7 @@ class RegisterStage:
         if held.version == LIVE_VERSION and session_status != "failed":
             self.ctx.store.set_status(held.sid, "done")
         held.done = True
-        log.info("session done (%d frames)", len(held.recon.results))
+        log.info("session done", extra={"session": held.sid, "frames": len(held.recon.results)})
 
     def _finish_empty(self, lease: Lease, session_status: str, rejected: list[int] | None = None) -> None:
         """A finished session with no usable frame (none, or all poison): rows rejected, no mosaic, status done."""

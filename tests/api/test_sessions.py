@@ -11,7 +11,7 @@ import pytest
 from api_helpers import INGEST, calibration_doc, frame_bytes, upload
 from fastapi.testclient import TestClient
 
-from api.app import make_log_handler
+from api.log_format import make_log_handler
 from services import queue
 
 
