@@ -100,12 +100,7 @@ class SessionReconstruction:
             self.compliance = self._fit_compliance()
             self.gauge = self.compliance.gauge if self.compliance is not None else 1.0
         self.finished = True
-        if not self.live:
-            return set()
-        old = set(self.canvas.tiles)
-        self.canvas = SparseCanvas(self.calibration.px_per_mm)
-        self.pasted = {}
-        return old | self._sync_canvas(tuple(self.frames))
+        return self._restitch() if self.live else set()
 
     def _fit_compliance(self) -> ComplianceFit | None:
         placed = [i for i, r in self.results.items() if r.status == STATUS_OK and i in self.registrar.poses]
@@ -151,9 +146,15 @@ class SessionReconstruction:
     def render(self) -> MosaicImage:
         """Return the mosaic: the live canvas, or (offline) a stitch of every sharp placed frame."""
         if not self.live:
-            self.canvas = SparseCanvas(self.calibration.px_per_mm)
-            self._sync_canvas(tuple(sorted(self.frames)))
+            self._restitch()
         return self.canvas.render()
+
+    def _restitch(self) -> set[tuple[int, int]]:
+        """Paste every frame afresh on an empty canvas; return the tiles of the old and the new canvas."""
+        old = set(self.canvas.tiles)
+        self.canvas = SparseCanvas(self.calibration.px_per_mm)
+        self.pasted = {}
+        return old | self._sync_canvas(tuple(sorted(self.frames)))
 
     def path_rows(self) -> list[PathRow]:
         """Return one PathRow per frame seen so far (spec §4), in index order."""
