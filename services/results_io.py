@@ -56,6 +56,8 @@ def write_reconstruction(
     mosaic = recon.mosaic
     cv2.imwrite(str(out / "mosaic.png"), mosaic.vein)
     cv2.imwrite(str(out / "force.png"), force_to_color(mosaic.force_n))
+    # coverage: how many frames saw each point (8-bit count, saturating at 255)
+    cv2.imwrite(str(out / "coverage.png"), np.clip(np.rint(mosaic.coverage), 0, 255).astype(np.uint8))
     meta = mosaic.meta()
     meta["method"] = recon.method
     if recon.compliance is not None:

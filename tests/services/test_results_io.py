@@ -73,7 +73,7 @@ def test_write_reconstruction_without_reference(tmp_path: Path) -> None:
     report = write_reconstruction(_recon(), tmp_path / "out", None)
     assert report is None
     out = tmp_path / "out"
-    assert {p.name for p in out.iterdir()} == {"path.csv", "mosaic.png", "force.png", "mosaic.json"}
+    assert {p.name for p in out.iterdir()} == {"path.csv", "mosaic.png", "force.png", "coverage.png", "mosaic.json"}
     png = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED)
     assert png.dtype == np.uint8 and png.shape == (60, 80)
     meta = json.loads((out / "mosaic.json").read_text())
@@ -83,6 +83,9 @@ def test_write_reconstruction_without_reference(tmp_path: Path) -> None:
     force = cv2.imread(str(out / "force.png"), cv2.IMREAD_UNCHANGED)
     assert force.shape == (60, 80, 3)
     assert force[0, 0].tolist() == [0, 0, 0] and force[30, 40].sum() > 0
+    coverage = cv2.imread(str(out / "coverage.png"), cv2.IMREAD_UNCHANGED)
+    expected = np.clip(np.rint(_recon().mosaic.coverage), 0, 255).astype(np.uint8)
+    assert coverage.dtype == np.uint8 and np.array_equal(coverage, expected)
 
 
 def test_write_reconstruction_with_reference(tmp_path: Path) -> None:
