@@ -35,7 +35,7 @@ from services.features import Features
 from services.force_model import LoadState
 from services.frame_prep import PreparedFrame
 from services.session_reconstruction import PATH_COLUMNS, PathRow
-from services.storage import atomic_write_bytes, directory_lock, fsync_dir
+from services.storage import atomic_write_bytes, directory_lock, durable_temp_file, fsync_dir
 
 LAYERS = ("vein", "force")
 IMAGE_NAMES = ("mosaic.png", "force.png", "paths.png", "errors.png")
@@ -55,13 +55,8 @@ def write_once(path: Path, data: bytes) -> bool:
     exists), so concurrent writers never overwrite each other and readers never see a partial file.
     """
     path = Path(path)
-    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o640)
+    tmp = durable_temp_file(path, data)
     try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
         try:
             os.link(tmp, path)
         except FileExistsError:

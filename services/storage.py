@@ -108,13 +108,8 @@ def directory_lock(path: Path) -> Iterator[None]:
             fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write `data` to `path` durably: temp file in the same directory, fsync, rename, fsync the directory.
-
-    After a crash at any point `path` holds either its old content (or does not exist) or all of `data`,
-    never a part; an interrupted write leaves at most a hidden `.<name>.*.tmp` file, which readers ignore.
-    """
-    path = Path(path)
+def durable_temp_file(path: Path, data: bytes) -> Path:
+    """Return a hidden temporary file beside `path` holding `data`, written and fsynced (the caller moves it)."""
     tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o640)
     try:
@@ -122,6 +117,22 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    return tmp
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write `data` to `path` durably: temp file in the same directory, fsync, rename, fsync the directory.
+
+    After a crash at any point `path` holds either its old content (or does not exist) or all of `data`,
+    never a part; an interrupted write leaves at most a hidden `.<name>.*.tmp` file, which readers ignore.
+    """
+    path = Path(path)
+    tmp = durable_temp_file(path, data)
+    try:
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
