@@ -12,6 +12,7 @@ COPY api api
 COPY workers workers
 RUN pip install --no-cache-dir .
 COPY --from=viewer /app/node_modules node_modules
-ENV VEINMOSAIC_DATA_DIR=/data
+ENV VEINMOSAIC_DATA_DIR=/data \
+    VEINMOSAIC_VIEWER_ASSETS_DIR=/app/node_modules/openseadragon/build/openseadragon
 EXPOSE 8000
 CMD ["veinmosaic", "serve", "--host", "0.0.0.0"]

@@ -23,6 +23,7 @@ from api.auth import key_table
 from api.errors import add_exception_handlers, error_response
 from api.log_format import configure_json_logging, request_id_var
 from api.routes import ROUTERS
+from api.routes.viewer import mount_static
 from api.settings import Settings, get_settings, token_secret_bytes
 from services import queue
 from services.redis_backend import close, connect
@@ -101,11 +102,11 @@ def _body_limit(scope: Scope) -> int | None:
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """Return the application; settings default to the environment, read once when the lifespan starts."""
+    """Return the application; settings default to the environment, read once here (at start-up)."""
+    s = settings if settings is not None else get_settings()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        s = settings if settings is not None else get_settings()
         configure_logging(s.log_level)
         s.data_dir.mkdir(parents=True, exist_ok=True)
         app.state.settings = s
@@ -134,5 +135,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     add_exception_handlers(app)
     for router in ROUTERS:
         app.include_router(router)
+    mount_static(app, s)
     app.add_middleware(RequestContextMiddleware)
     return app

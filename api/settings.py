@@ -39,6 +39,7 @@ class Settings(BaseSettings):
     retry_after_s: int = Field(default=2, gt=0)
     viewer_token_ttl_s: int = Field(default=8 * 3600, gt=0)
     log_level: str = "INFO"
+    viewer_assets_dir: Path | None = None  # OpenSeadragon's build folder; default: node_modules of the checkout/cwd
 
 
 def get_settings() -> Settings:

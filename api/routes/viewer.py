@@ -11,18 +11,37 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fastapi import APIRouter
+from fastapi import APIRouter, FastAPI
 from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 
-from api.deps import ViewSession
+from api.deps import AppSettings, ViewSession
 from api.errors import ServiceUnavailable
+from api.settings import Settings
 
 router = APIRouter(tags=["viewer"])
 
 STATIC_DIR = Path(__file__).resolve().parent.parent / "static"
 REPO_ROOT = Path(__file__).resolve().parents[2]
-VENDOR_DIR = REPO_ROOT / "node_modules" / "openseadragon" / "build" / "openseadragon"
+OSD_BUILD = Path("node_modules") / "openseadragon" / "build" / "openseadragon"
+
+
+def vendor_dir(settings: Settings) -> Path:
+    """Return OpenSeadragon's build folder: the setting, else the checkout's node_modules, else the cwd's."""
+    if settings.viewer_assets_dir is not None:
+        return Path(settings.viewer_assets_dir)
+    for root in (REPO_ROOT, Path.cwd()):
+        if (root / OSD_BUILD / "openseadragon.min.js").is_file():
+            return root / OSD_BUILD
+    return REPO_ROOT / OSD_BUILD
+
+
+def mount_static(app: FastAPI, settings: Settings) -> None:
+    """Serve the viewer's own files and the installed OpenSeadragon under /static."""
+    app.mount("/static/vendor/openseadragon", StaticFiles(directory=vendor_dir(settings), check_dir=False), name="osd")
+    app.mount("/static", StaticFiles(directory=STATIC_DIR, check_dir=False), name="static")
+
+
 CSP = (
     "default-src 'self'; img-src 'self' data: blob:; style-src 'self' 'unsafe-inline'; script-src 'self'; "
     "connect-src 'self'; worker-src 'self' blob:; object-src 'none'; base-uri 'none'; frame-ancestors 'none'"
@@ -36,13 +55,9 @@ PAGE_HEADERS = {
 
 
 @router.get("/viewer/{session_id}", response_class=FileResponse, responses={200: {"content": {"text/html": {}}}})
-def viewer_page(meta: ViewSession) -> Response:
+def viewer_page(meta: ViewSession, settings: AppSettings) -> Response:
     """Return the viewer page for a session the caller may view (a viewer link's ?token= or a key)."""
     page = STATIC_DIR / "viewer.html"
-    if not (VENDOR_DIR / "openseadragon.min.js").is_file():
+    if not (vendor_dir(settings) / "openseadragon.min.js").is_file():
         raise ServiceUnavailable("the viewer's assets are not installed (run `npm ci` at the repository root)")
     return FileResponse(page, media_type="text/html; charset=utf-8", headers=PAGE_HEADERS)
-
-
-router.mount("/static/vendor/openseadragon", StaticFiles(directory=VENDOR_DIR, check_dir=False), name="osd")
-router.mount("/static", StaticFiles(directory=STATIC_DIR, check_dir=False), name="static")

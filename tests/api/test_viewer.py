@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from pathlib import Path
+
 from api_helpers import INGEST, auth, calibration_doc
 from fastapi.testclient import TestClient
 
@@ -48,3 +51,19 @@ def test_static_assets(client: TestClient) -> None:
         "/static/vendor/openseadragon/../../package.json",
     ):
         assert client.get(bad).status_code == 404, bad
+
+
+def test_viewer_assets_dir_setting(make_client: Callable[..., TestClient], tmp_path: Path) -> None:
+    """An installed package (Docker) finds OpenSeadragon where VEINMOSAIC_VIEWER_ASSETS_DIR says."""
+    assets = tmp_path / "osd"
+    assets.mkdir()
+    (assets / "openseadragon.min.js").write_text("/* OpenSeadragon from the setting */")
+    client = make_client(viewer_assets_dir=assets)
+    osd = client.get("/static/vendor/openseadragon/openseadragon.min.js")
+    assert osd.status_code == 200 and "from the setting" in osd.text
+    sid = _create(client)["id"]
+    assert client.get(f"/viewer/{sid}", headers=INGEST).status_code == 200
+    empty = make_client(viewer_assets_dir=tmp_path / "missing")
+    sid = _create(empty)["id"]
+    missing = empty.get(f"/viewer/{sid}", headers=INGEST)
+    assert missing.status_code == 503 and missing.json()["error"]["message"].startswith("the viewer's assets")
