@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.methods import method_options
 from services.mosaic import PLANES, TILE_PX
-from services.pipeline import flat_field, frame_forces, prepare_scan_frame, reconstruct, window_mask, window_radius_mm
+from services.pipeline import frame_forces, prepare_scan_frame, reconstruct, window_radius_mm, window_setup
 from services.scan import Scan, in_memory_loader
 from services.session_reconstruction import SessionReconstruction
 from services.simulation.scenarios import simulate
@@ -44,8 +44,7 @@ def truncate(scan: Scan, n: int) -> Scan:
 def stage_costs(scan: Scan, method: str) -> tuple[float, float, SessionReconstruction]:
     """Return (prepare s/frame, register s/frame, the session) of a method, one stage at a time (CPU time)."""
     options = method_options(method)
-    forces, mask = frame_forces(scan), window_mask(scan)
-    flat = flat_field(scan, mask, options)
+    forces, (mask, flat) = frame_forces(scan), window_setup(scan, options)
     t0 = time.process_time()
     prepared = [prepare_scan_frame(scan, i, forces[i], mask, flat, options) for i in range(len(scan))]
     t1 = time.process_time()

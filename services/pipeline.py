@@ -54,18 +54,16 @@ def frame_forces(scan: Scan) -> np.ndarray:
     return interpolate_forces(scan.force_t_s, scan.forces_n, scan.frame_t_s)
 
 
-def window_mask(scan: Scan) -> np.ndarray:
-    """Return the window mask: mask.png when the scan has one, else found from a sample of frames."""
-    if scan.mask is not None:
-        return scan.mask
-    return estimate_window_mask([scan.frame(i) for i in range(min(len(scan), MASK_SAMPLE_FRAMES))])
+def window_setup(scan: Scan, options: MethodOptions) -> tuple[np.ndarray, np.ndarray | None]:
+    """Return (window mask, vignetting gain or None) from the first frames, read once.
 
-
-def flat_field(scan: Scan, mask: np.ndarray, options: MethodOptions) -> np.ndarray | None:
-    """Return the vignetting gain estimated from a sample of frames, or None when the method skips it."""
-    if not options.flat_field:
-        return None
-    return estimate_flat_field([scan.frame(i) for i in range(min(len(scan), MASK_SAMPLE_FRAMES))], mask)
+    The mask is mask.png when the scan has one, else found from the frames; the gain is skipped when the
+    method does not flat-field.
+    """
+    frames = [scan.frame(i) for i in range(min(len(scan), MASK_SAMPLE_FRAMES))]
+    mask = scan.mask if scan.mask is not None else estimate_window_mask(frames)
+    flat = estimate_flat_field(frames, mask) if options.flat_field else None
+    return mask, flat
 
 
 def window_radius_mm(mask: np.ndarray, calib: Calibration) -> float:
@@ -114,8 +112,7 @@ def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = 
     started = time.perf_counter()
     calib = scan.calibration
     forces = frame_forces(scan)  # 1. forces at frame times
-    mask = window_mask(scan)  # 2. the window's field of view
-    flat = flat_field(scan, mask, options)  # 3. the IR ring's vignetting
+    mask, flat = window_setup(scan, options)  # 2-3. the window's field of view; the IR ring's vignetting
     session = SessionReconstruction(calib, options, window_radius_mm(mask, calib))
     for pf in prepared_frames(scan, forces, mask, flat, options):  # 4. rectify + features (parallel)
         session.add(pf)  # 5. register against what is placed (+ refinement on loop closures)

@@ -34,18 +34,6 @@ def path_csv(rows: list[PathRow]) -> str:
     return out.getvalue()
 
 
-def path_json(rows: list[PathRow]) -> list[dict[str, Any]]:
-    """Return the path as JSON-able dicts (spec §4; null where a frame was not registered)."""
-    out = []
-    for r in rows:
-        d = {}
-        for c in PATH_COLUMNS:
-            v = getattr(r, c)
-            d[c] = None if isinstance(v, float) and not math.isfinite(v) else v
-        out.append(d)
-    return out
-
-
 def write_reconstruction(
     recon: Reconstruction, out_dir: str | Path, reference_mm: np.ndarray | None
 ) -> AccuracyReport | None:

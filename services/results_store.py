@@ -34,7 +34,7 @@ import numpy as np
 from services.features import Features
 from services.force_model import LoadState
 from services.frame_prep import PreparedFrame
-from services.session_reconstruction import PATH_COLUMNS, PathRow
+from services.session_reconstruction import PathRow, path_rows_json
 from services.storage import atomic_write_bytes, directory_lock, durable_temp_file, fsync_dir
 
 LAYERS = ("vein", "force")
@@ -133,22 +133,6 @@ def prepared_from_bytes(data: bytes) -> PreparedFrame:
         features=features,
         sharpness=sharpness,
     )
-
-
-def path_rows_json(rows: Sequence[PathRow]) -> list[dict[str, Any]]:
-    """Return path rows as spec §4 dicts (null where a value is not finite, i.e. the frame was not placed)."""
-    out = []
-    for r in rows:
-        d: dict[str, Any] = {}
-        for c in PATH_COLUMNS:
-            v = getattr(r, c)
-            if isinstance(v, float | np.floating):
-                v = float(v) if math.isfinite(v) else None
-            elif isinstance(v, np.integer):
-                v = int(v)
-            d[c] = v
-        out.append(d)
-    return out
 
 
 def parse_reference_csv(text: str, seqs: Sequence[int]) -> np.ndarray:

@@ -8,7 +8,9 @@ session over replays the prepared frames it has not seen; registration is determ
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +54,22 @@ class PathRow:
     status: str
 
 
+def path_rows_json(rows: Sequence[PathRow]) -> list[dict[str, Any]]:
+    """Return path rows as spec §4 dicts (null where a value is not finite, i.e. the frame was not placed)."""
+    out = []
+    for r in rows:
+        d: dict[str, Any] = {}
+        for c in PATH_COLUMNS:
+            v = getattr(r, c)
+            if isinstance(v, float | np.floating):
+                v = float(v) if math.isfinite(v) else None
+            elif isinstance(v, np.integer):
+                v = int(v)
+            d[c] = v
+        out.append(d)
+    return out
+
+
 @dataclass
 class SessionReconstruction:
     """Registration state, kept frames and (when live) the canvas of one session."""
@@ -89,8 +107,11 @@ class SessionReconstruction:
 
     def final_poses(self) -> dict[int, Similarity]:
         """Return the placed poses in output units (after the compliance gauge when finished)."""
-        g = self.gauge
-        return {i: Similarity(p.a / g, p.t / g) for i, p in self.registrar.poses.items()}
+        return {i: self._output_pose(p) for i, p in self.registrar.poses.items()}
+
+    def _output_pose(self, pose: Similarity) -> Similarity:
+        """Return a registrar pose in output units: divided by the gauge (1 until finish)."""
+        return Similarity(pose.a / self.gauge, pose.t / self.gauge)
 
     def finish(self) -> set[tuple[int, int]]:
         """Run the final refinement and compliance self-calibration; return the canvas tiles that changed."""
@@ -121,9 +142,10 @@ class SessionReconstruction:
         result = self.results.get(index)
         if result is None or result.status != STATUS_OK or result.blurred:
             return None
-        pose = self.final_poses().get(index) if self.finished else self.registrar.poses.get(index)
+        pose = self.registrar.poses.get(index)
         if pose is None:
             return None
+        pose = self._output_pose(pose) if self.finished else pose
         return pose.rigid() if self.options.rigid_stitch else pose
 
     def _sync_canvas(self, indices: tuple[int, ...]) -> set[tuple[int, int]]:

@@ -24,10 +24,10 @@ from services.deepzoom import DziGeometry, TilePyramid
 from services.evaluation import evaluate_path
 from services.methods import method_options
 from services.mosaic import force_to_color
-from services.pipeline import flat_field, frame_forces, prepared_frames, window_mask, window_radius_mm
-from services.results_store import LAYERS, ResultsStore, path_rows_json
+from services.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
+from services.results_store import LAYERS, ResultsStore
 from services.scan import Scan
-from services.session_reconstruction import PATH_COLUMNS, PathRow, SessionReconstruction
+from services.session_reconstruction import PATH_COLUMNS, PathRow, SessionReconstruction, path_rows_json
 from services.simulation.scenarios import simulate
 
 # ----- a results bundle made with the workers' services code -----------------------------------------------------
@@ -62,10 +62,10 @@ def make_bundle(scan: Scan, n_frames: int | None = None, final: bool = True, mos
     part = replace(scan, frame_seq=scan.frame_seq[:n], frame_t_s=scan.frame_t_s[:n])
     options = method_options("best")
     calib = scan.calibration
-    mask = window_mask(part)
+    mask, flat = window_setup(part, options)
     recon = SessionReconstruction(calib, options, window_radius_mm(mask, calib), live=True)
     touched: set[tuple[int, int]] = set()
-    for pf in prepared_frames(part, frame_forces(part), mask, flat_field(part, mask, options), options):
+    for pf in prepared_frames(part, frame_forces(part), mask, flat, options):
         touched |= recon.add(pf)[1]
     if final:
         touched |= recon.finish()

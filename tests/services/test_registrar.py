@@ -30,8 +30,7 @@ def scan() -> Scan:
 
 def _run(scan: Scan, options: MethodOptions) -> tuple[list[FrameResult], Registrar]:
     forces = pipeline.frame_forces(scan)
-    mask = pipeline.window_mask(scan)
-    flat = pipeline.flat_field(scan, mask, options)
+    mask, flat = pipeline.window_setup(scan, options)
     registrar = Registrar(options, scan.calibration.px_per_mm, pipeline.window_radius_mm(mask, scan.calibration))
     results = [registrar.add(pf) for pf in pipeline.prepared_frames(scan, forces, mask, flat, options)]
     return results, registrar

@@ -15,7 +15,8 @@ import pytest
 from services.mosaic import MosaicImage
 from services.pipeline import PATH_COLUMNS, PathRow, Reconstruction
 from services.registration import IDENTITY, Similarity
-from services.results_io import path_csv, path_json, write_reconstruction
+from services.results_io import path_csv, write_reconstruction
+from services.session_reconstruction import path_rows_json
 
 NAN = math.nan
 
@@ -62,7 +63,7 @@ def test_path_csv_columns_and_blank_cells() -> None:
 
 
 def test_path_json_uses_null_for_unregistered() -> None:
-    doc = path_json(_rows())
+    doc = path_rows_json(_rows())
     assert list(doc[0]) == list(PATH_COLUMNS)
     assert doc[1]["x_mm"] is None and doc[1]["status"] == "lost"
     assert doc[2]["x_mm"] == pytest.approx(1.23456)

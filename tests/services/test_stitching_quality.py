@@ -13,7 +13,7 @@ import pytest
 from services.frame_prep import PreparedFrame
 from services.methods import method_options
 from services.mosaic import FrameLayers, SparseCanvas
-from services.pipeline import flat_field, frame_forces, prepared_frames, window_mask, window_radius_mm
+from services.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
 from services.registration import Similarity
 from services.session_reconstruction import SessionReconstruction
 from services.simulation.scenarios import simulate
@@ -48,10 +48,10 @@ def frame_agreement(session: SessionReconstruction, frames: list[PreparedFrame])
 def stitched() -> tuple[SessionReconstruction, list[PreparedFrame]]:
     scan = simulate("short", 1)
     options = method_options("best")
-    forces, mask = frame_forces(scan), window_mask(scan)
+    forces, (mask, flat) = frame_forces(scan), window_setup(scan, options)
     session = SessionReconstruction(scan.calibration, options, window_radius_mm(mask, scan.calibration))
     frames = []
-    for pf in prepared_frames(scan, forces, mask, flat_field(scan, mask, options), options):
+    for pf in prepared_frames(scan, forces, mask, flat, options):
         session.add(pf)
         frames.append(pf)
     session.finish()
