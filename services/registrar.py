@@ -19,6 +19,23 @@ from services.pose_graph import Edge, optimise_poses, place_node
 from services.registration import IDENTITY, Similarity, SimilarityFit, estimate_similarity, match_features
 
 STATUS_OK, STATUS_LOST, STATUS_REJECTED = "ok", "lost", "rejected"
+# Why a frame was not placed (path.csv `reason`, the report, the session state); "" for placed frames.
+REASON_FEW_KEYPOINTS = "few_keypoints"  # too little vein structure detected to match
+REASON_FEW_INLIERS = "few_inliers"  # features matched, but too few agree on one transform
+REASON_LOW_CORRELATION = "low_correlation"  # direct alignment did not reach the acceptance correlation
+REASON_BLUR = "blur"  # a motion-blurred frame that could not be registered
+REASON_IMPLAUSIBLE = "implausible_jump"  # a pose too far from the motion prediction
+REASON_MISSING = "missing"  # the frame never arrived (declared lost by the queue)
+REASON_BAD_FRAME = "bad_frame"  # the frame's content could not be processed (undecodable, wrong size)
+REASONS = (
+    REASON_FEW_KEYPOINTS,
+    REASON_FEW_INLIERS,
+    REASON_LOW_CORRELATION,
+    REASON_BLUR,
+    REASON_IMPLAUSIBLE,
+    REASON_MISSING,
+    REASON_BAD_FRAME,
+)
 MOVED_MM = 0.05  # a refined pose that moves a frame by less than this (0.4 px) does not re-render its tiles
 
 
@@ -32,6 +49,7 @@ class FrameResult:
     inliers: int
     blurred: bool
     moved: tuple[int, ...] = ()
+    reason: str = ""  # one of REASONS when status is not ok
 
 
 @dataclass
@@ -145,19 +163,19 @@ class Registrar:
         if kind == "previous":
             found = self._pairwise(pf, self.order[-1])
             if found is None:
-                return self._reject(pf, STATUS_REJECTED if blurred else STATUS_LOST, blurred)
+                return self._fail(pf, blurred, REASON_FEW_INLIERS)
             rel, n, _ = found
             pose = self.poses[self.order[-1]].compose(rel.rigid())
             return self._accept(pf, pose, [], n, blurred)
         if kind == "mosaic":
             found_m = self._mosaic_match(pf, predicted, lost_for)
             if found_m is None:
-                return self._reject(pf, STATUS_REJECTED if blurred else STATUS_LOST, blurred)
+                return self._fail(pf, blurred, REASON_FEW_INLIERS)
             pose, n = found_m
             pose = pose.rigid()
             reach = 2 * self.window_radius_mm * (1 + lost_for)  # the paper checks no motion model: only overlap
             if abs(pose.t - self.poses[self.order[-1]].t) > reach:
-                return self._reject(pf, STATUS_REJECTED, blurred)
+                return self._reject(pf, STATUS_REJECTED, blurred, REASON_IMPLAUSIBLE)
             return self._accept(pf, pose, [], n, blurred)
         return self._add_keyframes(pf, predicted, lost_for, blurred)
 
@@ -185,7 +203,7 @@ class Registrar:
                 continue
             edges.append(self._edge(pf, other, *found))
         if not edges:
-            return self._reject(pf, STATUS_REJECTED if blurred else STATUS_LOST, blurred)
+            return self._fail(pf, blurred, REASON_FEW_INLIERS)
         pose = place_node(self.poses, edges, pf.index)
         total = sum(e.inliers for e in edges)
         result = self._accept(pf, pose, edges, total, blurred)
@@ -225,5 +243,11 @@ class Registrar:
             self.sharpness.append(pf.sharpness)
         return FrameResult(pf.index, STATUS_OK, pose, inliers, blurred)
 
-    def _reject(self, pf: PreparedFrame, status: str, blurred: bool) -> FrameResult:
-        return FrameResult(pf.index, status, None, 0, blurred)
+    def _fail(self, pf: PreparedFrame, blurred: bool, reason: str) -> FrameResult:
+        """Return the result of a frame that could not be registered: a blurred one is rejected, else lost."""
+        if blurred:
+            return self._reject(pf, STATUS_REJECTED, blurred, REASON_BLUR)
+        return self._reject(pf, STATUS_LOST, blurred, reason)
+
+    def _reject(self, pf: PreparedFrame, status: str, blurred: bool, reason: str) -> FrameResult:
+        return FrameResult(pf.index, status, None, 0, blurred, reason=reason)

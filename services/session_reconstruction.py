@@ -19,7 +19,15 @@ from services.compliance import ComplianceFit, fit_compliance
 from services.frame_prep import PreparedFrame, load_map_n
 from services.methods import MethodOptions
 from services.mosaic import FrameLayers, MosaicImage, SparseCanvas, blend_weight
-from services.registrar import STATUS_OK, FrameResult, Registrar
+from services.registrar import (
+    REASON_BAD_FRAME,
+    REASON_MISSING,
+    STATUS_LOST,
+    STATUS_OK,
+    STATUS_REJECTED,
+    FrameResult,
+    Registrar,
+)
 from services.registration import Similarity
 
 PATH_COLUMNS = (
@@ -34,6 +42,7 @@ PATH_COLUMNS = (
     "stretch",
     "inliers",
     "status",
+    "reason",
 )
 
 
@@ -52,6 +61,7 @@ class PathRow:
     stretch: float
     inliers: int
     status: str
+    reason: str = ""  # why a frame is lost or rejected (services.registrar.REASONS); "" when ok
 
 
 def path_rows_json(rows: Sequence[PathRow]) -> list[dict[str, Any]]:
@@ -103,7 +113,11 @@ class SessionReconstruction:
 
     def lose(self, index: int) -> None:
         """Record a frame that never arrived (declared lost by the queue) so path rows stay complete."""
-        self.results[index] = FrameResult(index, "lost", None, 0, False)
+        self.results[index] = FrameResult(index, STATUS_LOST, None, 0, False, reason=REASON_MISSING)
+
+    def reject(self, index: int, reason: str = REASON_BAD_FRAME) -> None:
+        """Record a frame whose content could not be processed, so path rows stay complete."""
+        self.results[index] = FrameResult(index, STATUS_REJECTED, None, 0, False, reason=reason)
 
     def final_poses(self) -> dict[int, Similarity]:
         """Return the placed poses in output units (after the compliance gauge when finished)."""
@@ -200,6 +214,7 @@ class SessionReconstruction:
                     stretch=pf.stretch if pf else math.nan,
                     inliers=r.inliers,
                     status=r.status,
+                    reason=r.reason,
                 )
             )
         return rows

@@ -29,7 +29,7 @@ from services.deepzoom import DziGeometry, TilePyramid
 from services.methods import MethodOptions
 from services.mosaic import force_to_color
 from services.pipeline import window_radius_mm
-from services.registrar import STATUS_LOST, STATUS_OK, STATUS_REJECTED, FrameResult
+from services.registrar import REASON_BAD_FRAME, STATUS_LOST, STATUS_OK, STATUS_REJECTED
 from services.results_store import LAYERS, LIVE_VERSION
 from services.session_reconstruction import PathRow, SessionReconstruction
 from services.storage import SessionNotFoundError
@@ -349,7 +349,7 @@ class RegisterStage:
 
     def _reject(self, held: HeldSession, seq: int, replay: bool = False) -> None:
         self._log_order(held, seq, "rejected")
-        held.recon.results[seq] = FrameResult(seq, STATUS_REJECTED, None, 0, False)
+        held.recon.reject(seq)
         self._remember_time(held, seq)
         if not replay:
             held.unreported.append(seq)
@@ -526,7 +526,7 @@ class RegisterStage:
         for seq in rejected:
             rec = ctx.store.get_frame(sid, seq)
             t = rec.t_s if rec is not None else nan
-            rows.append(PathRow(seq, t, nan, nan, nan, nan, nan, nan, nan, 0, STATUS_REJECTED))
+            rows.append(PathRow(seq, t, nan, nan, nan, nan, nan, nan, nan, 0, STATUS_REJECTED, REASON_BAD_FRAME))
         ctx.results.write_path(sid, v, rows)
         counts = frame_counts(rows)
         doc = {

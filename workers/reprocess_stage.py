@@ -21,7 +21,7 @@ from services import queue
 from services.deepzoom import DziGeometry, TilePyramid
 from services.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas, force_to_color
 from services.pipeline import reconstruct
-from services.registrar import STATUS_REJECTED
+from services.registrar import REASON_BAD_FRAME, STATUS_REJECTED
 from services.results_store import LAYERS, LIVE_VERSION, parse_reference_csv
 from services.session_reconstruction import PathRow
 from services.storage import SessionNotFoundError
@@ -174,7 +174,7 @@ def _rejected_row(ctx: Context, sid: str, seq: int) -> PathRow:
     rec = ctx.store.get_frame(sid, seq)
     nan = math.nan
     t = rec.t_s if rec is not None else nan
-    return PathRow(seq, t, nan, nan, nan, nan, nan, nan, nan, 0, STATUS_REJECTED)
+    return PathRow(seq, t, nan, nan, nan, nan, nan, nan, nan, 0, STATUS_REJECTED, REASON_BAD_FRAME)
 
 
 def write_version(

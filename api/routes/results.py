@@ -117,6 +117,7 @@ def path_row(d: dict[str, Any]) -> PathRow:
     values["seq"] = int(values["seq"])
     values["inliers"] = int(values["inliers"] or 0)
     values["status"] = str(values["status"])
+    values["reason"] = str(values.get("reason") or "")
     return PathRow(**values)
 
 

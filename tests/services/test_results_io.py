@@ -24,7 +24,7 @@ NAN = math.nan
 def _rows() -> list[PathRow]:
     return [
         PathRow(0, 0.0, 0.0, 0.0, 0.0, 3.25, 0.1, -0.2, 0.021, 300, "ok"),
-        PathRow(1, 0.05, NAN, NAN, NAN, 4.0, 0.0, 0.0, 0.026, 0, "lost"),
+        PathRow(1, 0.05, NAN, NAN, NAN, 4.0, 0.0, 0.0, 0.026, 0, "lost", "few_inliers"),
         PathRow(2, 0.1, 1.23456, -2.5, 1.5, 5.0, 0.0, 0.0, 0.032, 250, "ok"),
     ]
 
@@ -55,10 +55,11 @@ def test_path_csv_columns_and_blank_cells() -> None:
         "stretch",
         "inliers",
         "status",
-    )  # spec §4, in order
+        "reason",
+    )  # spec §4, in order, then why a frame was not placed (issue 6: never fail silently)
     assert len(table) == 4
     assert table[2][2:5] == ["", "", ""]  # the lost frame has no position
-    assert table[2][-1] == "lost" and table[2][0] == "1"
+    assert table[2][-2:] == ["lost", "few_inliers"] and table[2][0] == "1"
     assert table[3][2] == "1.2346"  # 4 decimals: 0.1 um, far below any accuracy the probe reaches
 
 
