@@ -1,0 +1,81 @@
+"""Frame image headers read before any decoding, and the decoders' pixel limits (decompression bombs).
+
+A PNG/TIFF/JPEG states its size and pixel format in its header (PNG IHDR, TIFF IFD, JPEG SOF). Pillow
+parses that header without decoding the pixels (`Image.open` is lazy), so a small file that claims a huge
+image is refused in microseconds and costs no memory. Decoding itself stays with OpenCV (what the pipeline
+uses); `set_decoder_limits` caps both OpenCV's (OPENCV_IO_MAX_IMAGE_PIXELS, read by OpenCV at its first
+decode, so it must be set before) and Pillow's (Image.MAX_IMAGE_PIXELS) pixel counts per process.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import struct
+import warnings
+from dataclasses import dataclass
+
+from PIL import Image
+
+# The probe's camera is 640x480. 2048 px a side (4.2 Mpx) leaves three times that on each axis for another
+# sensor, while a decoded 16-bit frame stays at 8 MiB and the worker's float32 working planes (remap maps,
+# rectified frame, feature pyramid: about a dozen) stay near 200 MiB, inside the 400 MB per-process budget.
+DEFAULT_MAX_FRAME_SIDE = 2048
+GRAYSCALE_MODES = frozenset({"1", "L", "I;16", "I;16B", "I;16L", "I;16N"})
+FORMATS = {"PNG": "png", "TIFF": "tif", "JPEG": "jpg"}
+
+
+class BadImageError(ValueError):
+    """A frame whose header is unreadable, or whose size or pixel format is not acceptable (its own content)."""
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an image's header states: format ("png" | "tif" | "jpg"), width, height (px), Pillow mode."""
+
+    format: str
+    width: int
+    height: int
+    mode: str
+
+    @property
+    def grayscale(self) -> bool:
+        """Return True for a single-channel 1/8/16-bit image."""
+        return self.mode in GRAYSCALE_MODES
+
+
+def set_decoder_limits(max_pixels: int) -> None:
+    """Cap the pixels one decode may produce, for OpenCV (before its first decode) and Pillow, in this process."""
+    os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(int(max_pixels))
+    Image.MAX_IMAGE_PIXELS = int(max_pixels)
+
+
+def read_header(data: bytes) -> ImageHeader:
+    """Return the header of a PNG, TIFF or JPEG file without decoding it; BadImageError if unreadable."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            # formats= keeps Pillow from trying its other (less used, more exotic) parsers
+            with Image.open(io.BytesIO(data), formats=tuple(FORMATS)) as img:
+                width, height = img.size
+                return ImageHeader(FORMATS[img.format or ""], int(width), int(height), str(img.mode))
+    except Image.DecompressionBombError:
+        raise BadImageError("image: larger than the maximum frame size") from None
+    except (OSError, ValueError, KeyError, SyntaxError, struct.error):
+        raise BadImageError("image: the file is corrupt (unreadable header)") from None
+
+
+def check_header(header: ImageHeader, max_side: int, expected_size: tuple[int, int] | None = None) -> None:
+    """Raise BadImageError unless the header is grayscale, within max_side a side and of expected_size."""
+    if header.width > max_side or header.height > max_side:
+        raise BadImageError(
+            f"image: {header.width}x{header.height} pixels is larger than the maximum frame size "
+            f"({max_side} pixels a side)"
+        )
+    if expected_size is not None and (header.width, header.height) != tuple(expected_size):
+        raise BadImageError(
+            f"image: expected {expected_size[0]}x{expected_size[1]} pixels (calibration image_size), "
+            f"got {header.width}x{header.height}"
+        )
+    if not header.grayscale:
+        raise BadImageError(f"image: expected a single-channel (grayscale) 8- or 16-bit image, got mode {header.mode}")
