@@ -20,12 +20,13 @@ from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.auth import key_table
-from api.errors import add_exception_handlers, error_response
+from api.errors import BodyTooLarge, add_exception_handlers, error_response
 from api.log_format import configure_json_logging, request_id_var
 from api.routes import ROUTERS
 from api.routes.viewer import mount_static
 from api.settings import Settings, get_settings, token_secret_bytes
 from services import queue
+from services.image_header import set_decoder_limits
 from services.redis_backend import close, connect
 from services.storage import SessionStore
 
@@ -41,7 +42,14 @@ def configure_logging(level: str) -> None:
 
 
 class RequestContextMiddleware:
-    """Pure ASGI: request id, Content-Length guard (413), one JSON log line per request, last-resort 500."""
+    """Pure ASGI: request id, body limits (413), one JSON log line per request, last-resort 500.
+
+    The body limit is enforced on what is *read*, whatever the transfer encoding: a declared Content-Length
+    over the limit is answered 413 before the app runs; otherwise every `http.request` message is counted as
+    the app receives it, and the message that passes the limit raises BodyTooLarge (413) instead of being
+    handed on — so a chunked body never costs more than the limit in memory, and the rest of it is never read
+    (uvicorn closes the connection after the answer).
+    """
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
@@ -64,14 +72,27 @@ class RequestContextMiddleware:
                 message["headers"] = [*message["headers"], (b"x-request-id", rid.encode())]
             await send(message)
 
+        limit = _body_limit(scope)
+        received = 0
+
+        async def limited_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if limit is not None and message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > limit:
+                    raise BodyTooLarge(limit)
+            return message
+
         try:
-            limit = _body_limit(scope)
             length = headers.get("content-length", "")
             if limit is not None and length.isdigit() and int(length) > limit:
-                response = error_response(413, "payload_too_large", f"request body larger than {limit} bytes")
+                raise BodyTooLarge(limit)
+            await self.app(scope, limited_receive, send_with_id)
+        except BodyTooLarge as exc:
+            if not state["started"]:
+                response = error_response(413, "payload_too_large", str(exc.detail))
                 await response(scope, receive, send_with_id)
-            else:
-                await self.app(scope, receive, send_with_id)
         except Exception:
             log.exception("unhandled error")
             if not state["started"]:
@@ -92,11 +113,12 @@ class RequestContextMiddleware:
 
 
 def _body_limit(scope: Scope) -> int | None:
+    """Return the body limit of this request: a frame upload's image plus its form parts, else max_json_bytes."""
     app = scope.get("app")
     settings: Settings | None = getattr(getattr(app, "state", None), "settings", None)
     if settings is None:
         return None
-    if scope.get("path", "").endswith("/frames"):
+    if scope.get("method") == "POST" and scope.get("path", "").endswith("/frames"):
         return settings.max_frame_bytes + 256 * 1024  # the image plus multipart headers and the meta part
     return settings.max_json_bytes
 
@@ -104,6 +126,7 @@ def _body_limit(scope: Scope) -> int | None:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """Return the application; settings default to the environment, read once here (at start-up)."""
     s = settings if settings is not None else get_settings()
+    set_decoder_limits(s.max_frame_side)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -3,16 +3,25 @@
 Malformed JSON (a request body or the `meta` form field that does not parse) is 400 "malformed_json";
 well-formed JSON that breaks the schema is 422 "validation_error" (with "details": [{"field", "message"}],
 never echoing the submitted values, which may be patient data).
+
+Storage faults (ENOSPC, EDQUOT: "insufficient_storage"; EIO, EROFS: "storage_unavailable") are 503 with
+Retry-After, not 507: spec §5 lists 503 as the "retry later" answer, every client (api/client.py included)
+already retries it, and a balancer reading /readyz (503 below the free-space floor) stops sending meanwhile.
+Nothing partial is kept: the store's writers remove their temporary files when a write fails.
+
+`RESPONSES` is the one table of documented error answers: routes state theirs in the OpenAPI schema from it.
 """
 
 # ruff: noqa: N818  (the HTTP names NotFound, Conflict, ... read better than NotFoundError)
 from __future__ import annotations
 
+import errno
 import logging
+from collections.abc import Iterable
 from typing import Any
 
 import redis
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -88,6 +97,24 @@ class ServiceUnavailable(APIError):
         self.headers.setdefault("Retry-After", str(int(retry_after_s)))
 
 
+class BodyTooLarge(HTTPException):
+    """Raised while a request body is read, as soon as it passes the route's limit (api.app's middleware).
+
+    An HTTPException, so FastAPI's body parsing re-raises it instead of turning it into a 400.
+    """
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(413, f"request body larger than {limit} bytes")
+
+
+# errno of a failed write -> (code, message): the data volume is full or failing; answered 503 + Retry-After
+STORAGE_ERRNOS: dict[int, tuple[str, str]] = {
+    errno.ENOSPC: ("insufficient_storage", "the data volume is full; retry later"),
+    errno.EDQUOT: ("insufficient_storage", "the data volume's quota is exhausted; retry later"),
+    errno.EIO: ("storage_unavailable", "the data volume failed a write; retry later"),
+    errno.EROFS: ("storage_unavailable", "the data volume is read-only; retry later"),
+}
+
 # Exceptions raised below the web layer: (status, code, message shown; None = the exception's own message).
 SERVICE_ERRORS: dict[type[Exception], tuple[int, str, str | None]] = {
     SessionNotFoundError: (404, "not_found", "no such session"),
@@ -155,6 +182,15 @@ def add_exception_handlers(app: FastAPI) -> None:
         message = exc.detail if isinstance(exc.detail, str) else "request failed"
         return error_response(exc.status_code, code, message, headers=getattr(exc, "headers", None))
 
+    async def os_error(request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, OSError)
+        known = STORAGE_ERRNOS.get(exc.errno or 0)
+        if known is None:
+            return await unhandled(request, exc)
+        log.error("storage fault", extra={"route": errno.errorcode.get(exc.errno or 0, "?")})
+        retry = str(request.app.state.settings.retry_after_s)
+        return error_response(503, known[0], known[1], headers={"Retry-After": retry})
+
     async def unhandled(request: Request, exc: Exception) -> JSONResponse:
         log.error("unhandled error", exc_info=(type(exc), exc, exc.__traceback__))
         return error_response(500, "internal_error", "internal error; the request id identifies it in the logs")
@@ -164,4 +200,46 @@ def add_exception_handlers(app: FastAPI) -> None:
         app.add_exception_handler(cls, service_error)
     app.add_exception_handler(RequestValidationError, request_validation)
     app.add_exception_handler(StarletteHTTPException, http_error)
+    app.add_exception_handler(OSError, os_error)
     app.add_exception_handler(Exception, unhandled)
+
+
+# ----- the documented answers of every route (OpenAPI `responses=`) ---------------------------------------------
+ERROR_DESCRIPTIONS: dict[int, str] = {
+    304: "not modified (If-None-Match matched the ETag)",
+    400: "malformed JSON or request",
+    401: "no valid bearer key (or viewer token)",
+    403: "the key lacks the scope",
+    404: "no such session (or not visible to this key), or nothing to serve yet",
+    405: "method not allowed",
+    409: "conflicts with the session's state (finished, different bytes for a seq, implausible time)",
+    413: "request body larger than the limit",
+    415: "unsupported media type",
+    422: "the body or a parameter breaks the schema, or the content is invalid (the message names the field)",
+    429: "too many requests",
+    503: "unavailable: Redis down, queue full, data volume full or failing (Retry-After)",
+}
+ERROR_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "required": ["error"],
+    "properties": {
+        "error": {
+            "type": "object",
+            "required": ["code", "message"],
+            "properties": {"code": {"type": "string"}, "message": {"type": "string"}},
+        }
+    },
+}
+# every route can answer these: a body over the limit, a storage or Redis fault
+COMMON_STATUSES = (413, 503)
+
+
+def responses(*statuses: int, extra: Iterable[int] = ()) -> dict[int | str, dict[str, Any]]:
+    """Return the OpenAPI `responses=` entries for these error statuses (plus the common ones), one table."""
+    out: dict[int | str, dict[str, Any]] = {}
+    for status in sorted({*statuses, *extra, *COMMON_STATUSES}):
+        entry: dict[str, Any] = {"description": ERROR_DESCRIPTIONS[status]}
+        if status != 304:
+            entry["content"] = {"application/json": {"schema": ERROR_SCHEMA}}
+        out[status] = entry
+    return out

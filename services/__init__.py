@@ -1,0 +1,9 @@
+"""veinmosaic's domain: the algorithm, the simulator, and the storage and queue adapters (no web code)."""
+
+import os
+
+# OpenCV reads its per-decode pixel limit once, when the library loads, so it is set here, before any module of
+# the project imports cv2. 2**26 px (64 Mpx) is a backstop against decompression bombs far above any frame
+# (frames are checked against the much smaller max_frame_side from their header first, see image_header.py)
+# yet above any mosaic the service decodes (a 400 mm canvas at 8 px/mm is 10 Mpx). An operator's value wins.
+os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(1 << 26))

@@ -3,8 +3,8 @@
 A PNG/TIFF/JPEG states its size and pixel format in its header (PNG IHDR, TIFF IFD, JPEG SOF). Pillow
 parses that header without decoding the pixels (`Image.open` is lazy), so a small file that claims a huge
 image is refused in microseconds and costs no memory. Decoding itself stays with OpenCV (what the pipeline
-uses); `set_decoder_limits` caps both OpenCV's (OPENCV_IO_MAX_IMAGE_PIXELS, read by OpenCV at its first
-decode, so it must be set before) and Pillow's (Image.MAX_IMAGE_PIXELS) pixel counts per process.
+uses). OpenCV's own pixel cap (OPENCV_IO_MAX_IMAGE_PIXELS, read once when cv2 loads) is set in
+services/__init__.py; `set_decoder_limits` sets Pillow's (Image.MAX_IMAGE_PIXELS) from the frame size cap.
 """
 
 from __future__ import annotations
@@ -44,10 +44,14 @@ class ImageHeader:
         return self.mode in GRAYSCALE_MODES
 
 
-def set_decoder_limits(max_pixels: int) -> None:
-    """Cap the pixels one decode may produce, for OpenCV (before its first decode) and Pillow, in this process."""
-    os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(int(max_pixels))
-    Image.MAX_IMAGE_PIXELS = int(max_pixels)
+def set_decoder_limits(max_frame_side: int) -> None:
+    """Cap Pillow's decodes at a max_frame_side square (OpenCV's cap is set when `services` is imported)."""
+    Image.MAX_IMAGE_PIXELS = int(max_frame_side) ** 2
+
+
+def opencv_pixel_limit() -> int:
+    """Return OpenCV's per-decode pixel limit in this process (set by services/__init__.py before cv2 loads)."""
+    return int(os.environ.get("OPENCV_IO_MAX_IMAGE_PIXELS", str(1 << 30)))
 
 
 def read_header(data: bytes) -> ImageHeader:
