@@ -1,9 +1,16 @@
 """`veinmosaic serve`: one launcher that owns the embedded Redis (when REDIS_URL is unset), the API server
-process and N worker processes, and stops them all together."""
+process and N worker processes, and stops them all together.
+
+It supervises them: a worker or the API that exits is started again after a bounded exponential back-off
+(restart_first_s, doubling up to restart_max_s; back to the first delay once a process has run for
+healthy_after_s), each restart logged as a JSON line and counted in the Redis metrics hash
+(process_restarts_total, shown by GET /metrics). The service stops only on SIGINT/SIGTERM.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import signal
 import subprocess
@@ -15,9 +22,24 @@ from pathlib import Path
 import httpx
 import redis
 
+from services import queue
 from services.redis_backend import close, connect, read_embedded_url
 
 READY_TIMEOUT_S = 60.0
+log = logging.getLogger("veinmosaic.launcher")
+
+
+@dataclass
+class Child:
+    """One supervised process: its name, command, current Popen and restart bookkeeping."""
+
+    name: str
+    command: list[str]
+    process: subprocess.Popen[bytes]
+    started: float = field(default_factory=time.monotonic)
+    restarts: int = 0
+    failures: int = 0  # consecutive short-lived runs (sets the back-off)
+    restart_at: float | None = None  # when a dead process is due to be started again
 
 
 @dataclass
@@ -32,6 +54,12 @@ class Service:
     extra_env: dict[str, str] = field(default_factory=dict)
     processes: list[subprocess.Popen[bytes]] = field(default_factory=list)
     embedded: redis.Redis | None = None
+    restart_first_s: float = 0.5
+    restart_max_s: float = 30.0
+    healthy_after_s: float = 30.0
+    children: list[Child] = field(default_factory=list)
+    _env_used: dict[str, str] = field(default_factory=dict, repr=False)
+    _metrics: redis.Redis | None = field(default=None, repr=False)
 
     @property
     def base_url(self) -> str:
@@ -62,17 +90,69 @@ class Service:
             url = read_embedded_url(self.data_dir)
             assert url, "embedded Redis did not publish its URL"
         env = self._env(url)
-        for _ in range(self.workers):
-            self.processes.append(subprocess.Popen([sys.executable, "-m", "workers.main"], env=env))
+        self._env_used = env
+        for i in range(self.workers):
+            self._spawn(f"worker-{i + 1}", [sys.executable, "-m", "workers.main"])
         api = [
             sys.executable, "-m", "uvicorn", "api.app:create_app", "--factory",
             "--host", self.host, "--port", str(self.port), "--no-access-log", "--log-level", "warning",
         ]  # fmt: skip
-        self.processes.append(subprocess.Popen(api, env=env))
+        self._spawn("api", api)
         self.wait_ready()
 
+    def _spawn(self, name: str, command: list[str]) -> None:
+        proc = subprocess.Popen(command, env=self._env_used)
+        self.children.append(Child(name, command, proc))
+        self.processes.append(proc)
+
+    def pids(self) -> dict[str, int]:
+        """Return the pid of every supervised process by name (api, worker-1, ...)."""
+        return {c.name: c.process.pid for c in self.children}
+
+    def supervise(self) -> None:
+        """Restart the children that exited, each after its back-off; call this periodically."""
+        now = time.monotonic()
+        for child in self.children:
+            code = child.process.poll()
+            if code is None:
+                if child.failures and now - child.started >= self.healthy_after_s:
+                    child.failures = 0
+                continue
+            if child.restart_at is None:
+                if now - child.started >= self.healthy_after_s:
+                    child.failures = 0
+                delay = min(self.restart_max_s, self.restart_first_s * 2.0 ** min(child.failures, 20))
+                child.failures += 1
+                child.restart_at = now + delay
+                log.warning(
+                    "%s exited with code %s; restarting in %.1f s (restart %d)",
+                    child.name, code, delay, child.restarts + 1,
+                    extra={"worker": child.name, "status": code},
+                )  # fmt: skip
+                continue
+            if now < child.restart_at:
+                continue
+            old = child.process
+            child.process = subprocess.Popen(child.command, env=self._env_used)
+            self.processes[self.processes.index(old)] = child.process
+            child.started, child.restart_at = time.monotonic(), None
+            child.restarts += 1
+            log.warning("%s restarted (pid %d)", child.name, child.process.pid, extra={"worker": child.name})
+            self._count_restart()
+
+    def _count_restart(self) -> None:
+        try:
+            if self._metrics is None:
+                self._metrics = self.embedded or redis.Redis.from_url(
+                    self._env_used["REDIS_URL"], socket_connect_timeout=2.0, socket_timeout=2.0
+                )
+            prefix = self._env_used.get("VEINMOSAIC_REDIS_PREFIX") or queue.DEFAULT_PREFIX
+            queue.incr_metric(self._metrics, "process_restarts_total", prefix=prefix)
+        except (redis.RedisError, OSError):
+            log.warning("restart not counted: redis unavailable")
+
     def wait_ready(self, timeout_s: float = READY_TIMEOUT_S) -> None:
-        """Block until GET /readyz is 200; raise RuntimeError if a process died or time ran out."""
+        """Block until GET /readyz is 200; raise RuntimeError if a process died (at start) or time ran out."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             dead = [p for p in self.processes if p.poll() is not None]
@@ -97,12 +177,21 @@ class Service:
                 p.kill()
                 p.wait()
         self.processes.clear()
+        self.children.clear()
+        if self._metrics is not None and self._metrics is not self.embedded:
+            with contextlib.suppress(redis.RedisError, OSError):
+                self._metrics.close()
+        self._metrics = None
         if self.embedded is not None:
             close(self.embedded)
             self.embedded = None
 
     def wait(self) -> int:
-        """Block until any process exits or SIGINT/SIGTERM arrives; return the exit code to use."""
+        """Supervise (restart what exits) until SIGINT/SIGTERM arrives; return the exit code 0."""
+        from api.log_format import configure_json_logging
+        from api.settings import Settings
+
+        configure_json_logging(str(Settings().log_level))
         stop = {"flag": False}
 
         def handler(_signum: int, _frame: object) -> None:
@@ -111,9 +200,8 @@ class Service:
         signal.signal(signal.SIGTERM, handler)
         signal.signal(signal.SIGINT, handler)
         while not stop["flag"]:
-            if any(p.poll() is not None for p in self.processes):
-                return 1
-            time.sleep(0.5)
+            self.supervise()
+            time.sleep(0.2)
         return 0
 
     def __enter__(self) -> Service:

@@ -73,6 +73,28 @@ def enqueue_frame(r: redis.Redis, session_id: str, seq: int, prefix: str = DEFAU
     return bool(r.eval(_ENQUEUE_ONCE, 2, *keys, str(int(seq)), session_id))
 
 
+_REQUEUE = """
+if ARGV[3] ~= '0' and not redis.call('SET', KEYS[3], '1', 'NX', 'PX', ARGV[3]) then return 0 end
+redis.call('SADD', KEYS[2], ARGV[1])
+redis.call('XADD', KEYS[1], '*', 'kind', 'frame', 'session', ARGV[2], 'seq', ARGV[1])
+return 1
+"""
+
+
+def requeue_frame(
+    r: redis.Redis, session_id: str, seq: int, prefix: str = DEFAULT_PREFIX, at_most_every_ms: int = 0
+) -> bool:
+    """Put a frame job on the stream even if it was enqueued before; return True if it was added.
+
+    For healing (a job lost with Redis data, a re-sent frame still without a result): frame jobs are
+    idempotent, so a second job for a frame costs a check and changes nothing. With at_most_every_ms, a frame
+    is re-enqueued at most once in that time (a key <prefix>session:<id>:requeued:<seq> with a TTL).
+    """
+    base = session_key(session_id, prefix)
+    keys = [frames_stream(prefix), f"{base}:enqueued", f"{base}:requeued:{int(seq)}"]
+    return bool(r.eval(_REQUEUE, 3, *keys, str(int(seq)), session_id, str(int(at_most_every_ms))))
+
+
 def enqueue_finish(r: redis.Redis, session_id: str, prefix: str = DEFAULT_PREFIX) -> bool:
     """Put the session's finish marker on the stream once; return True if it was added now."""
     keys = [frames_stream(prefix), f"{session_key(session_id, prefix)}:enqueued"]

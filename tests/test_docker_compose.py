@@ -33,6 +33,21 @@ def test_compose_has_redis_with_aof_api_and_scalable_worker() -> None:
     assert volumes == {v.split(":")[0] for v in services["worker"]["volumes"]}, "api and workers share storage"
 
 
+def test_every_service_restarts_and_has_a_health_check() -> None:
+    services = compose()["services"]
+    for name, service in services.items():
+        assert service.get("restart") in ("always", "unless-stopped", "on-failure"), f"{name}: no restart policy"
+        test = service.get("healthcheck", {}).get("test")
+        assert test and test[0] in ("CMD", "CMD-SHELL"), f"{name}: no health check"
+    # the worker's health check reads the heartbeat file the worker is told to touch
+    worker = services["worker"]
+    beat = worker["command"][worker["command"].index("--heartbeat-file") + 1]
+    assert any(beat in part for part in worker["healthcheck"]["test"])
+    from workers.main import build_parser as worker_parser
+
+    assert worker_parser().parse_args(worker["command"][3:]).heartbeat_file == beat
+
+
 def test_every_command_exists_in_the_package() -> None:
     services = compose()["services"]
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
@@ -42,6 +57,8 @@ def test_every_command_exists_in_the_package() -> None:
         if command[0] == "veinmosaic":
             assert "veinmosaic" in scripts
             assert command[1] in subcommands, f"{name}: veinmosaic has no subcommand {command[1]!r}"
+        elif command[:2] == ["python", "-m"]:
+            assert importlib.util.find_spec(command[2]) is not None, f"{name}: no module {command[2]}"
         elif command[0] == "uvicorn":
             assert importlib.util.find_spec("uvicorn") is not None
             module, attr = command[1].split(":")

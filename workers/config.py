@@ -42,6 +42,10 @@ class WorkerConfig:
     not_ready_delay_s: float = 0.25  # re-schedule delay of a frame whose setup or forces are not there yet
     half_extent_mm: float = 200.0  # the Deep Zoom canvas: +-this around frame 0
     debug_order: bool = False  # log every frame handed to registration in <prefix>debug:order:<sid>:<v>
+    fault_backoff_first_s: float = 0.1  # infrastructure faults (disk, Redis): first back-off ...
+    fault_backoff_max_s: float = 5.0  # ... doubling up to this; a job is never dead-lettered for them
+    reconcile_every_s: float = 60.0  # re-enqueue durable uploads with no job and no result (0: only at start)
+    heartbeat_file: str | None = None  # touched every loop (at most every 2 s): a container health check
 
 
 @dataclass

@@ -7,6 +7,12 @@ every claim_every_s it XAUTOCLAIMs entries idle longer than claim_idle_ms (a cra
 that failed max_deliveries times (delivery count from XPENDING plus the "attempt" field carried across
 re-schedules) goes to <prefix>dead; a dead frame is marked poison and registered as rejected. SIGTERM or
 SIGINT stops the loop after the current entry; held sessions are flushed and handed off.
+
+Infrastructure faults (workers.faults: a full or failing disk, Redis unreachable or loading) never end the
+process and never count against a job: the job is re-scheduled unchanged, and the loop backs off (bounded
+exponential) until a step succeeds again. An entry whose re-scheduling failed because Redis was down stays
+pending under this consumer and is retried by this worker as soon as Redis answers. The reconciler
+(workers.reconciler) runs at start-up, after a Redis restart and periodically.
 """
 
 from __future__ import annotations
@@ -28,10 +34,12 @@ import redis
 from services import queue
 from services.redis_backend import close, connect
 from services.results_store import LIVE_VERSION, ResultsStore
-from services.storage import SessionStore
+from services.storage import SessionNotFoundError, SessionStore
 from workers import delayed
 from workers.config import Context, WorkerConfig
+from workers.faults import Backoff, describe, is_transient
 from workers.prepare_stage import Retry, handle_frame, live_options
+from workers.reconciler import Reconciler
 from workers.register_stage import RegisterStage
 from workers.reprocess_stage import JobInterruptedError, handle_job
 
@@ -57,6 +65,11 @@ class Worker:
         self.register = RegisterStage(ctx)
         self.frames, self.kicks, self.jobs = queue.worker_streams(ctx.prefix)
         self._last_claim = 0.0
+        self.backoff = Backoff(ctx.config.fault_backoff_first_s, ctx.config.fault_backoff_max_s)
+        self.reconciler = Reconciler(ctx)
+        self.faulted = False  # a transient fault was met during the current step
+        self.stranded: dict[tuple[str, str], dict[str, str]] = {}  # pending entries to retry once Redis answers
+        self._last_beat = 0.0
 
     # ----- the loop --------------------------------------------------------------------------------------------
     def run(self, max_seconds: float | None = None) -> None:
@@ -67,25 +80,57 @@ class Worker:
         log.info("worker %s started", ctx.config.consumer)
         try:
             while not ctx.stop.is_set() and (deadline is None or time.monotonic() < deadline):
+                self.faulted = self.register.faulted = False
+                self.beat()
                 try:
                     self.step()
-                except (redis.ConnectionError, redis.TimeoutError) as exc:
-                    log.warning("redis unavailable (%s); retrying", type(exc).__name__)
-                    ctx.stop.wait(1.0)
                 except redis.ResponseError as exc:
-                    if "NOGROUP" in str(exc):
-                        queue.ensure_groups(ctx.r, ctx.prefix)
-                    else:
-                        log.exception("redis error")
-                        ctx.stop.wait(0.5)
+                    if "NOGROUP" in str(exc):  # Redis was wiped: streams and groups are gone
+                        self.fault(exc, "redis lost the consumer groups; recreating them and reconciling")
+                        self.reconciler.urgent = True
+                        with contextlib.suppress(redis.RedisError, OSError):
+                            queue.ensure_groups(ctx.r, ctx.prefix)
+                        continue
+                    self.fault(exc)
+                except Exception as exc:  # a worker never dies of one job or one fault
+                    self.fault(exc)
+                if self.faulted or self.register.faulted:
+                    ctx.stop.wait(self.backoff.next())
+                else:
+                    self.backoff.reset()
         finally:
             with contextlib.suppress(redis.RedisError, OSError):
                 self.register.release_all()
             log.info("worker %s stopped", ctx.config.consumer)
 
+    def fault(self, exc: BaseException, message: str | None = None) -> None:
+        """Log a fault of the loop (transient: a warning, else with its traceback) and back off after the step."""
+        self.faulted = True
+        delay = self.backoff.peek()
+        if is_transient(exc):
+            log.warning(message or "infrastructure fault (%s); backing off %.1f s", describe(exc), delay)
+        else:
+            log.error("unexpected error in the worker loop (%s); continuing", describe(exc), exc_info=exc)
+
+    def beat(self) -> None:
+        """Touch the heartbeat file (at most every 2 s) so a health check sees the loop turning."""
+        path = self.ctx.config.heartbeat_file
+        if not path or time.monotonic() - self._last_beat < 2.0:
+            return
+        self._last_beat = time.monotonic()
+        try:
+            os.utime(path)
+        except FileNotFoundError:
+            with contextlib.suppress(OSError):
+                Path(path).touch()
+        except OSError:
+            pass
+
     def step(self) -> None:
         """One iteration: delayed jobs, claims, held sessions, then one blocking read and its entries."""
         ctx, cfg = self.ctx, self.ctx.config
+        self.retry_stranded()
+        self.reconciler.maybe_run()
         delayed.move_due(ctx.r, ctx.prefix)
         if time.monotonic() - self._last_claim >= cfg.claim_every_s:
             self._last_claim = time.monotonic()
@@ -122,9 +167,32 @@ class Worker:
                 if start == "0-0":
                     break
 
+    def retry_stranded(self) -> None:
+        """Handle again the entries whose handling a Redis outage interrupted (still pending to this consumer)."""
+        for (stream, entry_id), fields in list(self.stranded.items()):
+            pend = self.ctx.r.xpending_range(
+                stream, queue.GROUP, min=entry_id, max=entry_id, count=1, consumername=self.ctx.config.consumer
+            )
+            del self.stranded[(stream, entry_id)]
+            if pend:  # still ours: handle it as the same delivery (the outage is not the job's failure)
+                self.handle(stream, entry_id, fields, delivered=1)
+
     # ----- dispatch --------------------------------------------------------------------------------------------
     def handle(self, stream: str, entry_id: str, fields: dict[str, str], delivered: int) -> None:
-        """Handle one entry; ack+delete it when done, re-schedule it, or dead-letter it after too many failures."""
+        """Handle one entry; ack+delete it when done, re-schedule it, or dead-letter it after too many failures.
+
+        A transient (infrastructure) fault re-schedules the entry unchanged after the current back-off; it is
+        never counted as a failure of the job. When even that fails (Redis down), the entry stays pending to
+        this consumer and is handled again as soon as Redis answers.
+        """
+        try:
+            self._handle(stream, entry_id, fields, delivered)
+        except Exception as exc:
+            if is_transient(exc):
+                self.stranded[(stream, entry_id)] = fields
+            raise
+
+    def _handle(self, stream: str, entry_id: str, fields: dict[str, str], delivered: int) -> None:
         ctx, cfg = self.ctx, self.ctx.config
         attempt = int(fields.get("attempt", "0") or 0)
         failures = attempt + max(0, delivered - 1)
@@ -137,6 +205,12 @@ class Worker:
             self._requeue(stream, entry_id, fields, 0.0, attempt)
             return
         except Exception as exc:
+            if is_transient(exc):
+                self.faulted = True
+                kind = fields.get("kind")
+                log.warning("job of kind %s met an infrastructure fault (%s); re-scheduled", kind, describe(exc))
+                self._requeue(stream, entry_id, fields, self.backoff.peek(), attempt)
+                return
             log.error("job of kind %s failed: %s", fields.get("kind"), type(exc).__name__, exc_info=exc)
             if failures + 1 >= cfg.max_deliveries:
                 self.dead_letter(stream, entry_id, fields, f"{type(exc).__name__}: {exc}")
@@ -175,6 +249,7 @@ class Worker:
 
             def heartbeat() -> None:  # keep the entry from looking abandoned while the job runs
                 ctx.r.xclaim(stream, queue.GROUP, ctx.config.consumer, 0, [entry_id], justid=True)
+                self.beat()
 
             handle_job(ctx, fields, heartbeat)
             return None
@@ -185,21 +260,25 @@ class Worker:
         """Move an entry to the dead-letter stream; a frame becomes poison (rejected), a job fails."""
         ctx = self.ctx
         log.error("dead-lettering an entry of kind %s: %s", fields.get("kind"), error[:200])
+        kind, sid = fields.get("kind"), fields.get("session", "")
+        # the durable mark first: if storage or Redis fails here, the entry stays pending and is retried
+        if kind == "frame":
+            try:
+                live_options(ctx, sid)  # makes sure version 1 exists
+            except (SessionNotFoundError, FileNotFoundError):
+                kind = None  # the session is gone: nothing to mark
+            else:
+                ctx.results.mark_poison(sid, LIVE_VERSION, int(fields["seq"]), error)
         ctx.r.xadd(
             queue.dead_stream(ctx.prefix),
             {**fields, "stream": stream, "entry": entry_id, "error": error[:300], "at": repr(time.time())},
         )
         queue.incr_metric(ctx.r, "dead_letters_total", prefix=ctx.prefix)
-        kind, sid = fields.get("kind"), fields.get("session", "")
-        try:
-            if kind == "frame":
-                live_options(ctx, sid)  # makes sure version 1 exists
-                ctx.results.mark_poison(sid, LIVE_VERSION, int(fields["seq"]), error)
-                queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
-            elif kind == "reprocess" and fields.get("job"):
-                ctx.r.hset(queue.job_key(fields["job"], ctx.prefix), mapping={"state": "failed", "error": error[:300]})
-        except Exception:
-            log.exception("dead-letter follow-up failed")
+        if kind == "frame":
+            queue.incr_metric(ctx.r, "frames_rejected_total", prefix=ctx.prefix)
+            queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
+        elif kind == "reprocess" and fields.get("job"):
+            ctx.r.hset(queue.job_key(fields["job"], ctx.prefix), mapping={"state": "failed", "error": error[:300]})
         queue.ack_delete(ctx.r, stream, entry_id)
 
 
@@ -255,6 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lease-ms", type=int, default=None)
     p.add_argument("--claim-idle-ms", type=int, default=None)
     p.add_argument("--max-seconds", type=float, default=None, help="exit after this long (tests)")
+    p.add_argument("--heartbeat-file", default=None, help="touched every loop (at most every 2 s), for health checks")
     return p
 
 
@@ -267,7 +347,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     settings = Settings()
     configure_json_logging(str(settings.log_level))
     options: dict[str, Any] = json.loads(args.config_json) if args.config_json else {}
-    for name in ("lost_timeout_s", "lease_ms", "claim_idle_ms"):
+    for name in ("lost_timeout_s", "lease_ms", "claim_idle_ms", "heartbeat_file"):
         value = getattr(args, name)
         if value is not None:
             options[name] = value

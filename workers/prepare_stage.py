@@ -67,7 +67,7 @@ def _setup_frames(ctx: Context, sid: str, seqs: list[int], calib: Calibration) -
     for seq in seqs:
         try:
             img = ctx.store.load_frame(sid, seq)
-        except (StorageError, KeyError, OSError):
+        except (StorageError, KeyError):  # undecodable or gone; a storage fault (OSError) is raised: retried
             continue
         if img.shape == shape and img.dtype in (np.uint8, np.uint16):
             frames.append(img)

@@ -8,10 +8,15 @@ deterministic, so the result is the same as if one process had done everything. 
 the holder checks its fence (its lease value in Redis, and the token in state.json not newer than its own).
 Flushes (path.json, changed tiles, mosaic.json, state.json, counters, one event) happen at most every
 flush_every_s; the whole mosaic.png/force.png at most every image_every_s; both at the end.
+
+An infrastructure fault while serving a session (a write refused by a full disk, Redis unreachable) drops the
+in-memory state and hands the lease off with a delay (or, Redis being down, lets it expire): the next holder
+replays from the last durable state.json, so nothing half-written is ever published under a stale fence.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -22,18 +27,19 @@ from typing import Any
 
 import cv2
 import numpy as np
+import redis
 
 from services import queue
 from services.calibration import Calibration
 from services.deepzoom import DziGeometry, TilePyramid
 from services.methods import MethodOptions
-from services.mosaic import force_to_color
 from services.pipeline import window_radius_mm
 from services.registrar import REASON_BAD_FRAME, STATUS_LOST, STATUS_OK, STATUS_REJECTED
 from services.results_store import LAYERS, LIVE_VERSION
 from services.session_reconstruction import PathRow, SessionReconstruction
 from services.storage import SessionNotFoundError
 from workers.config import Context, debug_order_key
+from workers.faults import describe, is_transient
 from workers.leases import Lease, acquire
 from workers.options import apply_calibration, parse_options
 from workers.prepare_stage import stored_seqs
@@ -122,6 +128,7 @@ class RegisterStage:
     def __init__(self, ctx: Context) -> None:
         self.ctx = ctx
         self.held: dict[tuple[str, int], HeldSession] = {}
+        self.faulted = False  # a held session met an infrastructure fault during the current step
 
     # ----- entry points ---------------------------------------------------------------------------------------
     def on_kick(self, sid: str, version: int) -> None:
@@ -255,6 +262,21 @@ class RegisterStage:
             self.held.pop(key, None)
         except SessionNotFoundError:
             self._drop(key, release=True)
+        except Exception as exc:
+            self._fault(key, held, exc)
+
+    def _fault(self, key: tuple[str, int], held: HeldSession, exc: Exception) -> None:
+        """Drop a session after a fault; hand the lease off after a delay, or let it expire if Redis is down."""
+        self.faulted = True
+        self.held.pop(key, None)
+        if is_transient(exc):
+            log.warning("infrastructure fault (%s); session handed off", describe(exc), extra={"session": held.sid})
+        else:
+            log.error("serving a session failed; handed off", exc_info=exc, extra={"session": held.sid})
+        delay = min(self.ctx.config.fault_backoff_max_s, max(1.0, self.ctx.config.fault_backoff_first_s * 10))
+        # with Redis down the lease simply expires; the watchdog kick (or the reconciler) wakes a new holder
+        with contextlib.suppress(redis.RedisError, OSError):
+            held.lease.release(self.ctx.r, mode="handoff", handoff_delay_s=delay)
 
     def _drop(self, key: tuple[str, int], release: bool) -> None:
         held = self.held.pop(key, None)
@@ -303,7 +325,8 @@ class RegisterStage:
             rec = ctx.store.get_frame(sid, seq)
             if rec is not None:  # stored, not prepared yet: wait; re-queue if its job seems to have vanished
                 if time.time() - rec.received_at > cfg.lost_timeout_s:
-                    queue.enqueue_frame(ctx.r, sid, seq, ctx.prefix)
+                    every_ms = int(1000 * max(cfg.lost_timeout_s, 5.0))  # idempotent, so a duplicate costs little
+                    queue.requeue_frame(ctx.r, sid, seq, ctx.prefix, at_most_every_ms=every_ms)
                 break
             seqs = stored_seqs(ctx, sid) if seqs is None or seqs[-1:] <= [seq] else seqs
             later = [s for s in seqs if s > seq]
@@ -427,8 +450,7 @@ class RegisterStage:
             queue.incr_metric(ctx.r, "tile_renders_total", 2 * len(changed), prefix=ctx.prefix)
         if images_due:
             mosaic = held.recon.canvas.render()
-            ctx.results.write_image(sid, v, "mosaic.png", encode_png(mosaic.vein))
-            ctx.results.write_image(sid, v, "force.png", encode_png(force_to_color(mosaic.force_n)))
+            ctx.results.write_mosaic_images(sid, v, mosaic, raw_layers=final)  # + coverage.png, layers.npz
             doc.update(mosaic.meta())
             held.last_image = now
         counts = frame_counts(rows)

@@ -2,6 +2,11 @@
 
 The raw uploads are never modified. The new version becomes current only when it is complete, so the API
 keeps serving the previous version meanwhile. Progress is in the job hash <prefix>job:<id>.
+
+A reprocess starts from every raw upload, not from the live run's verdicts: a frame the live run rejected
+(perhaps for a fault since repaired) is tried again; only frames that cannot be decoded at the calibration's
+size now are rejected. An infrastructure fault (full disk, Redis) puts the job back on the queue (the
+half-made version is removed); it never fails the job.
 """
 
 from __future__ import annotations
@@ -9,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import shutil
 import tempfile
 import time
 from collections.abc import Callable
@@ -19,15 +25,16 @@ import numpy as np
 
 from services import queue
 from services.deepzoom import DziGeometry, TilePyramid
-from services.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas, force_to_color
+from services.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas
 from services.pipeline import reconstruct
 from services.registrar import REASON_BAD_FRAME, STATUS_REJECTED
 from services.results_store import LAYERS, LIVE_VERSION, parse_reference_csv
 from services.session_reconstruction import PathRow
-from services.storage import SessionNotFoundError
+from services.storage import SessionNotFoundError, StorageError
 from workers.config import Context
+from workers.faults import is_transient
 from workers.options import apply_calibration, parse_options
-from workers.register_stage import encode_png, frame_counts, publish_event
+from workers.register_stage import frame_counts, publish_event
 from workers.scan_from_store import scan_from_store
 
 log = logging.getLogger("veinmosaic.worker")
@@ -119,7 +126,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
     v = ctx.results.create_version(sid, {**doc, "source": "reprocess", "job": job_id}, make_current=False)
     _set_job(ctx, job_id, state="running", version=v, started=time.time())
     try:
-        poison = _live_poison(ctx, sid)
+        poison = _unreadable_frames(ctx, sid, calib.image_size)
         scan = scan_from_store(ctx.store, sid, calib, exclude_seqs=poison)
         _set_job(ctx, job_id, total=len(scan) + len(poison), done=0)
         last = [0.0]
@@ -146,8 +153,13 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         _set_job(ctx, job_id, state="queued", done=0)  # back on the queue; the half-made version is never current
         raise
     except Exception as exc:
+        if is_transient(exc):  # the worker re-schedules the job; it starts over in a fresh version
+            shutil.rmtree(ctx.results.version_dir(sid, v), ignore_errors=True)
+            _set_job(ctx, job_id, state="queued", done=0)
+            raise
         log.exception("reprocess job failed")
         _set_job(ctx, job_id, state="failed", error=f"{type(exc).__name__}: {exc}"[:300])
+        ctx.results.write_state(sid, v, {"finished": False, "failed": True})  # the viewer's banner stops
         return
     seconds = time.perf_counter() - started
     _set_job(ctx, job_id, state="done", done=len(rows), finished=time.time())
@@ -163,11 +175,25 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
     )
 
 
-def _live_poison(ctx: Context, sid: str) -> list[int]:
-    pdir = ctx.results.version_dir(sid, LIVE_VERSION) / "poison"
-    if not pdir.is_dir():
-        return []
-    return sorted(int(p.stem) for p in pdir.glob("*.json") if p.stem.isdigit())
+def _unreadable_frames(ctx: Context, sid: str, image_size: tuple[int, int] | list[int]) -> list[int]:
+    """Return the seqs of stored frames that cannot be decoded as 8/16-bit images of `image_size` (w, h).
+
+    Frames the live run prepared are known to decode; every other one (rejected, or not reached) is decoded
+    here. A storage fault while reading is raised (the job is retried), never taken for a bad frame.
+    """
+    shape = (int(image_size[1]), int(image_size[0]))
+    bad = []
+    for rec in ctx.store.list_frames(sid):
+        if ctx.results.has_prepared(sid, LIVE_VERSION, rec.seq):
+            continue
+        try:
+            img = ctx.store.load_frame(sid, rec.seq)
+        except StorageError:
+            bad.append(rec.seq)
+            continue
+        if img.shape != shape or img.dtype not in (np.uint8, np.uint16):
+            bad.append(rec.seq)
+    return bad
 
 
 def _rejected_row(ctx: Context, sid: str, seq: int) -> PathRow:
@@ -200,8 +226,7 @@ def write_version(
                 ctx.results.write_tile(sid, v, layer, level, col, row, png)
                 revisions[layer][f"{level}/{col}_{row}"] = 1
     queue.incr_metric(ctx.r, "tile_renders_total", 2 * len(changed), prefix=ctx.prefix)
-    ctx.results.write_image(sid, v, "mosaic.png", encode_png(mosaic.vein))
-    ctx.results.write_image(sid, v, "force.png", encode_png(force_to_color(mosaic.force_n)))
+    ctx.results.write_mosaic_images(sid, v, mosaic)  # mosaic, force, coverage PNGs and the raw layers.npz
     doc: dict[str, Any] = dict(mosaic.meta())
     doc.update(
         {

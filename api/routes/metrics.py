@@ -35,6 +35,9 @@ KNOWN_COUNTERS: dict[str, str] = {
     "jobs_done_total": "Reprocess jobs finished.",
     "jobs_failed_total": "Reprocess jobs failed.",
     "tile_renders_total": "Deep Zoom tiles rendered by the workers.",
+    "process_restarts_total": "API and worker processes restarted by the `veinmosaic serve` supervisor.",
+    "reconciled_frames_total": "Stored frames with no job and no result that the reconciler enqueued again.",
+    "reconcile_runs_total": "Runs of the reconciler (at worker start-up, after a Redis restart, periodically).",
 }
 SUMMARIES = {"job_seconds": "Wall time of finished reprocess jobs, seconds."}
 _NAME_OK = re.compile(r"^[a-zA-Z_][a-zA-Z0-9_]*$")

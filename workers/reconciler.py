@@ -1,0 +1,180 @@
+"""The reconciler: durable storage is the truth, Redis only the work list. Re-enqueue what Redis forgot.
+
+Redis may lose its last second of AOF, or be wiped. Then an upload that is durable on disk (and was answered
+2xx) may have no job left. The reconciler compares the two: every stored frame of a session that is not
+done must have a result (a prepared file or a poison mark of the live version) or a job (an entry of the
+frames stream or of the delayed set, read in one MULTI snapshot); those with neither are enqueued again, and
+registration is kicked for sessions with work nobody holds. A done session whose Redis counters are gone gets
+them rebuilt from its path. Re-enqueueing is safe because every job is idempotent (prepared frames are
+write-once, counters are counted once per seq), so a frame is processed exactly once even when a race
+enqueues it twice.
+
+One worker at a time runs it (a short Redis lock), at start-up, after Redis restarted (its run_id changed)
+and every reconcile_every_s (a second key, SET NX PX, spaces the periodic runs across all workers).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from typing import Any
+
+from services import queue
+from services.results_store import LIVE_VERSION
+from services.storage import SessionNotFoundError
+from workers.config import Context
+from workers.prepare_stage import stored_seqs
+
+log = logging.getLogger("veinmosaic.worker")
+
+LOCK_TTL_MS = 60_000
+
+_RELEASE = """
+if redis.call('GET', KEYS[1]) == ARGV[1] then return redis.call('DEL', KEYS[1]) end
+return 0
+"""
+
+
+def lock_key(prefix: str) -> str:
+    """Return the key of the reconciler's mutex."""
+    return f"{prefix}reconcile:lock"
+
+
+def last_run_key(prefix: str) -> str:
+    """Return the key that spaces periodic runs (set with a TTL of reconcile_every_s by the run's leader)."""
+    return f"{prefix}reconcile:last"
+
+
+def _text(v: Any) -> str:
+    return v.decode() if isinstance(v, bytes) else str(v)
+
+
+def known_frame_jobs(ctx: Context) -> set[tuple[str, int]]:
+    """Return (session, seq) of every frame job on the frames stream or in the delayed set (one snapshot)."""
+    pipe = ctx.r.pipeline(transaction=True)
+    pipe.xrange(queue.frames_stream(ctx.prefix), "-", "+")
+    pipe.zrange(queue.delayed_key(ctx.prefix), 0, -1)
+    entries, delayed_members = pipe.execute()
+    known: set[tuple[str, int]] = set()
+    for _eid, fields in entries or []:
+        f = {_text(k): _text(v) for k, v in fields.items()}
+        if f.get("kind") == "frame" and f.get("seq", "").isdigit():
+            known.add((f.get("session", ""), int(f["seq"])))
+    for member in delayed_members or []:
+        try:
+            job = json.loads(_text(member))
+            f = job["f"]
+            if job["s"] == queue.frames_stream(ctx.prefix) and f.get("kind") == "frame":
+                known.add((str(f.get("session", "")), int(f["seq"])))
+        except (ValueError, KeyError, TypeError):
+            continue
+    return known
+
+
+def _seqs_in(path: os.PathLike[str] | str) -> set[int]:
+    try:
+        with os.scandir(path) as it:
+            return {int(e.name[:6]) for e in it if not e.name.startswith(".") and e.name[:6].isdigit()}
+    except FileNotFoundError:
+        return set()
+
+
+def reconcile(ctx: Context) -> dict[str, int]:
+    """Re-enqueue stored frames with no job and no result, kick unheld sessions, rebuild lost counters."""
+    started = time.monotonic()
+    queue.ensure_groups(ctx.r, ctx.prefix)
+    known = known_frame_jobs(ctx)
+    stats = {"sessions": 0, "frames_requeued": 0, "kicks": 0, "counters_rebuilt": 0}
+    for sid in ctx.store.list_sessions():
+        try:
+            meta = ctx.store.get_meta(sid)
+        except (SessionNotFoundError, ValueError, OSError):
+            continue
+        stats["sessions"] += 1
+        if meta.status in ("done", "failed"):
+            stats["counters_rebuilt"] += _rebuild_counters(ctx, sid)
+            continue
+        seqs = stored_seqs(ctx, sid)
+        vdir = ctx.results.version_dir(sid, LIVE_VERSION)
+        handled = _seqs_in(vdir / "prepared") | _seqs_in(vdir / "poison")
+        missing = [s for s in seqs if s not in handled and (sid, s) not in known]
+        for seq in missing:
+            queue.requeue_frame(ctx.r, sid, seq, ctx.prefix)
+        stats["frames_requeued"] += len(missing)
+        state = ctx.results.read_state(sid, LIVE_VERSION) or {}
+        cursor = int(state.get("cursor", 0))
+        pending = meta.finished_at is not None or any(s >= cursor for s in handled)
+        if pending and not state.get("finished") and not ctx.r.exists(queue.lease_key(sid, LIVE_VERSION, ctx.prefix)):
+            queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
+            stats["kicks"] += 1
+    if stats["frames_requeued"]:
+        queue.incr_metric(ctx.r, "reconciled_frames_total", stats["frames_requeued"], prefix=ctx.prefix)
+    queue.incr_metric(ctx.r, "reconcile_runs_total", prefix=ctx.prefix)
+    log.info(
+        "reconciled %d sessions: %d frames re-enqueued, %d registration kicks, %d counter sets rebuilt (%.0f ms)",
+        stats["sessions"],
+        stats["frames_requeued"],
+        stats["kicks"],
+        stats["counters_rebuilt"],
+        1000 * (time.monotonic() - started),
+    )
+    return stats
+
+
+def _rebuild_counters(ctx: Context, sid: str) -> int:
+    """Re-count a finished live run's frames from its path when Redis lost the session's counters; 1 if done."""
+    if ctx.r.exists(queue.session_key(sid, ctx.prefix)):
+        return 0
+    state = ctx.results.read_state(sid, LIVE_VERSION) or {}
+    rows = ctx.results.read_path(sid, LIVE_VERSION) if state.get("finished") else None
+    if not rows:
+        return 0
+    counted = lost = 0
+    for row in rows:
+        is_lost = row.get("status") != "ok"
+        if queue.record_frame_result(ctx.r, sid, int(row["seq"]), is_lost, ctx.prefix):
+            counted += 1
+            lost += is_lost
+    return 1 if counted else 0
+
+
+class Reconciler:
+    """Decides when this worker runs the reconciler: at start, after a Redis restart, and periodically."""
+
+    def __init__(self, ctx: Context) -> None:
+        self.ctx = ctx
+        self.run_id: str | None = None
+        self.next_check = 0.0
+        self.urgent = True  # at start-up
+
+    def maybe_run(self) -> dict[str, int] | None:
+        """Run the reconciler when due and this worker wins the lock; return its stats, else None."""
+        ctx, cfg = self.ctx, self.ctx.config
+        now = time.monotonic()
+        if now < self.next_check and not self.urgent:
+            return None
+        self.next_check = now + min(5.0, cfg.reconcile_every_s or 5.0)
+        run_id = str(ctx.r.info("server").get("run_id", ""))
+        if self.run_id is not None and run_id != self.run_id:
+            log.warning("redis restarted (new run id): reconciling storage with the queue")
+            self.urgent = True
+        self.run_id = run_id
+        period_ms = max(1, int(1000 * cfg.reconcile_every_s))
+        if not self.urgent:
+            if cfg.reconcile_every_s <= 0:
+                return None
+            if not ctx.r.set(last_run_key(ctx.prefix), cfg.consumer, nx=True, px=period_ms):
+                return None
+        elif cfg.reconcile_every_s > 0:
+            ctx.r.set(last_run_key(ctx.prefix), cfg.consumer, px=period_ms)
+        if not ctx.r.set(lock_key(ctx.prefix), cfg.consumer, nx=True, px=LOCK_TTL_MS):
+            self.urgent = False  # another worker is reconciling right now
+            return None
+        try:
+            stats = reconcile(ctx)
+        finally:
+            ctx.r.eval(_RELEASE, 1, lock_key(ctx.prefix), cfg.consumer)
+        self.urgent = False
+        return stats
