@@ -19,13 +19,16 @@ from typing import Any
 from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from api.audit import AuditMiddleware
 from api.auth import key_table
-from api.errors import BodyTooLarge, add_exception_handlers, error_response
+from api.errors import BodyTooLarge, add_exception_handlers, document_errors, error_response
 from api.log_format import configure_json_logging, request_id_var
 from api.routes import ROUTERS
+from api.routes.audit import router as audit_router
 from api.routes.viewer import mount_static
 from api.settings import Settings, get_settings, token_secret_bytes
 from services import queue
+from services.audit import AuditLog
 from services.image_header import set_decoder_limits
 from services.redis_backend import close, connect
 from services.storage import SessionStore
@@ -136,6 +139,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.keys = key_table(s.api_keys)
         app.state.token_secret = token_secret_bytes(s)
         app.state.store = SessionStore(s.data_dir)
+        app.state.audit = AuditLog(s.data_dir / "audit" / "audit.jsonl")
         app.state.redis = connect(s.redis_url, s.data_dir)
         try:
             queue.ensure_group(app.state.redis, prefix=s.redis_prefix)
@@ -146,6 +150,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             close(app.state.redis)
+            app.state.audit.close()
             log.info("stopped", extra={"route": "lifespan"})
 
     app = FastAPI(
@@ -158,6 +163,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     add_exception_handlers(app)
     for router in ROUTERS:
         app.include_router(router)
+    app.include_router(audit_router)
     mount_static(app, s)
+    app.add_middleware(AuditMiddleware)  # inside RequestContextMiddleware: it sees the request id
     app.add_middleware(RequestContextMiddleware)
+    generate = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        """Return the OpenAPI document with every error status and the settings' frame size cap stated."""
+        if app.openapi_schema is None:
+            schema = document_errors(generate())
+            side = schema["components"]["schemas"]["CalibrationDoc"]["properties"]["image_size"]
+            for item in side["prefixItems"]:
+                item["maximum"] = s.max_frame_side
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
     return app

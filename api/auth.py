@@ -19,6 +19,8 @@ from fastapi import Request
 from api.errors import Forbidden, NotFound, Unauthorized
 from services.storage import SessionMeta, SessionNotFoundError, SessionStore
 
+PRINCIPAL_KEY = "veinmosaic.principal"  # where the caller's Principal is left in the ASGI scope (api.audit reads it)
+
 
 @dataclass(frozen=True)
 class Principal:
@@ -102,6 +104,12 @@ def key_principal(request: Request) -> Principal | None:
     return None if scopes is None else Principal(fingerprint=fp, scopes=scopes)
 
 
+def remember(request: Request, principal: Principal) -> Principal:
+    """Leave the caller's principal in the ASGI scope for the audit log (api.audit); return it."""
+    request.scope[PRINCIPAL_KEY] = principal
+    return principal
+
+
 def require_scope(*scopes: str) -> Callable[[Request], Principal]:
     """Return a dependency yielding the key principal holding one of `scopes` (401 no key, 403 no scope)."""
 
@@ -109,6 +117,7 @@ def require_scope(*scopes: str) -> Callable[[Request], Principal]:
         principal = key_principal(request)
         if principal is None:
             raise Unauthorized()
+        remember(request, principal)
         if not principal.has_any(scopes):
             raise Forbidden(f"this key lacks the {' or '.join(scopes)} scope")
         return principal
@@ -120,12 +129,13 @@ def view_principal(request: Request, session_id: str) -> Principal:
     """Return a key principal with view/ingest scope, or a viewer-token principal for `session_id`."""
     principal = key_principal(request)
     if principal is not None:
+        remember(request, principal)
         if not principal.has_any(("view", "ingest")):
             raise Forbidden("this key lacks the view scope")
         return principal
     for token in (request.query_params.get("token"), bearer(request)):
         if token and verify_viewer_token(request.app.state.token_secret, token, session_id, _now(request)):
-            return Principal(fingerprint=None, scopes=frozenset({"view"}), session_id=session_id)
+            return remember(request, Principal(fingerprint=None, scopes=frozenset({"view"}), session_id=session_id))
     raise Unauthorized("a valid bearer key or an unexpired viewer token for this session is required")
 
 

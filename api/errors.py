@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import errno
 import logging
-from collections.abc import Iterable
 from typing import Any
 
 import redis
@@ -27,7 +26,8 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from services.calibration import CalibrationError
-from services.storage import ConflictError, SessionClosedError, SessionNotFoundError
+from services.image_header import BadImageError
+from services.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
 
 log = logging.getLogger("veinmosaic.api")
 
@@ -120,7 +120,9 @@ SERVICE_ERRORS: dict[type[Exception], tuple[int, str, str | None]] = {
     SessionNotFoundError: (404, "not_found", "no such session"),
     ConflictError: (409, "conflict", None),
     SessionClosedError: (409, "session_finished", None),
+    ImplausibleTimeError: (409, "implausible_timestamp", None),
     CalibrationError: (422, "invalid_calibration", None),
+    BadImageError: (422, "invalid_image", None),
     redis.ConnectionError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
     redis.TimeoutError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
 }
@@ -147,12 +149,17 @@ def _field(loc: tuple[Any, ...]) -> str:
 
 
 def validation_response(errors: list[dict[str, Any]]) -> JSONResponse:
-    """Return 400 for unparseable JSON, else 422 naming every failing field (values never echoed)."""
+    """Return 400 for unparseable JSON, else 422 naming every failing field (values never echoed).
+
+    The code is "invalid_calibration" when every failing field is inside the calibration, as the semantic
+    checks of services.calibration answer, else "validation_error".
+    """
     if any(e.get("type") == "json_invalid" for e in errors):
         return error_response(400, "malformed_json", "the request body is not valid JSON")
     details = [{"field": _field(tuple(e.get("loc", ()))), "message": str(e.get("msg", "invalid"))} for e in errors]
     message = "; ".join(f"{d['field']}: {d['message']}" for d in details) or "invalid request"
-    return error_response(422, "validation_error", message, details=details)
+    calibration = bool(details) and all(d["field"].split(".")[0] == "calibration" for d in details)
+    return error_response(422, "invalid_calibration" if calibration else "validation_error", message, details=details)
 
 
 def add_exception_handlers(app: FastAPI) -> None:
@@ -232,14 +239,47 @@ ERROR_SCHEMA: dict[str, Any] = {
 }
 # every route can answer these: a body over the limit, a storage or Redis fault
 COMMON_STATUSES = (413, 503)
+_S = "/v1/sessions/{session_id}"
+# What a route answers beyond the rules of `error_statuses` (its own conflicts, media types, lookups).
+EXTRA_STATUSES: dict[tuple[str, str], tuple[int, ...]] = {
+    ("post", f"{_S}/frames"): (409, 415),
+    ("post", f"{_S}/forces"): (409,),
+    ("post", f"{_S}/reference"): (409, 415),
+    ("post", f"{_S}/reprocess"): (409,),
+    ("post", "/v1/reprocess"): (404, 409),
+}
 
 
-def responses(*statuses: int, extra: Iterable[int] = ()) -> dict[int | str, dict[str, Any]]:
-    """Return the OpenAPI `responses=` entries for these error statuses (plus the common ones), one table."""
-    out: dict[int | str, dict[str, Any]] = {}
-    for status in sorted({*statuses, *extra, *COMMON_STATUSES}):
-        entry: dict[str, Any] = {"description": ERROR_DESCRIPTIONS[status]}
-        if status != 304:
-            entry["content"] = {"application/json": {"schema": ERROR_SCHEMA}}
-        out[status] = entry
-    return out
+def error_statuses(method: str, path: str, operation: dict[str, Any]) -> set[int]:
+    """Return the error statuses an operation can answer: the common ones, 401/403 behind auth, 404 with path
+    parameters, 422 with parameters or a body, 400 with a body (malformed JSON), plus EXTRA_STATUSES."""
+    statuses = set(COMMON_STATUSES)
+    if path.startswith(("/v1/", "/viewer/")):
+        statuses |= {401, 403}
+    params = operation.get("parameters") or []
+    if any(p.get("in") == "path" for p in params):
+        statuses.add(404)
+    if params or "requestBody" in operation:
+        statuses.add(422)
+    if "requestBody" in operation:
+        statuses.add(400)
+    statuses |= set(EXTRA_STATUSES.get((method, path), ()))
+    return statuses
+
+
+def document_errors(schema: dict[str, Any]) -> dict[str, Any]:
+    """State in an OpenAPI document every error status of every operation, with the error body's schema."""
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    components["Error"] = ERROR_SCHEMA
+    components.pop("HTTPValidationError", None)
+    components.pop("ValidationError", None)
+    ref = {"$ref": "#/components/schemas/Error"}
+    for path, item in schema.get("paths", {}).items():
+        for method, operation in item.items():
+            if not isinstance(operation, dict) or "responses" not in operation:
+                continue
+            answers = operation["responses"]
+            for status in sorted(error_statuses(method, path, operation)):
+                entry = answers.setdefault(str(status), {"description": ERROR_DESCRIPTIONS[status]})
+                entry["content"] = {"application/json": {"schema": ref}}
+    return schema

@@ -11,8 +11,26 @@ from services.storage import MAX_SEQ
 # A JSON number that is finite: NaN/Infinity literals (which Python's json accepts) are rejected, and so are
 # strings and booleans (no lax coercion of "1.5" or true).
 Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]
-ForceRow = Annotated[list[Finite], Field(min_length=5, max_length=5)]
-ImuRow = Annotated[list[Finite], Field(min_length=3, max_length=3)]
+Positive = Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0)]
+# Device time in seconds. 1e10 s admits a device clock counting Unix seconds (until 2286) as well as an uptime
+# clock, and refuses absurd values (-1e308); plausibility against the session's own first timestamps (within
+# max_session_span_s, a setting: 24 h) is checked when the upload is stored (409 implausible_timestamp).
+MAX_ABS_TIME_S = 1e10
+DeviceTime = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-MAX_ABS_TIME_S, le=MAX_ABS_TIME_S)]
+# A hand-held probe's sensors read tens of newtons; 10 kN bounds a reading and keeps the force model finite.
+Force = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-1e4, le=1e4)]
+TiltDeg = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-360, le=360)]
+ForceRow = tuple[DeviceTime, Force, Force, Force, Force]
+ImuRow = tuple[DeviceTime, TiltDeg, TiltDeg]
+# image_size: whole pixels; the upper bound is the max_frame_side setting (api.app writes it into the schema)
+Side = Annotated[int, Field(strict=True, ge=16, le=16384)]
+Coefficients = (
+    Annotated[list[Finite], Field(min_length=4, max_length=4)]
+    | Annotated[list[Finite], Field(min_length=5, max_length=5)]
+    | Annotated[list[Finite], Field(min_length=8, max_length=8)]
+    | Annotated[list[Finite], Field(min_length=12, max_length=12)]
+    | Annotated[list[Finite], Field(min_length=14, max_length=14)]
+)
 
 
 class Strict(BaseModel):
@@ -21,10 +39,32 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+class CalibrationDoc(Strict):
+    """calibration.json (spec §3) as the API accepts it; services.calibration.parse_calibration checks the same."""
+
+    image_size: tuple[Side, Side] = Field(description="frame width, height in pixels")
+    camera_matrix: tuple[
+        tuple[Positive, Literal[0], Finite],
+        tuple[Literal[0], Positive, Finite],
+        tuple[Literal[0], Literal[0], Literal[1]],
+    ] = Field(description="[[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels")
+    px_per_mm: Positive
+    dist_coeffs: Coefficients | None = Field(default=None, description="OpenCV order k1, k2, p1, p2[, k3, ...]")
+    young_modulus_kpa: Positive | None = None
+    poisson_ratio: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=0.5)] | None = None
+    hooke_n_per_mm: Positive | None = None
+    sensor_separation_mm: tuple[Positive, Positive] | None = None
+    scanner_area_m2: Positive | None = None
+
+    def document(self) -> dict[str, Any]:
+        """Return the calibration.json document (fields left out take the spec's defaults)."""
+        return self.model_dump(mode="json", exclude_none=True)
+
+
 class SessionCreate(Strict):
     """POST /v1/sessions body; the label may identify a patient: stored, never logged."""
 
-    calibration: dict[str, Any]
+    calibration: CalibrationDoc
     label: str = Field(default="", max_length=256)
 
 
@@ -55,7 +95,7 @@ class FrameMeta(Strict):
     """The `meta` JSON part of a frame upload: seq (0..999999) and device time t_s in seconds."""
 
     seq: StrictInt = Field(ge=0, le=MAX_SEQ)
-    t_s: Finite
+    t_s: DeviceTime
 
 
 class FrameAccepted(Strict):
@@ -147,3 +187,39 @@ class BatchState(Strict):
     batch: str
     state: str
     jobs: list[JobState]
+
+
+# ----- audit log (issue 8) ------------------------------------------------------------------------------------------
+
+
+class AuditRecord(BaseModel):
+    """One audit record: who (actor), did what (action, route, method, status), to which session, when, whence."""
+
+    ts: float
+    actor: str
+    action: str
+    route: str
+    method: str
+    session: str | None = None
+    status: int
+    client: str | None = None
+    request_id: str | None = None
+    prev: str
+    hash: str
+
+
+class AuditPage(Strict):
+    """GET /v1/audit: matching records, newest first."""
+
+    records: list[AuditRecord]
+    count: int
+
+
+class AuditVerification(Strict):
+    """GET /v1/audit/verify: whether the hash chain holds, how many records, and where it first breaks."""
+
+    ok: bool
+    records: int
+    last_hash: str
+    first_bad_line: int | None = None
+    reason: str | None = None

@@ -21,6 +21,7 @@ import json
 import math
 import os
 import re
+import shutil
 import time
 import uuid
 from collections.abc import Iterator, Sequence
@@ -31,6 +32,7 @@ from typing import Any, Literal
 import numpy as np
 
 from services.calibration import Calibration, parse_calibration
+from services.image_header import check_header, read_header
 
 SessionStatus = Literal["receiving", "processing", "done", "failed"]
 STATUSES: tuple[str, ...] = ("receiving", "processing", "done", "failed")
@@ -54,6 +56,10 @@ class ConflictError(StorageError):
 
 class SessionClosedError(StorageError):
     """The session was finished: it accepts no more uploads."""
+
+
+class ImplausibleTimeError(StorageError):
+    """An upload's timestamp is too far from the session's first one (the time anchor)."""
 
 
 @dataclass(frozen=True)
@@ -206,13 +212,17 @@ class SessionStore:
             created=time.time() if now is None else now,
         )
         tmp_dir = self.root / f".{session_id}.tmp"
-        for sub in ("raw/frames", "raw/forces", "raw/imu"):
-            (tmp_dir / sub).mkdir(parents=True)
-        atomic_write_bytes(tmp_dir / "calibration.json", _json_bytes(meta.calibration))
-        atomic_write_bytes(tmp_dir / "session.json", _json_bytes(asdict(meta)))
-        for sub in ("raw", "raw/frames", "raw/forces", "raw/imu"):
-            fsync_dir(tmp_dir / sub)
-        os.rename(tmp_dir, self.root / session_id)  # the session appears whole or not at all
+        try:
+            for sub in ("raw/frames", "raw/forces", "raw/imu"):
+                (tmp_dir / sub).mkdir(parents=True)
+            atomic_write_bytes(tmp_dir / "calibration.json", _json_bytes(meta.calibration))
+            atomic_write_bytes(tmp_dir / "session.json", _json_bytes(asdict(meta)))
+            for sub in ("raw", "raw/frames", "raw/forces", "raw/imu"):
+                fsync_dir(tmp_dir / sub)
+            os.rename(tmp_dir, self.root / session_id)  # the session appears whole or not at all
+        except BaseException:
+            shutil.rmtree(tmp_dir, ignore_errors=True)  # a full disk leaves nothing behind
+            raise
         fsync_dir(self.root)
         return meta
 
@@ -266,11 +276,20 @@ class SessionStore:
             return None
 
     def put_frame(
-        self, session_id: str, seq: int, t_s: float, data: bytes, ext: str, now: float | None = None
+        self,
+        session_id: str,
+        seq: int,
+        t_s: float,
+        data: bytes,
+        ext: str,
+        now: float | None = None,
+        max_span_s: float | None = None,
     ) -> Literal["created", "duplicate"]:
         """Store a frame durably; "duplicate" if that seq already holds the same bytes and t_s.
 
-        Raises ConflictError if seq holds different bytes or t_s, SessionClosedError after finish.
+        Raises ConflictError if seq holds different bytes or t_s, SessionClosedError after finish,
+        ImplausibleTimeError if t_s is more than max_span_s from the session's time anchor (see time_anchor).
+        A failed write (a full disk) leaves neither the image nor its record behind.
         """
         if ext not in FRAME_EXTENSIONS:
             raise ValueError(f"ext must be one of {FRAME_EXTENSIONS}, got {ext!r}")
@@ -287,8 +306,10 @@ class SessionStore:
                 raise ConflictError(f"frame {seq} was already received with different content")
             if not self.get_meta(session_id).accepting_uploads:
                 raise SessionClosedError("session is finished; no more uploads are accepted")
+            self._check_time(session_id, [float(t_s)], max_span_s)
             fdir = self.frames_dir(session_id)
-            atomic_write_bytes(fdir / f"{seq:06d}.{ext}", data)
+            image = fdir / f"{seq:06d}.{ext}"
+            atomic_write_bytes(image, data)
             record = FrameRecord(
                 seq=seq,
                 t_s=float(t_s),
@@ -297,8 +318,38 @@ class SessionStore:
                 size=len(data),
                 received_at=time.time() if now is None else now,
             )
-            atomic_write_bytes(fdir / f"{seq:06d}.json", _json_bytes(asdict(record)))  # the commit
+            try:
+                atomic_write_bytes(fdir / f"{seq:06d}.json", _json_bytes(asdict(record)))  # the commit
+            except BaseException:
+                with contextlib.suppress(OSError):
+                    image.unlink()  # not committed: leave nothing partial
+                raise
             return "created"
+
+    # ----- timestamps ---------------------------------------------------------------------------------
+    def time_anchor(self, session_id: str) -> float | None:
+        """Return the session's time anchor: the device time (s) of its first accepted upload, or None."""
+        try:
+            return float(json.loads((self.session_dir(session_id) / "t_anchor.json").read_bytes())["t_s"])
+        except FileNotFoundError:
+            return None
+
+    def _check_time(self, session_id: str, times: Sequence[float], max_span_s: float | None) -> None:
+        """Raise ImplausibleTimeError unless every time is within max_span_s of the anchor (set it if none).
+
+        Called under the session lock, before the upload is written; the anchor is the first upload's time.
+        """
+        if max_span_s is None or len(times) == 0:
+            return
+        anchor = self.time_anchor(session_id)
+        lo, hi = min(times), max(times)
+        if anchor is None:
+            if hi - lo > 2 * max_span_s:
+                raise ImplausibleTimeError(f"timestamps span more than {2 * max_span_s:g} s")
+            anchor = (lo + hi) / 2
+            atomic_write_bytes(self.session_dir(session_id) / "t_anchor.json", _json_bytes({"t_s": anchor}))
+        if lo < anchor - max_span_s or hi > anchor + max_span_s:
+            raise ImplausibleTimeError(f"timestamp more than {max_span_s:g} s away from the session's first timestamps")
 
     def count_frames(self, session_id: str) -> int:
         """Return the number of committed frames."""
@@ -323,11 +374,21 @@ class SessionStore:
         """Return frame `seq`'s bytes exactly as uploaded."""
         return self.frame_path(session_id, seq).read_bytes()
 
-    def load_frame(self, session_id: str, seq: int) -> np.ndarray:
-        """Return frame `seq` decoded as a 2-D uint8 or uint16 array (rows = image y)."""
+    def load_frame(self, session_id: str, seq: int, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+        """Return frame `seq` decoded as a 2-D uint8 or uint16 array (rows = image y).
+
+        With expected_size (width, height px: the calibration's image_size), the header is checked first and a
+        frame of another size or pixel format raises BadImageError before anything is decoded.
+        """
         import cv2
 
-        img = cv2.imdecode(np.frombuffer(self.read_frame_bytes(session_id, seq), np.uint8), cv2.IMREAD_UNCHANGED)
+        data = self.read_frame_bytes(session_id, seq)
+        if expected_size is not None:
+            check_header(read_header(data), max(expected_size), expected_size)
+        try:
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        except cv2.error:  # over OpenCV's pixel limit
+            img = None
         if img is None:
             raise StorageError(f"frame {seq} cannot be decoded")
         return img
@@ -348,17 +409,19 @@ class SessionStore:
         session_id: str,
         samples: Sequence[Sequence[float]] | np.ndarray,
         imu: Sequence[Sequence[float]] | np.ndarray | None = None,
+        max_span_s: float | None = None,
     ) -> tuple[str | None, str | None]:
         """Store one batch of force samples (t_s, F1..F4 N) and optional IMU rows (t_s, tilt_x, tilt_y deg).
 
         Returns the batch names (None for an empty part). Raises ValueError for non-finite values or wrong
-        row lengths, SessionClosedError after finish.
+        row lengths, SessionClosedError after finish, ImplausibleTimeError as put_frame does.
         """
         f = _finite_rows(samples, 5, "samples")
         m = _finite_rows(imu if imu is not None else [], 3, "imu")
         with self._locked(session_id) as path:
             if not self.get_meta(session_id).accepting_uploads:
                 raise SessionClosedError("session is finished; no more uploads are accepted")
+            self._check_time(session_id, [*f[:, 0].tolist(), *m[:, 0].tolist()], max_span_s)
             fname = self._put_batch(path, "samples", f) if len(f) else None
             iname = self._put_batch(path, "imu", m) if len(m) else None
         return fname, iname

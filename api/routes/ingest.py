@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import logging
-import struct
 from typing import Annotated
 
 import cv2
@@ -28,11 +27,10 @@ from api.errors import (
 from api.routes.metrics import incr
 from api.schemas import ForceBatch, ForcesAccepted, FrameAccepted, FrameMeta
 from services import queue
+from services.image_header import check_header, read_header
 
 router = APIRouter(prefix="/v1/sessions", tags=["ingest"])
 log = logging.getLogger("veinmosaic.api")
-
-_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
 def sniff_image(data: bytes) -> str | None:
@@ -46,63 +44,22 @@ def sniff_image(data: bytes) -> str | None:
     return None
 
 
-def header_size(data: bytes, ext: str) -> tuple[int, int]:
-    """Return (width, height) in pixels from the image header, before decoding (no decompression bombs)."""
+def check_frame(data: bytes, size: tuple[int, int], max_side: int) -> None:
+    """Raise 422 unless the header states a grayscale `size` (width, height) image, then that it decodes so.
+
+    The header is read (Pillow, no decoding) before anything is decoded: a file claiming a huge or a colour
+    image costs no memory; only a frame of the calibrated size and format is decoded (bounded by that size).
+    """
+    check_header(read_header(data), max_side, size)  # BadImageError -> 422 invalid_image
     try:
-        if ext == "png":
-            if data[12:16] != b"IHDR":
-                raise ValueError
-            return struct.unpack(">II", data[16:24])
-        if ext == "jpg":
-            i = 2
-            while i + 4 <= len(data):
-                if data[i] != 0xFF:
-                    raise ValueError
-                marker = data[i + 1]
-                if marker == 0xFF or 0xD0 <= marker <= 0xD8 or marker == 0x01:
-                    i += 1 if marker == 0xFF else 2
-                    continue
-                (length,) = struct.unpack(">H", data[i + 2 : i + 4])
-                if marker in _SOF:
-                    height, width = struct.unpack(">HH", data[i + 5 : i + 9])
-                    return width, height
-                i += 2 + length
-            raise ValueError
-        bo = "<" if data[:2] == b"II" else ">"
-        (ifd,) = struct.unpack(bo + "I", data[4:8])
-        (count,) = struct.unpack(bo + "H", data[ifd : ifd + 2])
-        dims: dict[int, int] = {}
-        for k in range(count):
-            tag, typ, _, value = struct.unpack(bo + "HHI4s", data[ifd + 2 + 12 * k : ifd + 14 + 12 * k])
-            if tag in (256, 257):
-                dims[tag] = struct.unpack(bo + ("H" if typ == 3 else "I"), value[: 2 if typ == 3 else 4])[0]
-        return dims[256], dims[257]
-    except (ValueError, struct.error, KeyError, IndexError):
-        raise Validation("image: the file is corrupt (unreadable header)", code="invalid_image") from None
-
-
-def check_frame(data: bytes, ext: str, size: tuple[int, int]) -> None:
-    """Raise 422 unless `data` decodes to a single-channel 8/16-bit image of `size` (width, height) pixels."""
-    w, h = header_size(data, ext)
-    if (w, h) != tuple(size):
-        raise Validation(
-            f"image: expected {size[0]}x{size[1]} pixels (calibration image_size), got {w}x{h}",
-            code="invalid_image",
-        )
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:  # over OpenCV's own pixel limit
+        img = None
     if img is None:
         raise Validation("image: the file is corrupt (cannot be decoded)", code="invalid_image")
-    if img.ndim != 2:
+    if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16) or (img.shape[1], img.shape[0]) != tuple(size):
         raise Validation(
-            f"image: expected a single-channel (grayscale) image, got {img.shape[2]} channels",
-            code="invalid_image",
-        )
-    if img.dtype not in (np.uint8, np.uint16):
-        raise Validation(f"image: expected 8- or 16-bit pixels, got {img.dtype}", code="invalid_image")
-    if (img.shape[1], img.shape[0]) != tuple(size):
-        raise Validation(
-            f"image: expected {size[0]}x{size[1]} pixels, got {img.shape[1]}x{img.shape[0]}",
-            code="invalid_image",
+            f"image: expected a {size[0]}x{size[1]} single-channel 8- or 16-bit image", code="invalid_image"
         )
 
 
@@ -134,7 +91,11 @@ def upload_frame(
     settings: AppSettings,
     response: Response,
 ) -> FrameAccepted:
-    """Store one frame durably and queue it: 202; the same frame again 200; other bytes for its seq 409."""
+    """Store one frame durably and queue it: 202; the same frame again 200; other bytes for its seq 409.
+
+    Nothing is decoded for a seq already stored (a duplicate or a 409 is decided by its digest) nor for a
+    finished session (409); a new frame's header must state the calibrated size before it is decoded (422).
+    """
     data = image.file.read(settings.max_frame_bytes + 1)
     if len(data) > settings.max_frame_bytes:
         raise PayloadTooLarge(f"image: larger than {settings.max_frame_bytes} bytes")
@@ -142,20 +103,19 @@ def upload_frame(
     if ext is None:
         raise UnsupportedMediaType("image: expected a PNG, TIFF or JPEG file")
     frame = parse_meta(meta)
-    check_frame(data, ext, tuple(session.calibration["image_size"]))
     prefix = settings.redis_prefix
 
     if store.get_frame(session.id, frame.seq) is None:
-        if not store.get_meta(session.id).accepting_uploads:
+        if not session.accepting_uploads or not store.get_meta(session.id).accepting_uploads:
             raise Conflict("session is finished; no more uploads are accepted", code="session_finished")
+        check_frame(data, tuple(session.calibration["image_size"]), settings.max_frame_side)
         depth = queue.queue_depth(r, prefix=prefix)
         if depth >= settings.queue_max_depth:
             raise ServiceUnavailable(
                 "the processing queue is full; retry later", settings.retry_after_s, code="queue_full"
             )
-        outcome = store.put_frame(session.id, frame.seq, frame.t_s, data, ext)  # 409 on conflict
-    else:
-        outcome = store.put_frame(session.id, frame.seq, frame.t_s, data, ext)  # duplicate or 409
+    # 409 on conflict or after finish, 409 implausible_timestamp; "duplicate" for the same bytes and t_s
+    outcome = store.put_frame(session.id, frame.seq, frame.t_s, data, ext, max_span_s=settings.max_session_span_s)
     # Idempotent: a frame stored by an earlier attempt whose enqueue failed is queued now, never twice.
     queue.enqueue_frame(r, session.id, frame.seq, prefix=prefix)
     if outcome == "duplicate":
@@ -172,5 +132,6 @@ def upload_forces(body: ForceBatch, session: IngestSession, store: Store, settin
     imu = body.imu or []
     if len(body.samples) + len(imu) > settings.max_force_samples:
         raise PayloadTooLarge(f"a batch holds at most {settings.max_force_samples} rows; split it")
-    store.put_forces(session.id, body.samples, imu)  # 409 after finish
+    # 409 after finish, 409 implausible_timestamp when a time is far from the session's first ones
+    store.put_forces(session.id, body.samples, imu, max_span_s=settings.max_session_span_s)
     return ForcesAccepted(accepted=len(body.samples), imu_accepted=len(imu))

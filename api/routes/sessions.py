@@ -36,8 +36,13 @@ def create_session(
     response: Response,
 ) -> SessionCreated:
     """Create a session owned by the calling key; 422 naming the field for a bad calibration."""
+    width, height = body.calibration.image_size
+    if max(width, height) > settings.max_frame_side:
+        raise Validation(
+            f"calibration: image_size: at most {settings.max_frame_side} pixels a side", code="invalid_calibration"
+        )
     try:
-        calibration = parse_calibration(body.calibration)
+        calibration = parse_calibration(body.calibration.document())
     except CalibrationError as exc:
         raise Validation(f"calibration: {exc}", code="invalid_calibration") from None
     assert principal.fingerprint is not None

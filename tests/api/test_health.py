@@ -16,7 +16,7 @@ from api.settings import Settings, token_secret_bytes
 def test_healthz_and_readyz_ok(client: TestClient) -> None:
     assert client.get("/healthz").json() == {"status": "ok", "checks": {}}
     resp = client.get("/readyz")
-    assert resp.status_code == 200 and resp.json()["checks"] == {"redis": True, "storage": True}
+    assert resp.status_code == 200 and resp.json()["checks"] == {"redis": True, "storage": True, "disk_space": True}
 
 
 @pytest.mark.parametrize("backend", ["embedded"], indirect=True)
