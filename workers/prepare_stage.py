@@ -18,6 +18,7 @@ from services import queue
 from services.calibration import Calibration
 from services.force_model import interpolate_forces
 from services.frame_prep import estimate_flat_field, estimate_window_mask, prepare_frame
+from services.image_header import BadImageError
 from services.methods import MethodOptions
 from services.pipeline import MASK_SAMPLE_FRAMES
 from services.results_store import LIVE_VERSION
@@ -66,8 +67,8 @@ def _setup_frames(ctx: Context, sid: str, seqs: list[int], calib: Calibration) -
     shape = (calib.image_size[1], calib.image_size[0])
     for seq in seqs:
         try:
-            img = ctx.store.load_frame(sid, seq)
-        except (StorageError, KeyError):  # undecodable or gone; a storage fault (OSError) is raised: retried
+            img = ctx.store.load_frame(sid, seq, expected_size=calib.image_size)  # header checked before decoding
+        except (StorageError, KeyError, BadImageError):  # bad, undecodable or gone; an OSError is raised: retried
             continue
         if img.shape == shape and img.dtype in (np.uint8, np.uint16):
             frames.append(img)
@@ -131,7 +132,9 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
     if finished:
         force_t, forces = stored_forces(ctx.store, sid, rec.t_s)
     forces_n = interpolate_forces(force_t, forces, np.array([rec.t_s]))[0]
-    raw = ctx.store.load_frame(sid, seq)
+    # the header must state the calibrated size and a grayscale format before anything is decoded; a frame
+    # that does not (BadImageError: its own content, not a fault) is dead-lettered and marked rejected
+    raw = ctx.store.load_frame(sid, seq, expected_size=calib.image_size)
     mask, flat = setup
     pf = prepare_frame(
         raw, index=seq, seq=seq, t_s=rec.t_s, forces_n=forces_n, calib=calib, mask=mask, flat=flat, options=opts
