@@ -16,9 +16,11 @@ from services.simulation.vein_texture import World
 
 UNMODELLED_RADIAL = 0.05  # the true stretch grows by this fraction at |p'| = UNMODELLED_RADIUS_MM (not in §2)
 UNMODELLED_RADIUS_MM = 25.0
-WINDOW_SIZE_PX = (370.0, 290.0)
-WINDOW_CORNER_RADIUS_PX = 45.0
-DARK_LEVEL = 0.06  # outside the window: ~6% grey plus noise
+WINDOW_SIZE_PX = (624.0, 464.0)  # the window almost fills the 640 x 480 frame (as on the shared scans' mask)
+WINDOW_CORNER_RADIUS_PX = 40.0
+DARK_LEVEL = 1.5 / 255.0  # outside the window: ~1.5 DN (8-bit) plus noise, as on the shared scans
+VIGNETTE_FALLOFF = 0.12  # illumination drops by this fraction at the window's edge (0.88; corners ~0.77)
+FULL_SCALE_DN = 255.0  # noise is given in 8-bit grey levels (DN) whatever the output bit depth
 
 
 @dataclass(frozen=True)
@@ -34,19 +36,25 @@ class FrameGeometry:
 
 @dataclass(frozen=True)
 class Imaging:
-    """Per-frame imaging: sensor noise (fraction of full scale), exposure gain, blur, output dtype."""
+    """Per-frame imaging: sensor noise std in 8-bit grey levels (DN), exposure gain, blur, output dtype."""
 
-    noise_sigma: float = 0.02
+    noise_dn: float = 2.0
     gain: float = 1.0
     blur_kernel: np.ndarray | None = None
     dtype: type = np.uint8
+
+
+def window_centre_px(calib: Calibration) -> tuple[float, float]:
+    """Return the window's centre (px): the image centre (the window is part of the probe, not of the lens)."""
+    w, h = calib.image_size
+    return (w - 1) / 2.0, (h - 1) / 2.0
 
 
 def window_signed_distance(calib: Calibration) -> np.ndarray:
     """Return the signed distance (px, negative inside) of every pixel to the rounded-rectangle window."""
     w, h = calib.image_size
     grid = pixel_grid(w, h)
-    cx, cy = calib.principal_point
+    cx, cy = window_centre_px(calib)
     half = np.array(WINDOW_SIZE_PX) / 2.0 - WINDOW_CORNER_RADIUS_PX
     q = np.abs(grid - (cx, cy)) - half
     outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
@@ -55,16 +63,14 @@ def window_signed_distance(calib: Calibration) -> np.ndarray:
 
 
 def vignette_gain(calib: Calibration) -> np.ndarray:
-    """Return the IR-ring illumination gain (float32, H x W): ~0.8 at the centre, ~1.1 at the window edge."""
+    """Return the IR-ring illumination gain (float32, H x W): 1 at the centre, ~0.88 at the window's edges and
+    ~0.77 in its corners (the profile measured on the shared scans), with a slight left-right imbalance."""
     w, h = calib.image_size
     grid = pixel_grid(w, h)
-    cx, cy = calib.principal_point
-    d = (grid - (cx, cy)) / (np.array(WINDOW_SIZE_PX) / 2.0)
-    rn2 = np.sum(d * d, axis=-1) / 2.0  # 0 at the centre, 1 at the window's corners
-    ring = 0.8 + 0.3 * np.minimum(rn2 * 1.6, 1.0)  # rises to 1.1 toward the window's edge
-    falloff = 1.0 - 0.06 * rn2**2  # gentle optical falloff
-    tilt = 1.0 + 0.03 * d[..., 0] - 0.02 * d[..., 1]  # the LEDs are not perfectly even
-    return (ring * falloff * tilt).astype(np.float32)
+    d = (grid - window_centre_px(calib)) / (np.array(WINDOW_SIZE_PX) / 2.0)
+    rn2 = np.sum(d * d, axis=-1)  # 0 at the centre, 1 at the middle of the window's edges
+    tilt = 1.0 + 0.02 * d[..., 0] - 0.01 * d[..., 1]  # the LEDs are not perfectly even
+    return ((1.0 - VIGNETTE_FALLOFF * rn2) * tilt).astype(np.float32)
 
 
 def frame_geometry(calib: Calibration) -> FrameGeometry:
@@ -134,6 +140,6 @@ def apply_imaging(scene: np.ndarray, geometry: FrameGeometry, imaging: Imaging, 
         img = cv2.filter2D(img, -1, imaging.blur_kernel, borderType=cv2.BORDER_REFLECT)
     img = img * geometry.vignette * np.float32(imaging.gain)
     img = geometry.alpha * img + (1.0 - geometry.alpha) * np.float32(DARK_LEVEL)
-    img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.float32(imaging.noise_sigma)
+    img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.float32(imaging.noise_dn / FULL_SCALE_DN)
     top = float(np.iinfo(imaging.dtype).max)
     return np.clip(np.round(img * top), 0, top).astype(imaging.dtype)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 
@@ -17,6 +15,7 @@ from services.simulation.probe_path import (
     path_length_mm,
     rotation,
     scenario_motion_spec,
+    smooth_noise,
 )
 from services.simulation.renderer import (
     Imaging,
@@ -25,6 +24,7 @@ from services.simulation.renderer import (
     motion_blur_kernel,
     render_scene,
 )
+from services.simulation.variants import ImagingVariant, scenario_imaging
 from services.simulation.vein_texture import make_world
 
 SCENARIOS = ("raster", "revisit", "hard", "short", "calib")
@@ -37,35 +37,17 @@ FORCE_OFFSET_N = 0.1  # per-sensor constant offset, uniform in [-0.1, 0.1] N
 IMU_RATE_HZ = 50.0
 IMU_NOISE_DEG = 0.01
 STREAM_MARGIN_S = 0.5  # force and IMU streams start this long before the first frame and end after the last
-WORLD_MARGIN_MM = 45.0  # the world extends this far beyond every frame centre (half-diagonal of the view + slack)
-
-
-@dataclass(frozen=True)
-class ImagingSpec:
-    """A scenario's imaging: fraction of motion-blurred frames, blur lengths (px) and output dtype."""
-
-    blur_fraction: float
-    blur_length_px: tuple[int, int]
-    dtype: type = np.uint8
-    gain_jitter: float = 0.02
-
-
-IMAGING = {
-    "raster": ImagingSpec(0.02, (5, 8)),
-    "revisit": ImagingSpec(0.02, (5, 8)),
-    "hard": ImagingSpec(0.05, (5, 11), np.uint16),
-    "short": ImagingSpec(0.0, (5, 8)),
-    "calib": ImagingSpec(0.0, (5, 8), gain_jitter=0.0),
-}
+WORLD_MARGIN_MM = 60.0  # the world extends this far beyond every frame centre (half-diagonal of the view + slack)
+GAIN_DRIFT_TAU_FRACTION = 0.3  # the slow gain drift's time scale, as a fraction of the scan's frame count
 
 
 def nominal_calibration() -> Calibration:
     """Return the simulated probe's calibration: its lens model and the NOMINAL force constants of spec §2."""
     return Calibration(
-        image_size=(400, 320),
-        camera_matrix=((420.0, 0.0, 201.7), (0.0, 420.0, 157.9), (0.0, 0.0, 1.0)),
+        image_size=(640, 480),
+        camera_matrix=((520.0, 0.0, 318.3), (0.0, 520.0, 238.6), (0.0, 0.0, 1.0)),
         px_per_mm=8.0,
-        dist_coeffs=(-0.12, 0.03, 0.0005, -0.0003, 0.0),
+        dist_coeffs=(-0.03, 0.004, 0.0003, -0.0002, 0.0),
         young_modulus_kpa=NOMINAL_E_KPA,
         poisson_ratio=0.5,
         hooke_n_per_mm=NOMINAL_KAPPA_N_PER_MM,
@@ -98,15 +80,43 @@ def frame_poses(motion: ProbeMotion) -> tuple[np.ndarray, np.ndarray]:
     return xy, motion.yaw_deg - motion.yaw_deg[0]
 
 
-def simulate(scenario: str, seed: int) -> Scan:
+def frame_gains(rng: np.random.Generator, n: int, imaging: ImagingVariant) -> np.ndarray:
+    """Return n exposure gains (fraction, ~1): a slow drift spanning imaging.gain_drift plus per-frame jitter."""
+    drift = imaging.gain_drift * smooth_noise(rng, n, max(1.0, GAIN_DRIFT_TAU_FRACTION * n), -0.5, 0.5)
+    return 1.0 + drift + rng.uniform(-imaging.gain_jitter, imaging.gain_jitter, n)
+
+
+def motion_angles_deg(motion: ProbeMotion) -> np.ndarray:
+    """Return the direction (deg, image axes) in which the skin moves across each frame (motion blur's axis)."""
+    n = len(motion)
+    if n < 2:
+        return np.zeros(n)
+    velocity = np.gradient(motion.centre_mm, axis=0)
+    angles = np.empty(n)
+    for k in range(n):
+        v = rotation(-float(motion.yaw_deg[k])) @ velocity[k]  # world mm -> frame k's image axes
+        angles[k] = np.rad2deg(np.arctan2(v[1], v[0]))
+    return angles
+
+
+def resolve_imaging(scenario: str, imaging: ImagingVariant | str) -> ImagingVariant:
+    """Return imaging itself, or the scenario's ImagingVariant for a variant name (VARIANTS)."""
+    return scenario_imaging(scenario, imaging) if isinstance(imaging, str) else imaging
+
+
+def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realistic") -> Scan:
     """Return a simulated Scan (frames in memory) of a scenario in SCENARIOS, deterministic for the seed.
 
-    truth: young_modulus_kpa, hooke_n_per_mm (the true constants), poses [[x_mm, y_mm, yaw_deg], ...] in frame
-    0's coordinates, fz_n and tilt_x_deg / tilt_y_deg per frame, blurred frame indices, path_length_mm,
-    force_offsets_n, scenario, seed.
+    imaging: a variant name ("realistic", the default that looks like the shared NIR scans; "faint";
+    "textured", the easy fine-grain skin) or an ImagingVariant. The motion, forces and truth poses depend only
+    on (scenario, seed), never on the imaging. truth: young_modulus_kpa, hooke_n_per_mm (the true constants),
+    poses [[x_mm, y_mm, yaw_deg], ...] in frame 0's coordinates, fz_n and tilt_x_deg / tilt_y_deg per frame,
+    blurred frame indices, blur_px per frame (0 = sharp), gains per frame, path_length_mm, force_offsets_n,
+    imaging (the variant as a dict), scenario, seed.
     """
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(SCENARIOS)}")
+    look = resolve_imaging(scenario, imaging)
     cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)
     rng_const, rng_path, rng_world, rng_img, rng_stream = (
         np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), SCENARIOS.index(scenario)]).spawn(5)
@@ -124,27 +134,24 @@ def simulate(scenario: str, seed: int) -> Scan:
 
     lo = motion.centre_mm.min(axis=0) - WORLD_MARGIN_MM
     hi = motion.centre_mm.max(axis=0) + WORLD_MARGIN_MM
-    world = make_world(rng_world, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])), calib.px_per_mm)
+    bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+    world = make_world(rng_world, bounds, calib.px_per_mm, look.vessel_contrast, look.textured_skin)
 
-    spec = IMAGING[scenario]
     geometry = frame_geometry(calib)
     fz, tx, ty = motion.load_at(motion.frame_t_s)
-    blurred_flags = rng_img.random(n) < spec.blur_fraction
+    blurred_flags = rng_img.random(n) < look.blur_fraction
     blurred_flags[0] = False
+    blur_px = np.where(blurred_flags, rng_img.integers(look.blur_length_px[0], look.blur_length_px[1] + 1, n), 0)
+    blurred_flags &= blur_px > 1  # a 1-px "streak" is no blur
+    angles = motion_angles_deg(motion) + rng_img.normal(0.0, 10.0, n)  # the hand's jitter about the motion
+    gains = frame_gains(rng_img, n, look)
     frames = []
     for k in range(n):
-        kernel = None
-        if blurred_flags[k]:
-            length = int(rng_img.integers(spec.blur_length_px[0], spec.blur_length_px[1] + 1))
-            kernel = motion_blur_kernel(length, float(rng_img.uniform(0.0, 180.0)))
-        imaging = Imaging(
-            gain=1.0 + float(rng_img.uniform(-spec.gain_jitter, spec.gain_jitter)),
-            blur_kernel=kernel,
-            dtype=spec.dtype,
-        )
+        kernel = motion_blur_kernel(int(blur_px[k]), float(angles[k])) if blur_px[k] > 1 else None
+        frame_imaging = Imaging(noise_dn=look.noise_dn, gain=float(gains[k]), blur_kernel=kernel, dtype=look.dtype)
         state = LoadState(float(fz[k]), float(tx[k]), float(ty[k]))
         scene = render_scene(world, geometry, motion.centre_mm[k], float(motion.yaw_deg[k]), state, true_calib)
-        frames.append(apply_imaging(scene, geometry, imaging, rng_img))
+        frames.append(apply_imaging(scene, geometry, frame_imaging, rng_img))
 
     t_first, t_last = float(motion.frame_t_s[0]), float(motion.frame_t_s[-1])
     force_t = _stream_times(rng_stream, t_first, t_last, FORCE_RATE_HZ)
@@ -166,6 +173,9 @@ def simulate(scenario: str, seed: int) -> Scan:
         "tilt_x_deg": [float(v) for v in np.rad2deg(tx)],
         "tilt_y_deg": [float(v) for v in np.rad2deg(ty)],
         "blurred": [int(i) for i in np.flatnonzero(blurred_flags)],
+        "blur_px": [int(v) for v in blur_px],
+        "gains": [float(v) for v in gains],
+        "imaging": look.to_dict(),
         "path_length_mm": path_length_mm(xy),
         "force_offsets_n": [float(v) for v in offsets],
     }

@@ -1,4 +1,9 @@
-"""Procedural NIR skin world: a branching dark vein network on band-limited skin texture (float32, 0..1)."""
+"""Procedural NIR skin world: a branching dark vein network at several depths on diffuse skin (float32, 0..1).
+
+At 850 nm the light is diffused by the tissue, so skin is smooth (low-frequency albedo and shading only) and the
+veins are the only structure: darker by a few to ~35 %, softer and fainter the deeper they lie. The old
+fine-grain skin texture survives only as the explicitly named easy `textured` skin.
+"""
 
 from __future__ import annotations
 
@@ -8,13 +13,22 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-SKIN_LEVEL = 0.62  # mean reflectance of skin at 850 nm (fraction of full scale)
-SKIN_LAYERS = ((0.9, 0.012), (2.0, 0.035), (4.0, 0.04), (10.0, 0.03))  # (sigma px, amplitude) texture bands
+SKIN_LEVEL = 0.65  # mean reflectance of skin at 850 nm (fraction of full scale)
+SKIN_LAYERS = ((0.9, 0.012), (2.0, 0.035), (4.0, 0.04), (10.0, 0.03))  # textured skin only: (sigma px, amplitude)
 SHADING_SIGMA_MM = 30.0  # low-frequency shading (curvature, fat) scale
 SHADING_AMPLITUDE = 0.05
+ALBEDO_LAYERS_MM = (
+    (6.0, 0.025),
+    (2.5, 0.015),
+    (1.2, 0.008),
+)  # smooth skin's diffuse albedo: (sigma mm, relative amplitude)
+DEPTH_BLUR_PX = 7.0  # extra Gaussian blur (px at 8 px/mm) of the deepest vessels: scattering above them
+TEXTURED_CONTRAST = (0.15, 0.35)  # the textured variant's vessel darkening (the original simulator's)
 BAND_LIMIT_SIGMA_PX = 0.9  # final blur: nothing finer than this, so linear remapping does not alias
-MAX_GAP_MM = 11.0  # no point of the world is farther than this from a vessel centreline
+MAX_GAP_MM = 10.0  # no point of the world is farther than this from a vessel centreline
 STEP_MM = 1.0  # centreline step
+END_FADE_MM = 10.0  # a vessel's free end fades out over this length (vessels dive, they do not stop)
+CURVINESS = 0.015  # centrelines' random turning (rad per mm, before smoothing)
 
 
 @dataclass(frozen=True)
@@ -40,11 +54,14 @@ class World:
 
 @dataclass(frozen=True)
 class Vessel:
-    """A vessel: centreline (M, 2) world mm, width (M,) mm and contrast (fractional darkening)."""
+    """A vessel: centreline (M, 2) world mm, width (M,) mm, contrast (peak fractional darkening before the
+    depth blur) and depth (0 = just under the skin .. 1 = the deepest visible)."""
 
     points_mm: np.ndarray
     width_mm: np.ndarray
     contrast: float
+    depth: float = 0.0
+    fade: np.ndarray | None = None  # (M,) in 0..1: the contrast along the centreline (None = 1 everywhere)
 
 
 def band_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float) -> np.ndarray:
@@ -60,12 +77,26 @@ def band_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float
 
 
 def skin_texture(rng: np.random.Generator, shape: tuple[int, int], px_per_mm: float) -> np.ndarray:
-    """Return skin reflectance (float32, shape): SKIN_LEVEL, low-frequency shading, multi-scale texture."""
+    """Return textured skin reflectance (float32, shape, 0..1): shading plus fine multi-scale grain (easy variant)."""
     skin = np.full(shape, SKIN_LEVEL, dtype=np.float32)
     skin += SHADING_AMPLITUDE * band_noise(rng, shape, SHADING_SIGMA_MM * px_per_mm)
     for sigma, amplitude in SKIN_LAYERS:
         skin += amplitude * band_noise(rng, shape, sigma)
     return skin
+
+
+def smooth_skin(rng: np.random.Generator, shape: tuple[int, int], px_per_mm: float) -> np.ndarray:
+    """Return diffuse skin reflectance (float32, shape, 0..1): SKIN_LEVEL times low-frequency shading and albedo."""
+    relative = SHADING_AMPLITUDE * band_noise(rng, shape, SHADING_SIGMA_MM * px_per_mm)
+    for sigma_mm, amplitude in ALBEDO_LAYERS_MM:
+        relative += amplitude * band_noise(rng, shape, sigma_mm * px_per_mm)
+    return (SKIN_LEVEL * (1.0 + relative)).astype(np.float32)
+
+
+def depth_contrast(depth: float, contrast_range: tuple[float, float]) -> float:
+    """Return a vessel's peak darkening (fraction): the range's top just under the skin, its bottom deepest."""
+    lo, hi = contrast_range
+    return float(hi - (hi - lo) * depth)
 
 
 def centreline(
@@ -74,7 +105,7 @@ def centreline(
     heading_rad: float,
     length_mm: float,
     bounds_mm: tuple[float, float, float, float],
-    curviness: float = 0.025,
+    curviness: float = CURVINESS,
 ) -> np.ndarray:
     """Return a smooth random-walk centreline (M, 2) mm from start_mm, stopping at length or the bounds."""
     n = max(2, int(length_mm / STEP_MM))
@@ -92,8 +123,28 @@ def _tapered(n: int, w_start: float, w_end: float) -> np.ndarray:
     return np.linspace(w_start, w_end, n)
 
 
-def vein_network(rng: np.random.Generator, bounds_mm: tuple[float, float, float, float]) -> list[Vessel]:
-    """Return the vessels of a branching network covering bounds_mm: trunks, branches and gap fillers."""
+def end_fade(n: int, fade_start: bool, fade_end: bool) -> np.ndarray:
+    """Return a contrast profile (n,) in 0..1 along a centreline of n points STEP_MM apart, ramping over
+    END_FADE_MM at the ends asked for."""
+    s = np.arange(n, dtype=np.float64) * STEP_MM
+    fade = np.ones(n)
+    if fade_start:
+        fade = np.minimum(fade, s / END_FADE_MM)
+    if fade_end:
+        fade = np.minimum(fade, (s[-1] - s) / END_FADE_MM)
+    return np.clip(fade, 0.0, 1.0)
+
+
+def vein_network(
+    rng: np.random.Generator,
+    bounds_mm: tuple[float, float, float, float],
+    contrast_range: tuple[float, float] = (0.03, 0.35),
+) -> list[Vessel]:
+    """Return the vessels of a branching network covering bounds_mm: trunks, branches and gap fillers.
+
+    Trunks lie shallow, branches and gap fillers at any depth; each vessel's contrast follows its depth
+    within contrast_range (fractional darkening, lo = deepest, hi = shallowest).
+    """
     x0, y0, x1, y1 = bounds_mm
     area = (x1 - x0) * (y1 - y0)
     diag = float(np.hypot(x1 - x0, y1 - y0))
@@ -109,7 +160,8 @@ def vein_network(rng: np.random.Generator, bounds_mm: tuple[float, float, float,
         pts = np.vstack([back[::-1], fwd[1:]])
         w = rng.uniform(1.6, 2.5)
         width = w * (1.0 + 0.15 * np.sin(np.linspace(0, rng.uniform(2, 6), len(pts)) + rng.uniform(0, 6)))
-        vessels.append(Vessel(pts, width, rng.uniform(0.25, 0.35)))
+        depth = rng.uniform(0.0, 0.35)
+        vessels.append(Vessel(pts, width, depth_contrast(depth, contrast_range), depth))
     # branches off existing vessels, then branches of branches
     for _ in range(n_trunks * 6):
         parent = vessels[int(rng.integers(len(vessels)))]
@@ -121,19 +173,24 @@ def vein_network(rng: np.random.Generator, bounds_mm: tuple[float, float, float,
         pts = centreline(rng, parent.points_mm[i], h, rng.uniform(15, 70), grow)
         w0 = max(0.6, parent.width_mm[i] * rng.uniform(0.45, 0.8))
         width = _tapered(len(pts), w0, max(0.6, 0.7 * w0))
-        vessels.append(Vessel(pts, width, min(parent.contrast, rng.uniform(0.15, 0.3))))
+        depth = max(parent.depth, rng.uniform(0.1, 1.0))
+        fade = end_fade(len(pts), False, True)
+        vessels.append(Vessel(pts, width, depth_contrast(depth, contrast_range), depth, fade))
     # gap fillers: short free vessels wherever the network leaves a hole
     for _ in range(400):
         gap_mm, where = _largest_gap(vessels, bounds_mm)
         if gap_mm <= MAX_GAP_MM:
             break
         h = rng.uniform(0, 2 * np.pi)
-        half = rng.uniform(15, 35)
+        half = rng.uniform(25, 60)
         fwd = centreline(rng, where, h, half, grow)
         back = centreline(rng, where, h + np.pi, half, grow)
         pts = np.vstack([back[::-1], fwd[1:]])
         w0 = rng.uniform(0.7, 1.6)
-        vessels.append(Vessel(pts, _tapered(len(pts), w0, max(0.6, 0.75 * w0)), rng.uniform(0.15, 0.3)))
+        depth = rng.uniform(0.2, 1.0)
+        width = _tapered(len(pts), w0, max(0.6, 0.75 * w0))
+        fade = end_fade(len(pts), True, True)
+        vessels.append(Vessel(pts, width, depth_contrast(depth, contrast_range), depth, fade))
     return vessels
 
 
@@ -153,14 +210,15 @@ def _largest_gap(vessels: list[Vessel], bounds_mm: tuple[float, float, float, fl
 def vein_darkness(
     vessels: list[Vessel], shape: tuple[int, int], origin_mm: tuple[float, float], px_per_mm: float
 ) -> np.ndarray:
-    """Return the vessels' fractional darkening (float32, shape): smooth profiles, max where they cross."""
+    """Return the vessels' fractional darkening (float32, shape, 0..1): soft profiles blurred by depth,
+    combined as transmissions (1 - prod(1 - d_i)) where they cross."""
     h, w = shape
-    dark = np.zeros(shape, np.float32)
+    transmission = np.ones(shape, np.float32)
     shift = 4  # cv2 sub-pixel drawing: coordinates in 1/16 px
     for v in vessels:
         px = (v.points_mm - np.asarray(origin_mm)) * px_per_mm
         wpx = v.width_mm * px_per_mm
-        sigma = max(BAND_LIMIT_SIGMA_PX, 0.22 * float(wpx.mean()))
+        sigma = max(BAND_LIMIT_SIGMA_PX, 0.22 * float(wpx.mean())) + DEPTH_BLUR_PX * v.depth * px_per_mm / 8.0
         pad = int(wpx.max() + 4 * sigma + 3)
         bx0, by0 = int(np.floor(px[:, 0].min())) - pad, int(np.floor(px[:, 1].min())) - pad
         bx1, by1 = int(np.ceil(px[:, 0].max())) + pad, int(np.ceil(px[:, 1].max())) + pad
@@ -169,23 +227,37 @@ def vein_darkness(
             continue
         canvas = np.zeros((by1 - by0, bx1 - bx0), np.uint8)
         fixed = np.round((px - (bx0, by0)) * (1 << shift)).astype(np.int64)
+        fade = np.ones(len(fixed)) if v.fade is None else v.fade
         for i in range(len(fixed) - 1):
             thickness = max(1, round(0.5 * (wpx[i] + wpx[i + 1])))
+            level = round(255 * 0.5 * (fade[i] + fade[i + 1]))
+            if level == 0:
+                continue
             p, q = (int(fixed[i, 0]), int(fixed[i, 1])), (int(fixed[i + 1, 0]), int(fixed[i + 1, 1]))
-            cv2.line(canvas, p, q, 255, thickness, cv2.LINE_AA, shift)
+            cv2.line(canvas, p, q, level, thickness, cv2.LINE_AA, shift)
         layer = cv2.GaussianBlur(canvas.astype(np.float32) * (v.contrast / 255.0), (0, 0), sigma)
         sub = layer[cy0 - by0 : cy1 - by0, cx0 - bx0 : cx1 - bx0]
-        np.maximum(dark[cy0:cy1, cx0:cx1], sub, out=dark[cy0:cy1, cx0:cx1])
-    return dark
+        transmission[cy0:cy1, cx0:cx1] *= 1.0 - sub
+    return 1.0 - transmission
 
 
-def make_world(rng: np.random.Generator, bounds_mm: tuple[float, float, float, float], px_per_mm: float = 8.0) -> World:
-    """Return a World covering bounds_mm (x_min, y_min, x_max, y_max in mm) at px_per_mm."""
+def make_world(
+    rng: np.random.Generator,
+    bounds_mm: tuple[float, float, float, float],
+    px_per_mm: float = 8.0,
+    vessel_contrast: tuple[float, float] = (0.03, 0.35),
+    textured_skin: bool = False,
+) -> World:
+    """Return a World (reflectance 0..1) covering bounds_mm (x_min, y_min, x_max, y_max in mm) at px_per_mm.
+
+    vessel_contrast: the vessels' fractional darkening range (deepest, shallowest); textured_skin: the easy
+    fine-grain skin instead of smooth diffuse skin.
+    """
     x0, y0, x1, y1 = bounds_mm
     w = int(np.ceil((x1 - x0) * px_per_mm))
     h = int(np.ceil((y1 - y0) * px_per_mm))
-    skin = skin_texture(rng, (h, w), px_per_mm)
-    vessels = vein_network(rng, (x0, y0, x0 + w / px_per_mm, y0 + h / px_per_mm))
+    skin = skin_texture(rng, (h, w), px_per_mm) if textured_skin else smooth_skin(rng, (h, w), px_per_mm)
+    vessels = vein_network(rng, (x0, y0, x0 + w / px_per_mm, y0 + h / px_per_mm), vessel_contrast)
     dark = vein_darkness(vessels, (h, w), (x0, y0), px_per_mm)
     image = cv2.GaussianBlur(skin * (1.0 - dark), (0, 0), BAND_LIMIT_SIGMA_PX)
     return World(np.clip(image, 0.02, 0.98).astype(np.float32), px_per_mm, (float(x0), float(y0)))

@@ -28,9 +28,9 @@ SEED = 11
 
 
 @cache
-def sim(scenario: str, seed: int = SEED) -> Scan:
-    """One simulation per (scenario, seed) for the whole module (the raster takes a few seconds)."""
-    return simulate(scenario, seed)
+def sim(scenario: str, seed: int = SEED, imaging: str = "realistic") -> Scan:
+    """One simulation per (scenario, seed, imaging) for the whole module (the raster takes a few seconds)."""
+    return simulate(scenario, seed, imaging)
 
 
 def test_unknown_scenario_is_rejected() -> None:
@@ -95,7 +95,11 @@ def test_raster_path_is_a_long_serpentine_with_overlapping_rows() -> None:
     assert np.abs(yaw).max() <= 3.0  # yaw drifts within a few degrees
     fz = np.asarray(scan.truth["fz_n"])
     assert 1.99 <= fz.min() < 4.0 and 10.0 < fz.max() <= 12.01
-    assert 0.005 <= len(scan.truth["blurred"]) / len(scan) <= 0.05
+    # 30 % of frames blurred by 2-5 px (binomial over 335 frames: std 2.5 %, so +-8 % is > 3 sigma)
+    blur = np.asarray(scan.truth["blur_px"])
+    assert 0.22 <= len(scan.truth["blurred"]) / len(scan) <= 0.38
+    np.testing.assert_array_equal(np.flatnonzero(blur), scan.truth["blurred"])
+    assert blur[blur > 0].min() >= 2 and blur.max() <= 5
 
 
 def test_hard_has_long_steps_large_yaw_and_quick_loads() -> None:
@@ -182,7 +186,7 @@ def test_window_mask_is_applied(scenario: str) -> None:
     full = float(np.iinfo(scan.frame(3).dtype).max)
     mask = scan.mask > 0
     w, h = scan.calibration.image_size
-    assert 0.75 < mask.mean() < 0.85  # ~ (370 x 290 - corners) / (400 x 320)
+    assert 0.93 < mask.mean() < 0.945  # ~ (624 x 464 - corners) / (640 x 480), as the shared scans' 93.7 %
     assert not mask[0, 0] and not mask[-1, -1] and mask[h // 2, w // 2]
     # outside: dark grey + noise; inside (away from the soft edge): skin well above it
     outside = frame[cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) == 0] / full
@@ -191,16 +195,25 @@ def test_window_mask_is_applied(scenario: str) -> None:
     assert inside.mean() > 0.35
 
 
-def test_raster_frames_have_enough_sift_keypoints() -> None:
-    scan = sim("raster")
+def test_textured_variant_is_the_easy_one_with_many_sift_keypoints() -> None:
     sift = cv2.SIFT_create(nfeatures=0)
-    counts = [len(sift.detect(scan.frame(k), scan.mask)) for k in range(0, len(scan), 16)]
-    assert np.mean(counts) >= 200, counts
+    easy, real = sim("short", SEED, "textured"), sim("short")
+    easy_counts = [len(sift.detect(easy.frame(k), easy.mask)) for k in range(0, len(easy), 8)]
+    real_counts = [len(sift.detect(real.frame(k), real.mask)) for k in range(0, len(real), 8)]
+    # measured: textured ~300-600 per frame, realistic 10-40 (the shared scans: 3-57)
+    assert np.mean(easy_counts) >= 200, easy_counts
+    assert np.mean(real_counts) < 60, real_counts
+    # the look never changes the motion: same poses, loads and forces for the same seed
+    assert easy.truth["poses"] == real.truth["poses"] and easy.truth["fz_n"] == real.truth["fz_n"]
+    np.testing.assert_array_equal(easy.forces_n, real.forces_n)
 
 
 def test_truth_poses_agree_with_the_image_content() -> None:
-    """Rectify with the TRUE constants and loads, match SIFT to frame 0: the similarity is the truth pose."""
-    scan = sim("short")
+    """Rectify with the TRUE constants and loads, match SIFT to frame 0: the similarity is the truth pose.
+
+    On the textured variant, whose many keypoints make plain SIFT a trustworthy independent measurement; the
+    geometry (motion, deformation, lens) is the same for every variant (asserted in the test above)."""
+    scan = sim("short", SEED, "textured")
     t = scan.truth
     calib = scan.calibration.with_overrides(
         young_modulus_kpa=t["young_modulus_kpa"], hooke_n_per_mm=t["hooke_n_per_mm"]
