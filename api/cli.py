@@ -6,6 +6,7 @@ import argparse
 import contextlib
 import json
 import sys
+import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -44,7 +45,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    """Reconstruct a scan folder and write path, mosaic, force layer and (with a reference) the report."""
+    """Reconstruct a scan folder and write path, mosaic, layers, plots and report (see services.results_io)."""
     from services.methods import method_options
     from services.pipeline import reconstruct
     from services.results_io import write_reconstruction
@@ -55,15 +56,22 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     with _bar(f"reconstruct ({args.method})", len(scan)) as bar:
         recon = reconstruct(scan, options, progress=_sized(bar))
     report = write_reconstruction(recon, args.out, scan.reference_mm)
-    ok = int(recon.registered.sum())
-    print(f"{ok}/{len(scan)} frames registered in {recon.seconds:.1f} s; outputs in {args.out}")
-    if report is not None:
-        print(
-            f"RMSE {report.rmse_mm:.3f} mm, max {report.max_error_mm:.3f} mm, final drift "
-            f"{report.final_drift_mm:.3f} mm, error ratio {report.error_ratio_pct:.3f}% over "
-            f"{report.path_length_mm:.0f} mm"
-        )
+    f = report.frames
+    print(
+        f"{f.n_ok}/{f.n_frames} frames registered ({100 * f.registered_fraction:.1f} %; {f.n_lost} lost, "
+        f"{f.n_rejected} rejected) in {recon.seconds:.1f} s; outputs in {args.out}"
+    )
+    if report.accuracy is not None:
+        print(report.accuracy.summary())
+    _print_warnings(report.warnings)
+    print(f"one-page report: {Path(args.out) / 'sheet.pdf'}")
     return 0
+
+
+def _print_warnings(warnings: list[dict[str, str]]) -> None:
+    """Print each warning on its own line, to stdout (it is part of the result) and flagged WARNING."""
+    for w in warnings:
+        print(f"WARNING: {w['message']}")
 
 
 def _parse_options(pairs: list[str]) -> dict[str, object]:
@@ -101,6 +109,39 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.scan) / "calibration.json"
     out.write_text(json.dumps(result.calibration.to_dict(), indent=2))
     print(f"wrote {out}")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """Write the vein mosaic, force map and coverage of a reconstruct output folder as DICOM files."""
+    from datetime import UTC, datetime
+
+    from services.dicom_export import EXPORT_LAYERS, ExportInfo, PatientInfo, export_layer
+    from services.results_io import read_results_mosaic
+
+    mosaic = read_results_mosaic(args.results)
+    patient = None
+    if any((args.patient_name, args.patient_id, args.patient_birth_date, args.patient_sex)):
+        patient = PatientInfo(args.patient_name, args.patient_id, args.patient_birth_date, args.patient_sex)
+    acquired = datetime.fromisoformat(args.acquired) if args.acquired else None
+    if acquired is not None and acquired.tzinfo is None:
+        acquired = acquired.replace(tzinfo=UTC)
+    meta = json.loads((Path(args.results) / "mosaic.json").read_text())
+    info = ExportInfo(
+        session_key=args.study_key or str(Path(args.results).resolve()),
+        acquired=acquired,
+        exported=datetime.now(UTC),
+        patient=patient,
+        method=str(meta.get("method") or ""),
+    )
+    out = Path(args.out) if args.out else Path(args.results) / "dicom"
+    out.mkdir(parents=True, exist_ok=True)
+    for layer in args.layer or list(EXPORT_LAYERS):
+        target = out / f"{layer}.dcm"
+        target.write_bytes(export_layer(mosaic, layer, info))
+        print(f"wrote {target}")
+    if patient is None:
+        print("no patient identity given: the patient attributes are present and empty")
     return 0
 
 
@@ -151,14 +192,25 @@ def cmd_upload(args: argparse.Namespace) -> int:
     if args.wait:
         state = client.wait_done(sid, timeout_s=args.timeout)
         print(json.dumps(state, indent=2))
+        _print_warnings(state.get("warnings", []))
     return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Serve, simulate a scan, upload it over HTTP, wait for the result and show it (report, images, viewer)."""
+    with contextlib.ExitStack() as stack:
+        if args.data_dir is None:  # a throw-away data dir: a demo run must not leave its uploads behind
+            args.data_dir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="veinmosaic-demo-")))
+            kept = "deleted when the demo ends"
+        else:
+            kept = "kept"
+        return _run_demo(args, kept)
+    return 1  # unreachable: for type checkers
+
+
+def _run_demo(args: argparse.Namespace, kept: str) -> int:
     import os
     import secrets
-    import tempfile
 
     import httpx
 
@@ -176,7 +228,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with service, tempfile.TemporaryDirectory() as tmp:
-        print(f"1/4 serving on {service.base_url} ({args.workers} workers, data in {service.data_dir})")
+        print(f"1/4 serving on {service.base_url} ({args.workers} workers; data in {service.data_dir}, {kept})")
         scan_dir = Path(tmp) / "scan"
         scan = simulate(args.scenario, args.seed)
         write_scan_folder(scan, scan_dir)
@@ -186,7 +238,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
         def started(created: dict) -> None:
             viewer["url"] = service.base_url + created.get("viewer_url", f"/viewer/{created['id']}")
-            print(f"   open the live viewer: {viewer['url']}")
+            tqdm.write("   open the live viewer (this link is valid while the demo serves):")
+            tqdm.write(viewer["url"])
 
         with _bar("3/4 upload", len(scan)) as bar:
             sid = upload_scan_folder(
@@ -200,26 +253,37 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
             state = client.wait_done(sid, timeout_s=args.timeout, progress=shown)
         report = client.post_reference(sid, (scan_dir / "reference.csv").read_text())
-        for name, url in [
-            ("mosaic.png", f"/v1/sessions/{sid}/mosaic.png"),
-            ("force.png", f"/v1/sessions/{sid}/mosaic.png?layer=force"),
+        state = client.session(sid)
+        base = f"/v1/sessions/{sid}"
+        downloads = [
+            ("mosaic.png", f"{base}/mosaic.png"),
+            ("force.png", f"{base}/mosaic.png?layer=force"),
+            ("coverage.png", f"{base}/mosaic.png?layer=coverage"),
+            ("sheet.png", f"{base}/sheet.png"),
+            ("sheet.pdf", f"{base}/sheet.pdf"),
+            *[(f"{layer}.dcm", f"{base}/export.dcm?layer={layer}") for layer in ("vein", "force", "coverage")],
             *[(Path(u.split("?")[0]).name, u) for u in report.get("plots", {}).values() if str(u).startswith("/")],
-        ]:
+        ]
+        for name, url in downloads:
             with contextlib.suppress(httpx.HTTPError, RuntimeError):
                 (out / name).write_bytes(client.request("GET", url).content)
+        registered = state.get("registered_fraction")
         print(
             f"session {state['status']}: {state.get('frames_processed')} frames processed, "
-            f"{state.get('frames_lost', 0)} lost"
+            f"{state.get('frames_lost', 0)} not placed"
+            + (f", {100 * registered:.1f} % registered" if registered is not None else "")
         )
-        print(
-            f"accuracy vs the simulator's ground truth: RMSE {report['rmse_mm']:.3f} mm, final drift "
-            f"{report['final_drift_mm']:.3f} mm, error ratio {report['error_ratio_pct']:.4f}% over "
-            f"{report['path_length_mm']:.0f} mm, registered {100 * report['registered_fraction']:.1f}%"
-        )
-        print(f"images and plots in {out.resolve()}; viewer: {viewer.get('url')}")
+        print(f"accuracy vs the simulator's ground truth: {report.get('accuracy_summary', '')}")
+        _print_warnings(state.get("warnings", []))
+        print(f"images, one-page report (sheet.pdf) and DICOM files in {out.resolve()}")
+        print("viewer:")
+        print(viewer.get("url", "(no session)"))
         if args.hold:
-            print("serving until Ctrl-C ...")
-            service.wait()
+            print("--hold: serving until Ctrl-C ...", flush=True)
+            with contextlib.suppress(KeyboardInterrupt):
+                service.wait()
+        else:
+            print("the demo ends now and stops the service (the viewer link stops working); --hold keeps it serving")
     return 0 if state["status"] == "done" else 1
 
 
@@ -231,67 +295,111 @@ def _free_port(host: str) -> int:
         return int(s.getsockname()[1])
 
 
-def _add_service_args(p: argparse.ArgumentParser, port: int) -> None:
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=port)
-    p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--data-dir", type=Path, default=None, help="default: VEINMOSAIC_DATA_DIR or ./data")
+class _Help(argparse.ArgumentDefaultsHelpFormatter):
+    """Help that shows every option's default (and keeps the description's line breaks)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if action.default is None or action.default is argparse.SUPPRESS or action.default is False:
+            return text
+        if action.default in ([], "") or "(default" in text or not action.option_strings:
+            return text
+        return text + " (default: %(default)s)"
+
+
+def _add_service_args(p: argparse.ArgumentParser, port: int, data_dir_help: str) -> None:
+    p.add_argument("--host", default="127.0.0.1", help="interface the API listens on")
+    p.add_argument("--port", type=int, default=port, help="API port" + (" (0: a free port)" if port == 0 else ""))
+    p.add_argument("--workers", type=int, default=2, help="worker processes to start")
+    p.add_argument("--data-dir", type=Path, default=None, help=data_dir_help)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of the veinmosaic command."""
-    parser = argparse.ArgumentParser(prog="veinmosaic", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(prog="veinmosaic", description=__doc__, formatter_class=_Help)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("simulate", help="write a simulated scan folder")
-    p.add_argument("--scenario", default="short", choices=["raster", "revisit", "hard", "short", "calib"])
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--out", required=True, type=Path)
+    def command(name: str, help_text: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help_text, description=help_text, formatter_class=_Help)
+
+    p = command("simulate", "write a simulated scan folder (spec §3) with reference.csv and truth.json")
+    p.add_argument(
+        "--scenario", default="short", choices=["raster", "revisit", "hard", "short", "calib"], help="kind of scan"
+    )
+    p.add_argument("--seed", type=int, default=1, help="random seed (same seed, same scan)")
+    p.add_argument("--out", required=True, type=Path, help="scan folder to write (required)")
     p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("reconstruct", help="reconstruct a scan folder offline")
-    p.add_argument("scan", type=Path)
-    p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--method", default="best", choices=["sift-chain", "paper", "best"])
+    p = command("reconstruct", "reconstruct a scan folder offline: path, mosaic, layers, plots, report")
+    p.add_argument("scan", type=Path, help="scan folder (spec §3)")
+    p.add_argument("--out", required=True, type=Path, help="output folder (required)")
+    p.add_argument("--method", default="best", choices=["sift-chain", "paper", "best"], help="registration method")
     p.add_argument(
         "--option",
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override a method option, e.g. features=asift (full ASIFT) or refine=false",
+        help="override a method option, repeatable, e.g. features=asift (full ASIFT) or refine=false (default: none)",
     )
     p.set_defaults(func=cmd_reconstruct)
 
-    p = sub.add_parser("calibrate", help="fit E and kappa from a calibration scan")
-    p.add_argument("scan", type=Path)
-    p.add_argument("--out", type=Path, default=None, help="default: SCAN/calibration.json")
+    p = command("export", "write a reconstruct output folder's mosaic, force map and coverage as DICOM")
+    p.add_argument("results", type=Path, help="a folder written by `veinmosaic reconstruct`")
+    p.add_argument("--out", type=Path, default=None, help="folder for the .dcm files (default: RESULTS/dicom)")
+    p.add_argument(
+        "--layer", action="append", choices=["vein", "force", "coverage"], help="layer to export, repeatable "
+        "(default: all three)"
+    )  # fmt: skip
+    p.add_argument("--acquired", default=None, help="acquisition date-time, ISO 8601 (default: left empty)")
+    p.add_argument(
+        "--study-key", default=None, help="key the study/series UIDs derive from (default: the results folder path)"
+    )
+    p.add_argument("--patient-name", default="", help="DICOM PatientName, as 'Family^Given' (default: empty)")
+    p.add_argument("--patient-id", default="", help="DICOM PatientID (default: empty)")
+    p.add_argument("--patient-birth-date", default="", help="DICOM PatientBirthDate, YYYYMMDD (default: empty)")
+    p.add_argument("--patient-sex", default="", choices=["", "M", "F", "O"], help="DICOM PatientSex (default: empty)")
+    p.set_defaults(func=cmd_export)
+
+    p = command("calibrate", "fit E and kappa from a calibration scan; write the updated calibration.json")
+    p.add_argument("scan", type=Path, help="calibration scan folder (with imu.csv for kappa)")
+    p.add_argument("--out", type=Path, default=None, help="where to write (default: SCAN/calibration.json)")
     p.set_defaults(func=cmd_calibrate)
 
-    p = sub.add_parser("serve", help="run the API and workers (embedded Redis when REDIS_URL is unset)")
-    _add_service_args(p, 8000)
+    p = command("serve", "run the API and workers (an embedded Redis when REDIS_URL is unset) until Ctrl-C")
+    _add_service_args(p, 8000, "uploads and results (default: VEINMOSAIC_DATA_DIR, else ./data)")
     p.set_defaults(func=cmd_serve)
 
-    p = sub.add_parser("worker", help="run one worker process")
+    p = command("worker", "run one worker process against REDIS_URL and VEINMOSAIC_DATA_DIR")
     p.set_defaults(func=cmd_worker)
 
-    p = sub.add_parser("upload", help="upload a scan folder to a server")
-    p.add_argument("scan", type=Path)
-    p.add_argument("--url", required=True)
-    p.add_argument("--key", required=True)
-    p.add_argument("--label", default="")
-    p.add_argument("--realtime", type=float, default=0.0, help="pace at this multiple of the recorded rate")
-    p.add_argument("--wait", action="store_true", help="wait until processing is done")
-    p.add_argument("--timeout", type=float, default=900.0)
+    p = command("upload", "upload a scan folder to a running server, as a hospital system would")
+    p.add_argument("scan", type=Path, help="scan folder (spec §3)")
+    p.add_argument("--url", required=True, help="server base URL, e.g. http://127.0.0.1:8000 (required)")
+    p.add_argument("--key", required=True, help="API key with scope ingest (required)")
+    p.add_argument("--label", default="", help="session label (stored, never logged)")
+    p.add_argument("--realtime", type=float, default=0.0, help="pace at this multiple of the recorded rate (0: fast)")
+    p.add_argument("--wait", action="store_true", help="wait until processing is done and print the state")
+    p.add_argument("--timeout", type=float, default=900.0, help="seconds to wait with --wait")
     p.set_defaults(func=cmd_upload)
 
-    p = sub.add_parser("demo", help="serve, simulate a scan, upload it over HTTP and show the result")
-    _add_service_args(p, 0)
-    p.add_argument("--scenario", default="revisit", choices=["raster", "revisit", "hard", "short"])
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--realtime", type=float, default=0.0)
-    p.add_argument("--out", type=Path, default=Path("demo-out"))
-    p.add_argument("--timeout", type=float, default=900.0)
-    p.add_argument("--hold", action=argparse.BooleanOptionalAction, default=sys.stdout.isatty())
+    p = command(
+        "demo",
+        "serve, simulate a scan, upload it over HTTP and show the result; stops serving at the end unless --hold",
+    )
+    _add_service_args(p, 0, "data dir to use and keep (default: a temporary one, deleted at the end)")
+    p.add_argument("--scenario", default="revisit", choices=["raster", "revisit", "hard", "short"], help="kind of scan")
+    p.add_argument("--seed", type=int, default=1, help="random seed of the simulated scan")
+    p.add_argument(
+        "--realtime", type=float, default=0.0, help="pace the upload at this multiple of real time (0: fast)"
+    )
+    p.add_argument("--out", type=Path, default=Path("demo-out"), help="folder for images, report and DICOM files")
+    p.add_argument("--timeout", type=float, default=900.0, help="seconds to wait for processing")
+    p.add_argument(
+        "--hold",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="keep serving (and the viewer link working) after the demo until Ctrl-C (default: stop at the end)",
+    )
     p.set_defaults(func=cmd_demo)
     return parser
 

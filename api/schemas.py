@@ -88,6 +88,10 @@ class SessionState(Strict):
     frames_received: int
     frames_processed: int
     frames_lost: int
+    frames_rejected: int = 0  # of the results served: frames rejected (blur, implausible jump, bad frame)
+    registered_fraction: float | None = None  # of the results served: frames placed / path rows
+    not_placed_reasons: dict[str, int] = Field(default_factory=dict)  # lost + rejected frames per reason
+    warnings: list[dict[str, str]] = Field(default_factory=list)  # [{"code", "message"}]: >5 % lost, failed, reprocess
     extent: dict[str, Any] | None = None
 
 

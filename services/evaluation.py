@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+MIN_COMPARED = 2  # frame 0 is the origin of both paths: one compared frame measures nothing
+
 
 @dataclass(frozen=True)
 class AccuracyReport:
@@ -15,6 +17,8 @@ class AccuracyReport:
 
     errors_mm (N,) holds the per-frame Euclidean error in mm, NaN where the frame is not registered or has
     no reference. error_ratio_pct = 100 * final_drift_mm / path_length_mm (NaN for a zero-length path).
+    With fewer than MIN_COMPARED frames compared (e.g. only frame 0, the origin by definition) the figures
+    are NaN: an error of 0 there says nothing about the method, so it must not read as a perfect score.
     """
 
     rmse_mm: float
@@ -33,6 +37,24 @@ class AccuracyReport:
         """Return the number of frames both registered and with a reference."""
         return int(np.count_nonzero(np.isfinite(self.errors_mm)))
 
+    @property
+    def meaningful(self) -> bool:
+        """Return True when enough frames were compared for the figures to say anything."""
+        return self.n_compared >= MIN_COMPARED
+
+    def summary(self) -> str:
+        """Return a one-line human summary that always states how much of the scan the figures cover."""
+        reg = f"{self.n_registered}/{self.n_frames} frames registered ({100 * self.registered_fraction:.1f} %)"
+        if not self.meaningful:
+            return f"accuracy not measurable: {reg}, {self.n_compared} compared with the reference"
+        text = f"RMSE {self.rmse_mm:.3f} mm, max {self.max_error_mm:.3f} mm, final drift {self.final_drift_mm:.3f} mm"
+        if math.isfinite(self.error_ratio_pct):
+            text += f", error ratio {self.error_ratio_pct:.3f}% over {self.path_length_mm:.0f} mm"
+        text += f" — over the {self.n_compared} registered frames with a reference; {reg}"
+        if self.n_registered < self.n_frames:
+            text += "; frames not registered are not in these figures"
+        return text
+
     def to_dict(self) -> dict[str, Any]:
         """Return a JSON-able dict: the figures (NaN as None) and errors_mm as a list with None for NaN."""
 
@@ -50,6 +72,7 @@ class AccuracyReport:
             "n_registered": int(self.n_registered),
             "n_with_reference": int(self.n_with_reference),
             "n_compared": self.n_compared,
+            "meaningful": self.meaningful,
             "errors_mm": [num(float(e)) for e in self.errors_mm],
         }
 
@@ -98,13 +121,16 @@ def evaluate_path(estimate_mm: np.ndarray, registered: np.ndarray, reference_mm:
     errors = np.full(n, np.nan)
     errors[compared] = np.linalg.norm(est[compared] - ref[compared], axis=1)
     valid = errors[compared]
-    rmse = float(np.sqrt(np.mean(valid**2)))
-    final_drift = float(errors[np.flatnonzero(compared)[-1]])
     length = reference_path_length_mm(ref)
-    ratio = 100.0 * final_drift / length if length > 0 else float("nan")
+    if len(valid) >= MIN_COMPARED:
+        rmse, max_error = float(np.sqrt(np.mean(valid**2))), float(np.max(valid))
+        final_drift = float(errors[np.flatnonzero(compared)[-1]])
+        ratio = 100.0 * final_drift / length if length > 0 else float("nan")
+    else:
+        rmse = max_error = final_drift = ratio = float("nan")
     return AccuracyReport(
         rmse_mm=rmse,
-        max_error_mm=float(np.max(valid)),
+        max_error_mm=max_error,
         final_drift_mm=final_drift,
         path_length_mm=length,
         error_ratio_pct=ratio,

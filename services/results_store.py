@@ -10,7 +10,8 @@ Layout under data_dir/sessions/<id>/results/:
     <v>/path.json               spec §4 path rows (null where a frame was not registered)
     <v>/mosaic.json             spec §4 fields + version, revisions, dzi, extent_mm, frames, status
     <v>/tiles/<layer>/<level>/<col>_<row>.png   Deep Zoom tiles, layer "vein" or "force"
-    <v>/{mosaic,force,paths,errors}.png, <v>/report.json, <v>/state.json
+    <v>/{mosaic,force,coverage,paths,errors}.png, <v>/report.json, <v>/state.json
+    <v>/layers.npz              raw force (cN) and coverage planes of the finished mosaic (DICOM export, report)
 Version 1 is the live run; reprocess makes 2, 3, ... Every write is atomic (storage.atomic_write_bytes), so
 readers (the API, other workers) see a whole old or a whole new file, never a part.
 """
@@ -29,17 +30,29 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from services.features import Features
 from services.force_model import LoadState
 from services.frame_prep import PreparedFrame
+from services.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
+from services.mosaic import MosaicImage, force_to_color
 from services.session_reconstruction import PathRow, path_rows_json
 from services.storage import atomic_write_bytes, directory_lock, durable_temp_file, fsync_dir
 
 LAYERS = ("vein", "force")
-IMAGE_NAMES = ("mosaic.png", "force.png", "paths.png", "errors.png")
+IMAGE_NAMES = ("mosaic.png", "force.png", "coverage.png", "paths.png", "errors.png", "layers.npz")
 LIVE_VERSION = 1
+
+
+def _png(image: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
 _SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
 REFERENCE_HEADER = ("seq", "x_mm", "y_mm")
 
@@ -373,6 +386,24 @@ class ResultsStore:
     def write_image(self, sid: str, v: int, name: str, png: bytes) -> None:
         """Write a whole image of version v."""
         atomic_write_bytes(self.image_path(sid, v, name), png)
+
+    def write_mosaic_images(self, sid: str, v: int, mosaic: MosaicImage, raw_layers: bool = True) -> None:
+        """Write mosaic.png, force.png, coverage.png and (raw_layers) layers.npz of a rendered mosaic."""
+        self.write_image(sid, v, "mosaic.png", _png(mosaic.vein))
+        self.write_image(sid, v, "force.png", _png(force_to_color(mosaic.force_n)))
+        self.write_image(sid, v, "coverage.png", _png(coverage_to_color(mosaic.coverage)))
+        if raw_layers:
+            self.write_image(sid, v, "layers.npz", layers_to_bytes(mosaic))
+
+    def read_mosaic_layers(self, sid: str, v: int) -> MosaicImage | None:
+        """Return the finished mosaic of version v with force in N and coverage, or None when not written."""
+        try:
+            raw = self.image_path(sid, v, "layers.npz").read_bytes()
+            png = self.image_path(sid, v, "mosaic.png").read_bytes()
+        except FileNotFoundError:
+            return None
+        vein = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+        return layers_from_bytes(raw, vein)
 
     def tile_path(self, sid: str, v: int, layer: str, level: int, col: int, row: int) -> Path:
         """Return the file of a Deep Zoom tile (it exists only where the tile has data)."""

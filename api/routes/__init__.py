@@ -1,6 +1,7 @@
 """HTTP routers of the v1 API; `ROUTERS` is what api.app includes."""
 
 from api.routes.events import router as events_router
+from api.routes.export import router as export_router
 from api.routes.health import router as health_router
 from api.routes.ingest import router as ingest_router
 from api.routes.metrics import router as metrics_router
@@ -15,6 +16,7 @@ ROUTERS = (
     sessions_router,
     ingest_router,
     results_router,
+    export_router,
     events_router,
     reprocess_router,
     viewer_router,
@@ -23,6 +25,7 @@ ROUTERS = (
 __all__ = [
     "ROUTERS",
     "events_router",
+    "export_router",
     "health_router",
     "ingest_router",
     "metrics_router",

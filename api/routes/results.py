@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
-import tempfile
+from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -28,19 +28,21 @@ from fastapi.responses import JSONResponse
 from api.deps import AppSettings, IngestSession, RedisClient, Store, ViewSession
 from api.errors import Conflict, NotFound, PayloadTooLarge, UnsupportedMediaType, Validation
 from api.routes.metrics import incr
-from services.evaluation import evaluate_path
-from services.plots import plot_error_along_scan, plot_paths_over_mosaic
+from services.plots import figure_bytes, plot_paths_over_mosaic
 from services.results_io import path_csv
 from services.results_store import ResultsStore, parse_reference_csv
 from services.session_reconstruction import PATH_COLUMNS, PathRow
+from services.session_report import SessionReport, build_session_report, path_arrays
 from services.storage import SessionStore
 
 router = APIRouter(prefix="/v1/sessions", tags=["results"])
 log = logging.getLogger("veinmosaic.api")
 
 Layer = Literal["vein", "force"]
-LAYER_IMAGES: dict[str, str] = {"vein": "mosaic.png", "force": "force.png"}
+ImageLayer = Literal["vein", "force", "coverage"]
+LAYER_IMAGES: dict[str, str] = {"vein": "mosaic.png", "force": "force.png", "coverage": "coverage.png"}
 PLOT_NAMES = ("paths", "errors")
+IMAGE_FILES = ("paths.png", "errors.png")  # the report images stored per version (the sheet is rendered on request)
 IMMUTABLE = "private, max-age=31536000, immutable"
 NO_CACHE = "no-cache"
 REFERENCE_TYPES = {"text/csv", "text/plain", "application/csv", "application/octet-stream", ""}
@@ -48,6 +50,7 @@ _FLOAT_COLUMNS = {"t_s", "x_mm", "y_mm", "yaw_deg", "fz_n", "tilt_x_deg", "tilt_
 
 VersionQuery = Annotated[int | None, Query(alias="v", ge=1, le=1_000_000, description="results version")]
 LayerQuery = Annotated[Layer, Query(description="vein (default) or force")]
+ImageLayerQuery = Annotated[ImageLayer, Query(description="vein (default), force (0-30 N) or coverage (frames)")]
 
 
 def get_results(request: Request) -> ResultsStore:
@@ -75,6 +78,18 @@ def resolve_version(rs: ResultsStore, sid: str, requested: int | None) -> int | 
         if (rs.version_dir(sid, v) / "mosaic.json").is_file():
             return v
     return current
+
+
+def reprocess_running(rs: ResultsStore, sid: str) -> bool:
+    """Return True while a results version newer than the current one is neither finished nor failed."""
+    current = rs.current_version(sid)
+    if current is None:
+        return False
+    try:
+        newer = [v for v in rs.list_versions(sid) if v > current]
+    except FileNotFoundError:
+        return False
+    return any(not ((state := rs.read_state(sid, v) or {}).get("finished") or state.get("failed")) for v in newer)
 
 
 def served_mosaic(rs: ResultsStore, sid: str, requested: int | None) -> tuple[int, dict[str, Any]]:
@@ -186,9 +201,9 @@ def _file_response(request: Request, path: Path, version: int, media_type: str, 
 
 @router.get("/{session_id}/mosaic.png", response_class=Response, responses={200: {"content": {"image/png": {}}}})
 def get_mosaic_png(
-    meta: ViewSession, rs: Results, request: Request, layer: LayerQuery = "vein", v: VersionQuery = None
+    meta: ViewSession, rs: Results, request: Request, layer: ImageLayerQuery = "vein", v: VersionQuery = None
 ) -> Response:
-    """Return the whole mosaic as PNG (8-bit gray; ?layer=force: the colour-coded force layer)."""
+    """Return the whole mosaic as PNG (8-bit gray; ?layer=force|coverage: the colour-coded layer, see legends)."""
     version = resolve_version(rs, meta.id, v)
     if version is None:
         raise NotFound("no mosaic yet: no frame of this session has been processed", code="not_ready")
@@ -282,13 +297,6 @@ def plot_url(sid: str, v: int, name: str) -> str:
     return f"/v1/sessions/{sid}/plots/{name}.png?v={v}"
 
 
-def _png_bytes(draw: Any, *args: Any) -> bytes:
-    with tempfile.TemporaryDirectory() as tmp:
-        target = Path(tmp) / "plot.png"
-        draw(target, *args)
-        return target.read_bytes()
-
-
 def parse_reference(
     store: SessionStore, sid: str, rows: list[dict[str, Any]], text: str
 ) -> tuple[list[int], np.ndarray]:
@@ -304,7 +312,7 @@ def parse_reference(
 
 
 def build_report(store: SessionStore, rs: ResultsStore, sid: str, v: int, reference_text: str) -> dict[str, Any]:
-    """Evaluate version v's path against reference.csv, write paths.png/errors.png/report.json; return the report.
+    """Evaluate version v's path against reference.csv, write the report's images and report.json; return it.
 
     Raises Validation naming the line for a bad reference, Conflict when version v has no path yet.
     """
@@ -314,45 +322,53 @@ def build_report(store: SessionStore, rs: ResultsStore, sid: str, v: int, refere
         raise Conflict("no path yet: post the reference after frames have been processed", code="not_ready")
     position = {s: i for i, s in enumerate(ordered)}
     path = [path_row(d) for d in sorted(rows, key=lambda d: int(d["seq"]))]
-    estimate = np.array([[p.x_mm, p.y_mm] for p in path], float)
-    registered = np.array([p.status == "ok" for p in path])
     reference = reference_all[[position[p.seq] for p in path]]
+    mosaic_doc = rs.read_mosaic_meta(sid, v) or {}
+    mosaic = rs.read_mosaic_layers(sid, v)
+    options = rs.read_options(sid, v) or {}
+    extra = {
+        "session": sid,
+        "results_version": v,
+        "mosaic_version": int(mosaic_doc.get("version", 0)),
+        "path_rows": len(path),
+        "method": options.get("method"),
+    }
     try:
-        report = evaluate_path(estimate, registered, reference)
+        report = build_session_report(path, reference, mosaic, extra, sheet=False)
     except ValueError as exc:
         raise Validation(f"reference.csv: {exc}", code="nothing_to_compare") from None
-
-    mosaic_doc = rs.read_mosaic_meta(sid, v) or {}
-    mosaic = None
-    try:
-        raw = rs.image_path(sid, v, "mosaic.png").read_bytes()
-        mosaic = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_GRAYSCALE)
-    except FileNotFoundError:
-        pass
-    px_per_mm = float(mosaic_doc.get("px_per_mm") or store.calibration(sid).px_per_mm)
-    origin = tuple(mosaic_doc.get("origin_px") or (0.0, 0.0))
-    if mosaic is None or "origin_px" not in mosaic_doc:
-        mosaic = None
-    paths_png = _png_bytes(
-        plot_paths_over_mosaic, estimate, registered, reference, mosaic, px_per_mm, (float(origin[0]), float(origin[1]))
-    )
-    errors_png = _png_bytes(plot_error_along_scan, report)
-    rs.write_image(sid, v, "paths.png", paths_png)
-    rs.write_image(sid, v, "errors.png", errors_png)
-    doc = report.to_dict()
-    options = rs.read_options(sid, v) or {}
-    doc.update(
-        {
-            "session": sid,
-            "results_version": v,
-            "mosaic_version": int(mosaic_doc.get("version", 0)),
-            "path_rows": len(path),
-            "method": options.get("method"),
-            "plots": {name: plot_url(sid, v, name) for name in PLOT_NAMES},
-        }
-    )
+    if mosaic is None:  # still live: paths.png over the served mosaic image, as it is now
+        report = _paths_over_live_mosaic(rs, sid, v, path, reference, mosaic_doc, report)
+    for name, data in report.images.items():
+        if name in IMAGE_FILES:
+            rs.write_image(sid, v, name, data)
+    doc = {**report.doc, "plots": {name: plot_url(sid, v, name) for name in PLOT_NAMES}}
     rs.write_report(sid, v, doc)
     return doc
+
+
+def _paths_over_live_mosaic(
+    rs: ResultsStore,
+    sid: str,
+    v: int,
+    path: list[PathRow],
+    reference: np.ndarray,
+    mosaic_doc: dict[str, Any],
+    report: SessionReport,
+) -> SessionReport:
+    try:
+        raw = rs.image_path(sid, v, "mosaic.png").read_bytes()
+    except FileNotFoundError:
+        return report
+    vein = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if vein is None or "origin_px" not in mosaic_doc or not mosaic_doc.get("px_per_mm"):
+        return report
+    estimate, registered = path_arrays(path)
+    origin = (float(mosaic_doc["origin_px"][0]), float(mosaic_doc["origin_px"][1]))
+    png = figure_bytes(
+        plot_paths_over_mosaic, estimate, registered, reference, vein, float(mosaic_doc["px_per_mm"]), origin
+    )
+    return replace(report, images={**report.images, "paths.png": png})
 
 
 async def _read_body(request: Request, limit: int) -> bytes:
@@ -435,4 +451,4 @@ def get_plot(
     return _file_response(request, rs.image_path(meta.id, version, f"{name}.png"), version, "image/png", "no plot yet")
 
 
-__all__ = ["Results", "extent_of", "get_results", "resolve_version", "router", "served_mosaic"]
+__all__ = ["Results", "extent_of", "get_results", "reprocess_running", "resolve_version", "router", "served_mosaic"]

@@ -17,10 +17,11 @@ from api.deps import (
     ViewSession,
 )
 from api.errors import Validation
-from api.routes.results import extent_of, get_results
+from api.routes.results import extent_of, get_results, reprocess_running, resolve_version
 from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
 from services import queue
 from services.calibration import CalibrationError, parse_calibration
+from services.scan_quality import scan_warnings, summarize_frames
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 log = logging.getLogger("veinmosaic.api")
@@ -70,6 +71,10 @@ def get_session(
 ) -> SessionState:
     """Return the session's status and frame counters (received from storage, processed/lost from workers)."""
     counters = queue.session_counters(r, meta.id, prefix=settings.redis_prefix)
+    results = get_results(request)
+    version = resolve_version(results, meta.id, None)
+    rows = results.read_path(meta.id, version) if version is not None else None
+    frames = summarize_frames(rows) if rows else None
     return SessionState(
         id=meta.id,
         status=meta.status,  # type: ignore[arg-type]
@@ -79,7 +84,11 @@ def get_session(
         frames_received=store.count_frames(meta.id),
         frames_processed=counters["processed"],
         frames_lost=counters["lost"],
-        extent=extent_of(get_results(request), meta.id),
+        frames_rejected=frames.n_rejected if frames else 0,
+        registered_fraction=frames.registered_fraction if frames else None,
+        not_placed_reasons=frames.reasons if frames else {},
+        warnings=scan_warnings(frames, meta.status, reprocess_running(results, meta.id)),
+        extent=extent_of(results, meta.id),
     )
 
 

@@ -9,7 +9,11 @@
  * - Server-Sent Events (/events) bring progress: new tile revisions, the tail of the probe path, counters.
  *   Changed tiles are reloaded by double buffering: a new TiledImage with the new revisions is loaded
  *   invisibly on top of the old one (unchanged tiles come from cache) and swapped in when fully loaded.
- * - The probe path is an SVG overlay in DZI pixels: px = dzi.origin_px + mm * px_per_mm.
+ * - The probe path is an SVG overlay in DZI pixels: px = dzi.origin_px + mm * px_per_mm, with start and end
+ *   markers and crosses where lost/rejected frames probably were; hovering shows a frame's seq, time, load, status.
+ * - A mm scale bar follows the zoom; the Measure tool reads the distance of two clicked points in mm.
+ * - The coverage layer is the whole coverage image placed on the Deep Zoom canvas (vein and force are tiled).
+ * - A banner shows the session's warnings (GET /v1/sessions/{id}: >5 % frames lost, failed, reprocess running).
  * Exposes window.veinmosaicViewer = {viewer, revisions, state, ...} for tests and debugging.
  */
 (function () {
@@ -36,8 +40,14 @@
     pxPerMm: null,
     extentMm: null,
     frames: { processed: 0, ok: 0, lost: 0, rejected: 0 },
+    framesKnown: false, // counters arrived (until then the status line says "loading results")
     received: null,
     path: new Map(), // seq -> [x_mm, y_mm, status]
+    rows: new Map(), // seq -> full path row (t_s, fz_n, reason, ...) from /path
+    mosaic: null, // mosaic.json geometry of the whole images (origin_px, width, height)
+    warnings: [], // [{code, message}] from GET /v1/sessions/{id}: the banner
+    scaleText: "",
+    measure: { active: false, points: [], mm: null },
     fitted: false,
     userMoved: false,
     done: false,
@@ -110,6 +120,22 @@
     };
   }
 
+  // The coverage layer is one whole image (mosaic.png?layer=coverage), placed where the mosaic lies on the
+  // Deep Zoom canvas; vein and force are tiled.
+  function layerPlacement() {
+    const d = state.dzi;
+    if (state.layer !== "coverage") return { source: makeTileSource(state.layer, d, state.resultsVersion), x: 0, y: 0, width: 1 };
+    const m = state.mosaic;
+    if (!m || !m.width || !m.origin_px) return null;
+    const url = apiUrl("/mosaic.png", { layer: "coverage", v: state.resultsVersion, mv: state.mosaicVersion });
+    return {
+      source: { type: "image", url: url, buildPyramid: false, crossOriginPolicy: false },
+      x: (d.origin_px[0] - m.origin_px[0]) / d.width,
+      y: (d.origin_px[1] - m.origin_px[1]) / d.width,
+      width: m.width / d.width,
+    };
+  }
+
   function refreshTiles() {
     if (!state.dzi) return;
     if (pending) {
@@ -119,11 +145,16 @@
     dirty = false;
     const first = current === null;
     state.loading = true;
+    const placement = layerPlacement();
+    if (!placement) {
+      state.loading = false;
+      return;
+    }
     viewer.addTiledImage({
-      tileSource: makeTileSource(state.layer, state.dzi, state.resultsVersion),
-      x: 0,
-      y: 0,
-      width: 1,
+      tileSource: placement.source,
+      x: placement.x,
+      y: placement.y,
+      width: placement.width,
       opacity: first ? 1 : 0,
       preload: true,
       success: function (event) {
@@ -166,52 +197,261 @@
   svg.setAttribute("id", "path-overlay");
   const group = document.createElementNS(SVG_NS, "g");
   const line = document.createElementNS(SVG_NS, "polyline");
-  const marker = document.createElementNS(SVG_NS, "circle");
+  const marker = document.createElementNS(SVG_NS, "circle"); // the latest frame, while live
   marker.setAttribute("r", "5");
+  marker.setAttribute("class", "now");
   marker.setAttribute("visibility", "hidden");
+  const startMark = document.createElementNS(SVG_NS, "circle");
+  startMark.setAttribute("r", "7");
+  startMark.setAttribute("class", "start");
+  const endMark = document.createElementNS(SVG_NS, "rect");
+  endMark.setAttribute("width", "12");
+  endMark.setAttribute("height", "12");
+  endMark.setAttribute("class", "end");
+  const lostGroup = document.createElementNS(SVG_NS, "g");
+  const measureGroup = document.createElementNS(SVG_NS, "g");
+  measureGroup.setAttribute("class", "measure");
   group.appendChild(line);
   svg.appendChild(group);
+  svg.appendChild(lostGroup);
+  svg.appendChild(startMark);
+  svg.appendChild(endMark);
   svg.appendChild(marker);
+  svg.appendChild(measureGroup);
   viewer.element.appendChild(svg);
   let lastPoint = null;
+  let firstPoint = null;
+  let lostPoints = []; // [[dzi x, dzi y, seq]] where a lost/rejected frame probably was
 
   function dziPoint(x_mm, y_mm) {
     const d = state.dzi;
     return [d.origin_px[0] + x_mm * state.pxPerMm, d.origin_px[1] + y_mm * state.pxPerMm];
   }
 
+  function placed(entry) {
+    return entry && entry[2] === "ok" && entry[0] !== null && entry[1] !== null && isFinite(entry[0]) && isFinite(entry[1]);
+  }
+
   function drawPath() {
     if (!state.dzi || !state.pxPerMm) return;
     const seqs = Array.from(state.path.keys()).sort((a, b) => a - b);
     const pts = [];
+    const okSeqs = [];
     lastPoint = null;
+    firstPoint = null;
     for (const seq of seqs) {
-      const [x, y, status] = state.path.get(seq);
-      if (status !== "ok" || x === null || y === null || !isFinite(x) || !isFinite(y)) continue;
-      const p = dziPoint(x, y);
+      const entry = state.path.get(seq);
+      if (!placed(entry)) continue;
+      const p = dziPoint(entry[0], entry[1]);
       pts.push(p[0].toFixed(1) + "," + p[1].toFixed(1));
+      okSeqs.push(seq);
+      if (!firstPoint) firstPoint = p;
       lastPoint = p;
+    }
+    // a frame not placed is marked between its placed neighbours (by seq): where the probe most likely was
+    lostPoints = [];
+    for (const seq of seqs) {
+      if (placed(state.path.get(seq))) continue;
+      let lo = null;
+      let hi = null;
+      for (const s of okSeqs) {
+        if (s < seq) lo = s;
+        else if (hi === null) hi = s;
+      }
+      const a = lo !== null ? state.path.get(lo) : null;
+      const b = hi !== null ? state.path.get(hi) : null;
+      let xy = null;
+      if (a && b) {
+        const f = (seq - lo) / (hi - lo);
+        xy = [a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1])];
+      } else if (a || b) {
+        xy = [(a || b)[0], (a || b)[1]];
+      }
+      if (xy) lostPoints.push(dziPoint(xy[0], xy[1]).concat([seq]));
     }
     line.setAttribute("points", pts.join(" "));
     placeOverlay();
   }
 
-  function placeOverlay() {
-    if (!state.dzi) return;
+  function elementScale() {
     const W = state.dzi.width;
     const vp = viewer.viewport;
     const p0 = vp.pixelFromPoint(new OpenSeadragon.Point(0, 0), true);
     const p1 = vp.pixelFromPoint(new OpenSeadragon.Point(1, 0), true);
-    const s = (p1.x - p0.x) / W; // element px per DZI px
-    group.setAttribute("transform", "translate(" + p0.x + "," + p0.y + ") scale(" + s + ")");
-    if (lastPoint) {
-      marker.setAttribute("cx", String(p0.x + lastPoint[0] * s));
-      marker.setAttribute("cy", String(p0.y + lastPoint[1] * s));
-      marker.setAttribute("visibility", "visible");
-    } else {
-      marker.setAttribute("visibility", "hidden");
+    return { p0: p0, s: (p1.x - p0.x) / W }; // element px per DZI px
+  }
+
+  function toElement(p, t) {
+    return [t.p0.x + p[0] * t.s, t.p0.y + p[1] * t.s];
+  }
+
+  function placeOverlay() {
+    if (!state.dzi) return;
+    const t = elementScale();
+    group.setAttribute("transform", "translate(" + t.p0.x + "," + t.p0.y + ") scale(" + t.s + ")");
+    const show = function (el, p, dx, dy, xAttr, yAttr) {
+      if (!p) {
+        el.setAttribute("visibility", "hidden");
+        return;
+      }
+      const e = toElement(p, t);
+      el.setAttribute(xAttr, String(e[0] + dx));
+      el.setAttribute(yAttr, String(e[1] + dy));
+      el.setAttribute("visibility", "visible");
+    };
+    show(marker, state.done ? null : lastPoint, 0, 0, "cx", "cy");
+    show(startMark, firstPoint, 0, 0, "cx", "cy");
+    show(endMark, state.done || state.status === "done" ? lastPoint : null, -6, -6, "x", "y");
+    while (lostGroup.firstChild) lostGroup.removeChild(lostGroup.firstChild);
+    for (const p of lostPoints) {
+      const e = toElement(p, t);
+      const cross = document.createElementNS(SVG_NS, "path");
+      cross.setAttribute("class", "lost");
+      cross.setAttribute("d", "M" + (e[0] - 5) + "," + (e[1] - 5) + "l10,10m0,-10l-10,10");
+      lostGroup.appendChild(cross);
+    }
+    drawMeasure(t);
+    drawScaleBar(t);
+  }
+
+  // ----- scale bar: a round number of mm, 60-160 px long ------------------------------------------------------
+  const scaleBar = document.getElementById("scale-bar");
+  const scaleLine = scaleBar.querySelector(".bar");
+  const scaleLabel = scaleBar.querySelector(".label");
+
+  function drawScaleBar(t) {
+    if (!state.pxPerMm) {
+      scaleBar.hidden = true;
+      return;
+    }
+    const pxPerMm = t.s * state.pxPerMm; // screen px per mm
+    const target = 120 / pxPerMm;
+    const pow = Math.pow(10, Math.floor(Math.log10(target)));
+    let mm = pow;
+    for (const k of [1, 2, 5, 10]) {
+      if (k * pow * pxPerMm <= 160) mm = k * pow;
+    }
+    scaleLine.style.width = (mm * pxPerMm).toFixed(1) + "px";
+    state.scaleText = (mm >= 1 ? String(Math.round(mm)) : mm.toPrecision(1)) + " mm";
+    state.scaleBarPx = mm * pxPerMm;
+    state.scaleBarMm = mm;
+    scaleLabel.textContent = state.scaleText;
+    scaleBar.hidden = false;
+  }
+
+  // ----- measuring tool: two clicks, the distance in mm -----------------------------------------------------
+  const measureButton = document.getElementById("measure");
+
+  function drawMeasure(t) {
+    while (measureGroup.firstChild) measureGroup.removeChild(measureGroup.firstChild);
+    const pts = state.measure.points.map((p) => toElement(p, t));
+    if (pts.length === 2) {
+      const l = document.createElementNS(SVG_NS, "line");
+      l.setAttribute("x1", pts[0][0]);
+      l.setAttribute("y1", pts[0][1]);
+      l.setAttribute("x2", pts[1][0]);
+      l.setAttribute("y2", pts[1][1]);
+      measureGroup.appendChild(l);
+      const label = document.createElementNS(SVG_NS, "text");
+      label.setAttribute("x", String((pts[0][0] + pts[1][0]) / 2 + 8));
+      label.setAttribute("y", String((pts[0][1] + pts[1][1]) / 2 - 8));
+      label.setAttribute("id", "measure-label");
+      label.textContent = state.measure.mm.toFixed(1) + " mm";
+      measureGroup.appendChild(label);
+    }
+    for (const p of pts) {
+      const c = document.createElementNS(SVG_NS, "circle");
+      c.setAttribute("cx", p[0]);
+      c.setAttribute("cy", p[1]);
+      c.setAttribute("r", "4");
+      measureGroup.appendChild(c);
     }
   }
+
+  function setMeasuring(on) {
+    state.measure.active = on;
+    measureButton.setAttribute("aria-pressed", on ? "true" : "false");
+    if (on) {
+      state.measure.points = [];
+      state.measure.mm = null;
+    }
+    if (state.dzi) placeOverlay();
+    render();
+  }
+
+  measureButton.addEventListener("click", function () {
+    setMeasuring(!state.measure.active);
+  });
+
+  viewer.addHandler("canvas-click", function (event) {
+    if (!state.measure.active || !event.quick || !state.dzi || !state.pxPerMm) return;
+    event.preventDefaultAction = true;
+    const vpPoint = viewer.viewport.pointFromPixel(event.position, true);
+    const p = [vpPoint.x * state.dzi.width, vpPoint.y * state.dzi.width]; // DZI px
+    if (state.measure.points.length >= 2) state.measure.points = [];
+    state.measure.points.push(p);
+    if (state.measure.points.length === 2) {
+      const [a, b] = state.measure.points;
+      state.measure.mm = Math.hypot(b[0] - a[0], b[1] - a[1]) / state.pxPerMm;
+    } else {
+      state.measure.mm = null;
+    }
+    placeOverlay();
+    render();
+  });
+
+  // ----- hovering the path: the nearest frame within 12 px --------------------------------------------------
+  const tooltip = document.getElementById("tooltip");
+
+  function frameText(seq) {
+    const row = state.rows.get(seq);
+    const entry = state.path.get(seq);
+    const status = row ? row.status : entry ? entry[2] : "?";
+    let text = "frame " + seq;
+    if (row && row.t_s !== null && row.t_s !== undefined) text += " · t " + Number(row.t_s).toFixed(2) + " s";
+    if (row && row.fz_n !== null && row.fz_n !== undefined) text += " · load " + Number(row.fz_n).toFixed(1) + " N";
+    text += " · " + status;
+    if (row && row.reason) text += " (" + row.reason.replace(/_/g, " ") + ")";
+    return text;
+  }
+
+  function nearestFrame(x, y) {
+    if (!state.dzi || !state.pxPerMm) return null;
+    const t = elementScale();
+    let best = null;
+    let bestD = 12;
+    const consider = function (p, seq) {
+      const e = toElement(p, t);
+      const d = Math.hypot(e[0] - x, e[1] - y);
+      if (d <= bestD) {
+        bestD = d;
+        best = { seq: seq, x: e[0], y: e[1] };
+      }
+    };
+    for (const [seq, entry] of state.path) {
+      if (placed(entry)) consider(dziPoint(entry[0], entry[1]), seq);
+    }
+    for (const p of lostPoints) consider(p, p[2]);
+    return best;
+  }
+
+  viewer.element.addEventListener("pointermove", function (e) {
+    const box = viewer.element.getBoundingClientRect();
+    const hit = svg.classList.contains("hidden") ? null : nearestFrame(e.clientX - box.left, e.clientY - box.top);
+    state.hover = hit ? hit.seq : null;
+    if (!hit) {
+      tooltip.hidden = true;
+      return;
+    }
+    tooltip.textContent = frameText(hit.seq);
+    tooltip.hidden = false;
+    const left = Math.min(e.clientX + 14, window.innerWidth - tooltip.offsetWidth - 4); // stays on screen
+    tooltip.style.left = Math.max(4, left) + "px";
+    tooltip.style.top = e.clientY + 14 + "px";
+  });
+  viewer.element.addEventListener("pointerleave", function () {
+    tooltip.hidden = true;
+  });
 
   viewer.addHandler("update-viewport", placeOverlay);
   viewer.addHandler("resize", placeOverlay);
@@ -247,7 +487,11 @@
       revisions[layer] = Object.assign({}, (doc.revisions && doc.revisions[layer]) || {});
     }
     if (doc.extent_mm !== undefined) state.extentMm = doc.extent_mm;
-    if (doc.frames) Object.assign(state.frames, doc.frames);
+    if (doc.width && doc.origin_px) state.mosaic = { width: doc.width, height: doc.height, origin_px: doc.origin_px };
+    if (doc.frames) {
+      Object.assign(state.frames, doc.frames);
+      state.framesKnown = true;
+    }
     if (doc.status) state.status = doc.status;
     if (versionChanged) state.path = new Map();
     return true;
@@ -273,6 +517,7 @@
     refreshTiles();
     autoFit();
     render();
+    schedulePathReload(); // the full rows (time, load, reason) for hovering
   }
 
   async function reloadMosaic() {
@@ -292,6 +537,7 @@
     const rows = await getJson("/path", state.resultsVersion ? { v: state.resultsVersion } : {});
     if (!rows) return;
     state.path = new Map(rows.map((r) => [r.seq, [r.x_mm, r.y_mm, r.status]]));
+    state.rows = new Map(rows.map((r) => [r.seq, r]));
     drawPath();
   }
 
@@ -322,14 +568,19 @@
     }
     if (data.mosaic_version !== undefined) state.mosaicVersion = data.mosaic_version;
     for (const k of ["processed", "ok", "lost", "rejected"]) {
-      if (data[k] !== undefined) state.frames[k] = data[k];
+      if (data[k] !== undefined) {
+        state.frames[k] = data[k];
+        state.framesKnown = true;
+      }
     }
+    if (state.layer === "coverage" && data.mosaic_version !== undefined) changed = true;
     if (data.extent_mm !== undefined && data.extent_mm !== null) state.extentMm = data.extent_mm;
     if (data.status) state.status = data.status;
     mergePath(data.path_tail);
     drawPath();
     if (data.path_reset) schedulePathReload();
     if (changed) refreshTiles();
+    if (data.status === "done" || data.path_reset) schedulePathReload();
     autoFit();
     render();
   }
@@ -380,6 +631,11 @@
       if (s) {
         state.received = s.frames_received;
         if (s.status) state.status = s.status;
+        state.warnings = s.warnings || [];
+        if (!state.framesKnown && s.frames_processed > 0) {
+          state.frames.processed = s.frames_processed;
+          state.framesKnown = true;
+        }
         render();
       }
     } catch (err) {
@@ -389,18 +645,43 @@
 
   // ----- controls and status text -----------------------------------------------------------------------------
   const statusEl = document.getElementById("status");
-  const legend = document.getElementById("force-legend");
 
-  function render() {
+  const banner = document.getElementById("banner");
+  const legends = {
+    vein: document.getElementById("vein-legend"),
+    force: document.getElementById("force-legend"),
+    coverage: document.getElementById("coverage-legend"),
+  };
+
+  function statusText() {
     const f = state.frames;
     let text = state.status;
-    text += " · " + f.processed + " frames processed (" + f.ok + " placed, " + f.lost + " lost";
-    text += f.rejected ? ", " + f.rejected + " rejected)" : ")";
+    if (!state.framesKnown || (state.status === "done" && f.processed === 0 && (state.loading || !state.dzi))) {
+      // never "done · 0 frames processed" while the results are still on their way
+      text += state.status === "receiving" && !state.dzi ? " · waiting for the first frames" : " · loading results…";
+    } else {
+      text += " · " + f.processed + " frames processed (" + f.ok + " placed, " + f.lost + " lost";
+      text += f.rejected ? ", " + f.rejected + " rejected)" : ")";
+    }
     if (state.received !== null) text += " · " + state.received + " received";
+    if (state.measure.active) {
+      text += state.measure.mm !== null ? " · distance " + state.measure.mm.toFixed(1) + " mm" : " · click two points to measure";
+    }
     if (state.error) text += " · " + state.error;
-    statusEl.textContent = text;
+    return text;
+  }
+
+  function render() {
+    statusEl.textContent = statusText();
+    statusEl.title = statusEl.textContent;
     statusEl.classList.toggle("error", Boolean(state.error) && !state.error.startsWith("reconnecting"));
-    legend.hidden = state.layer !== "force";
+    for (const [name, el] of Object.entries(legends)) el.hidden = state.layer !== name;
+    const messages = state.warnings.map((w) => w.message);
+    if (state.status === "failed" && !state.warnings.some((w) => w.code === "processing_failed")) {
+      messages.unshift("Processing failed: the results may be incomplete.");
+    }
+    banner.textContent = messages.map((m) => "⚠ " + m).join("\n");
+    banner.hidden = messages.length === 0;
   }
 
   function showError(err) {
@@ -431,6 +712,8 @@
     refresh: refreshTiles,
     fit: fitToExtent,
     dziPoint: dziPoint,
+    measure: setMeasuring,
+    frameText: frameText,
     currentItem: function () {
       return current;
     },

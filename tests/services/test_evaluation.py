@@ -93,3 +93,22 @@ def test_nothing_comparable_raises() -> None:
 def test_reference_path_length_helper() -> None:
     assert reference_path_length_mm(np.array([[0.0, 0.0], [3.0, 4.0]])) == pytest.approx(5.0)
     assert reference_path_length_mm(np.array([[0.0, 0.0]])) == 0.0
+
+
+def test_only_frame_zero_registered_is_not_a_perfect_score() -> None:
+    # frame 0 is the origin of both paths: its zero error says nothing; the figures must not read 0.000 mm
+    reference = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    estimate = np.array([[0.0, 0.0], [NAN, NAN], [NAN, NAN], [NAN, NAN]])
+    report = evaluate_path(estimate, np.array([True, False, False, False]), reference)
+    assert not report.meaningful and math.isnan(report.rmse_mm) and math.isnan(report.final_drift_mm)
+    doc = report.to_dict()
+    assert doc["rmse_mm"] is None and doc["meaningful"] is False and doc["registered_fraction"] == 0.25
+    assert report.summary() == "accuracy not measurable: 1/4 frames registered (25.0 %), 1 compared with the reference"
+
+
+def test_summary_states_the_registered_share() -> None:
+    reference = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    estimate = np.array([[0.0, 0.0], [1.0, 0.1], [NAN, NAN], [3.0, 0.2]])
+    text = evaluate_path(estimate, np.array([True, True, False, True]), reference).summary()
+    assert text.startswith("RMSE ") and "3/4 frames registered (75.0 %)" in text
+    assert "frames not registered are not in these figures" in text

@@ -13,7 +13,9 @@ from services.plots import (
     ESTIMATE_COLOR,
     METHOD_COLORS,
     REFERENCE_COLOR,
+    plot_coverage_map,
     plot_error_along_scan,
+    plot_force_map,
     plot_method_comparison,
     plot_paths_over_mosaic,
 )
@@ -116,3 +118,27 @@ def test_bad_input_is_rejected(tmp_path: Path) -> None:
         plot_paths_over_mosaic(tmp_path / "x.png", np.zeros((3, 2)), np.ones(2, bool), None, None, 8.0, (0, 0))
     with pytest.raises(ValueError, match="no method"):
         plot_method_comparison(tmp_path / "y.png", {}, None)
+
+
+def test_reference_stays_visible_on_a_perfect_estimate(tmp_path: Path) -> None:
+    # estimate == reference: before, the estimate was drawn over the reference and hid it entirely
+    reference = _paths()[2]
+    out = tmp_path / "paths.png"
+    plot_paths_over_mosaic(out, reference.copy(), np.ones(len(reference), bool), reference, None, 8.0, (0.0, 0.0))
+    img = _read(out)
+    assert _colour_mask(img, REFERENCE_COLOR).sum() > 150
+    assert _colour_mask(img, ESTIMATE_COLOR).sum() > 150
+
+
+def test_force_and_coverage_maps_have_colour_scales(tmp_path: Path) -> None:
+    force = np.full((80, 120), np.nan, np.float32)
+    force[10:70, 10:110] = np.linspace(0, 30, 100, dtype=np.float32)
+    coverage = np.where(np.isfinite(force), 3.0, 0.0).astype(np.float32)
+    plot_force_map(tmp_path / "force_map.png", force, 8.0, (60.0, 40.0))
+    plot_coverage_map(tmp_path / "coverage_map.png", coverage, 8.0, (60.0, 40.0))
+    for name in ("force_map.png", "coverage_map.png"):
+        img = _read(tmp_path / name)
+        # a colour bar: a tall, narrow, strongly coloured column right of the image
+        colourful = np.ptp(img.astype(np.int16), axis=2) > 60
+        right = colourful[:, int(0.75 * img.shape[1]) :]
+        assert right.any(axis=1).sum() > 0.5 * img.shape[0], name

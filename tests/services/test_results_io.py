@@ -15,7 +15,7 @@ import pytest
 from services.mosaic import MosaicImage
 from services.pipeline import PATH_COLUMNS, PathRow, Reconstruction
 from services.registration import IDENTITY, Similarity
-from services.results_io import path_csv, write_reconstruction
+from services.results_io import path_csv, read_results_mosaic, write_reconstruction
 from services.session_reconstruction import path_rows_json
 
 NAN = math.nan
@@ -73,9 +73,12 @@ def test_path_json_uses_null_for_unregistered() -> None:
 
 def test_write_reconstruction_without_reference(tmp_path: Path) -> None:
     report = write_reconstruction(_recon(), tmp_path / "out", None)
-    assert report is None
+    assert report.accuracy is None
     out = tmp_path / "out"
-    assert {p.name for p in out.iterdir()} == {"path.csv", "mosaic.png", "force.png", "coverage.png", "mosaic.json"}
+    assert {p.name for p in out.iterdir()} == {
+        "path.csv", "mosaic.png", "force.png", "coverage.png", "layers.npz", "mosaic.json", "force_map.png",
+        "coverage_map.png", "report.json", "sheet.png", "sheet.pdf",
+    }  # fmt: skip
     png = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED)
     assert png.dtype == np.uint8 and png.shape == (60, 80)
     meta = json.loads((out / "mosaic.json").read_text())
@@ -83,22 +86,38 @@ def test_write_reconstruction_without_reference(tmp_path: Path) -> None:
     assert (meta["width"], meta["height"]) == (80, 60)
     assert meta["method"] == "best"
     force = cv2.imread(str(out / "force.png"), cv2.IMREAD_UNCHANGED)
-    assert force.shape == (60, 80, 3)
+    assert force.shape == (60, 80, 3)  # the layer, pixel-aligned with mosaic.png
     assert force[0, 0].tolist() == [0, 0, 0] and force[30, 40].sum() > 0
     coverage = cv2.imread(str(out / "coverage.png"), cv2.IMREAD_UNCHANGED)
-    expected = np.clip(np.rint(_recon().mosaic.coverage), 0, 255).astype(np.uint8)
-    assert coverage.dtype == np.uint8 and np.array_equal(coverage, expected)
+    assert coverage.shape == (60, 80, 4)  # BGRA: transparent where never scanned
+    assert coverage[0, 0, 3] == 0 and coverage[30, 40, 3] == 255
+    # the raw layers read back in N and frames
+    back = read_results_mosaic(out)
+    assert np.nanmax(back.force_n) == pytest.approx(12.0, abs=0.005) and np.isnan(back.force_n[0, 0])
+    assert back.coverage[30, 40] == 1 and back.coverage[0, 0] == 0
+    # report.json without a reference: the frames and the warning, no accuracy figures
+    doc = json.loads((out / "report.json").read_text())
+    assert "rmse_mm" not in doc
+    assert doc["frames"] == {
+        "total": 3, "ok": 2, "lost": 1, "rejected": 0, "registered_fraction": pytest.approx(2 / 3),
+        "lost_reasons": {"few_inliers": 1}, "rejected_reasons": {},
+    }  # fmt: skip
+    assert [w["code"] for w in doc["warnings"]] == ["frames_lost"]  # 1 of 3 > 5 %
+    assert (out / "sheet.pdf").read_bytes().startswith(b"%PDF")
+    for name in ("force_map.png", "coverage_map.png", "sheet.png"):
+        assert cv2.imread(str(out / name)) is not None
 
 
 def test_write_reconstruction_with_reference(tmp_path: Path) -> None:
     reference = np.array([[0.0, 0.0], [0.5, -1.0], [1.23456 + 0.3, -2.5 - 0.4]])  # frame 2 off by 0.5 mm
-    report = write_reconstruction(_recon(), tmp_path, reference)
-    assert report is not None
+    report = write_reconstruction(_recon(), tmp_path, reference, sheet=False)
+    assert report.accuracy is not None
     doc = json.loads((tmp_path / "report.json").read_text())
     # errors 0 and 0.5 mm over the two registered frames: RMSE sqrt(0.25 / 2)
     assert doc["rmse_mm"] == pytest.approx(math.sqrt(0.125), rel=1e-9)
     assert doc["registered_fraction"] == pytest.approx(2 / 3)
     assert doc["method"] == "best" and doc["seconds_per_frame"] == pytest.approx(0.5)
     assert doc["plots"] == {"paths": "paths.png", "errors": "errors.png"}
+    assert "2/3 frames registered" in doc["accuracy_summary"]
     for name in ("paths.png", "errors.png"):
         assert cv2.imread(str(tmp_path / name)) is not None

@@ -1,0 +1,272 @@
+"""The viewer's clinical tools in a real headless Chromium against the real API (HTTP, Redis, no workers).
+
+The results are a known fixture written with the services code the workers use (SparseCanvas, TilePyramid,
+ResultsStore): 30 synthetic frames placed along a straight 58 mm line, 5 of them lost — independent of the
+registration algorithm, so the viewer is tested on geometry known exactly. Checked for real in the page:
+the mm scale bar follows the zoom, the measuring tool reads the known distance between the path's start and
+end in mm, the banner shows the >5 % lost warning, lost frames are marked, hovering a frame shows its seq,
+time and load in N, and the coverage layer renders in colour where the vein layer is grey.
+Screenshots go to tests/artifacts/viewer_tools_*.png.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from test_viewer_browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, _free_port, open_viewer
+
+from api.client import VeinmosaicClient
+from api.launcher import Service
+from services.deepzoom import DziGeometry, TilePyramid
+from services.mosaic import FrameLayers, SparseCanvas, blend_weight
+from services.registration import Similarity
+from services.results_store import LAYERS, ResultsStore
+from services.session_reconstruction import PathRow
+from services.storage import SessionStore
+
+pytestmark = pytest.mark.slow
+
+KEY = "viewer-tools-key"
+PX_PER_MM = 8.0
+N_FRAMES = 30
+STEP_MM = 2.0
+LOST = (7, 8, 15, 21, 22)  # 5 of 30 = 16.7 % > 5 %: the banner must show
+FRAME_SHAPE = (160, 200)  # h, w px: 20 x 25 mm
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
+    """Start Redis (REDIS_URL, else embedded) and the API on a free port, without workers."""
+    if not os.path.exists(CHROMIUM):
+        pytest.fail(f"{CHROMIUM} is missing: install Debian's chromium (scripts/test.sh does)")
+    extra_env = {
+        "VEINMOSAIC_API_KEYS": json.dumps({KEY: ["ingest", "view"]}),
+        "VEINMOSAIC_REDIS_PREFIX": f"vmtools:{uuid.uuid4().hex}:",
+        "VEINMOSAIC_TOKEN_SECRET": "tools-test-secret",
+        "VEINMOSAIC_LOG_LEVEL": "WARNING",
+    }
+    svc = Service(
+        tmp_path_factory.mktemp("tools") / "data",
+        port=_free_port(),
+        workers=0,
+        redis_url=os.environ.get("REDIS_URL") or None,
+        extra_env=extra_env,
+    )
+    with svc:
+        yield svc
+
+
+def _frame(seq: int) -> FrameLayers:
+    rng = np.random.default_rng(seq)
+    h, w = FRAME_SHAPE
+    veins = cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), 6)
+    veins = (veins - veins.min()) / (np.ptp(veins) + 1e-6)
+    mask = np.zeros((h, w), np.uint8)
+    cv2.ellipse(mask, (w // 2, h // 2), (w // 2 - 4, h // 2 - 4), 0, 0, 360, 255, -1)
+    weight = blend_weight(mask, ramp_px=10)
+    force = np.full((h, w), 4.0 + 0.5 * seq, np.float32)
+    return FrameLayers(0.3 + 0.4 * veins, weight, force, (w / 2, h / 2), PX_PER_MM)
+
+
+def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:
+    """Write results version 1 of `sid` as a worker would: tiles, images, mosaic.json, path, state."""
+    canvas = SparseCanvas(PX_PER_MM)
+    rows = []
+    for seq in range(N_FRAMES):
+        x = STEP_MM * seq
+        lost = seq in LOST
+        if not lost:
+            canvas.paste(_frame(seq), Similarity(1 + 0j, complex(x, 0.0)))
+        nan = float("nan")
+        rows.append(
+            PathRow(
+                seq, 0.1 * seq, nan if lost else x, nan if lost else 0.0, nan if lost else 0.0, 4.0 + 0.5 * seq,
+                0.0, 0.0, 1.0, 0 if lost else 120, "lost" if lost else "ok", "few_inliers" if lost else "",
+            )
+        )  # fmt: skip
+    rs = ResultsStore(data_dir)
+    rs.ensure_version(sid, 1, {"method": "best"})
+    geometry = DziGeometry.for_mosaic(PX_PER_MM)
+    pyramid = TilePyramid(geometry)
+    revisions: dict[str, dict[str, int]] = {layer: {} for layer in LAYERS}
+    for level, col, row in pyramid.update(canvas, set(canvas.tiles)):
+        for layer in LAYERS:
+            png = pyramid.render_png(level, col, row, layer)
+            if png is not None:
+                rs.write_tile(sid, 1, layer, level, col, row, png)
+                revisions[layer][f"{level}/{col}_{row}"] = 1
+    mosaic = canvas.render()
+    rs.write_mosaic_images(sid, 1, mosaic)
+    half_w, half_h = FRAME_SHAPE[1] / 2 / PX_PER_MM, FRAME_SHAPE[0] / 2 / PX_PER_MM
+    doc = {
+        **mosaic.meta(),
+        "version": 1,
+        "results_version": 1,
+        "revisions": revisions,
+        "dzi": geometry.to_dict(),
+        "extent_mm": [-half_w, -half_h, STEP_MM * (N_FRAMES - 1) + half_w, half_h],
+        "frames": {"processed": N_FRAMES, "ok": N_FRAMES - len(LOST), "lost": len(LOST), "rejected": 0},
+        "status": "done",
+        "method": "best",
+    }
+    rs.write_mosaic_meta(sid, 1, doc)
+    rs.write_path(sid, 1, rows)
+    rs.write_state(sid, 1, {"cursor": N_FRAMES, "fence": 1, "finished": True, "lost": list(LOST), "rejected": []})
+    return rows
+
+
+def _element_xy(page: Any, x_mm: float, y_mm: float) -> tuple[float, float]:
+    """Return the page coordinates of a mosaic point (mm), computed by OpenSeadragon, not by viewer.js."""
+    return tuple(
+        page.evaluate(
+            """([x, y]) => {
+              const v = window.veinmosaicViewer, d = v.state.dzi;
+              const item = v.currentItem();
+              const p = item.imageToViewerElementCoordinates(
+                new OpenSeadragon.Point(d.origin_px[0] + x * v.state.pxPerMm, d.origin_px[1] + y * v.state.pxPerMm));
+              const box = v.viewer.element.getBoundingClientRect();
+              return [box.left + p.x, box.top + p.y];
+            }""",
+            [x_mm, y_mm],
+        )
+    )
+
+
+def _screen_px_per_mm(page: Any) -> float:
+    return float(
+        page.evaluate(
+            """() => {
+              const v = window.veinmosaicViewer, item = v.currentItem();
+              const a = item.imageToViewerElementCoordinates(new OpenSeadragon.Point(0, 0));
+              const b = item.imageToViewerElementCoordinates(new OpenSeadragon.Point(v.state.pxPerMm, 0));
+              return b.x - a.x;
+            }"""
+        )
+    )
+
+
+def _wait_idle(page: Any) -> None:
+    page.wait_for_function("() => window.veinmosaicViewer && window.veinmosaicViewer.idle()", timeout=30000)
+    page.wait_for_timeout(700)  # the viewport animation (0.5 s) settles
+
+
+def _pixel(shot: np.ndarray, xy: tuple[float, float], box: dict[str, float]) -> np.ndarray:
+    x, y = round(xy[0] - box["x"]), round(xy[1] - box["y"])
+    return shot[y - 2 : y + 3, x - 2 : x + 3].reshape(-1, 3).astype(int)
+
+
+def test_viewer_tools_in_chromium(service: Service) -> None:
+    from playwright.sync_api import sync_playwright
+
+    client = VeinmosaicClient(service.base_url, KEY)
+    calibration = {"image_size": [200, 160], "camera_matrix": [[300, 0, 100], [0, 300, 80], [0, 0, 1]]}
+    created = client.create_session({**calibration, "px_per_mm": PX_PER_MM}, "")
+    sid = created["id"]
+    install_fixture(service.data_dir, sid)
+    store = SessionStore(service.data_dir)
+    store.finish(sid)
+    store.set_status(sid, "done")  # as the register stage does when the version is complete
+    state = client.session(sid)
+    assert [w["code"] for w in state["warnings"]] == ["frames_lost"], state
+    assert state["not_placed_reasons"] == {"few_inliers": len(LOST)}
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            page, problems = open_viewer(browser, f"{service.base_url}{created['viewer_url']}")
+            _wait_idle(page)
+
+            # banner: the >5 % rule, with the reason
+            page.wait_for_selector("#banner:not([hidden])", timeout=15000)
+            banner = page.inner_text("#banner")
+            assert "5 of 30 frames" in banner and "few inliers" in banner, banner
+            status = page.inner_text("#status")
+            assert status.startswith("done · 30 frames processed (25 placed, 5 lost)"), status
+
+            # start and end markers, lost frames marked
+            assert page.get_attribute("#path-overlay circle.start", "visibility") == "visible"
+            assert page.get_attribute("#path-overlay rect.end", "visibility") == "visible"
+            assert page.locator("#path-overlay path.lost").count() == len(LOST)
+
+            # the scale bar: its length in px is its label in mm at the screen's scale, and it follows the zoom
+            def scale() -> tuple[str, float, float]:
+                text = page.inner_text("#scale-bar .label")
+                bar_px = page.evaluate("() => document.querySelector('#scale-bar .bar').getBoundingClientRect().width")
+                return text, float(bar_px), _screen_px_per_mm(page)
+
+            text1, bar1, ppm1 = scale()
+            mm1 = float(text1.split()[0])
+            assert bar1 == pytest.approx(mm1 * ppm1, rel=0.03), (text1, bar1, ppm1)
+            page.screenshot(path=str(ARTIFACTS / "viewer_tools_overview.png"))
+            page.evaluate("() => window.veinmosaicViewer.viewer.viewport.zoomBy(6, undefined, true)")
+            page.wait_for_timeout(700)
+            text2, bar2, ppm2 = scale()
+            assert ppm2 == pytest.approx(6 * ppm1, rel=0.05)
+            assert text2 != text1 and float(text2.split()[0]) < mm1, (text1, text2)
+            assert bar2 == pytest.approx(float(text2.split()[0]) * ppm2, rel=0.03)
+            page.click("#fit")
+            page.wait_for_timeout(900)
+
+            # measuring: click the start and the end frames' centres: 29 * 2 = 58 mm apart
+            page.click("#measure")
+            start = _element_xy(page, 0.0, 0.0)
+            end = _element_xy(page, STEP_MM * (N_FRAMES - 1), 0.0)
+            page.mouse.click(*start)
+            page.wait_for_timeout(300)
+            page.mouse.click(*end)
+            page.wait_for_function("() => window.veinmosaicViewer.state.measure.mm !== null")
+            measured = float(page.evaluate("() => window.veinmosaicViewer.state.measure.mm"))
+            # the two recorded points are where the clicks landed, and the view did not move under them
+            for clicked, (x_px, y_px) in zip(
+                (start, end), page.evaluate("() => window.veinmosaicViewer.state.measure.points"), strict=True
+            ):
+                doc = page.evaluate("() => window.veinmosaicViewer.state.dzi.origin_px")
+                mm = ((x_px - doc[0]) / PX_PER_MM, (y_px - doc[1]) / PX_PER_MM)
+                now = _element_xy(page, *mm)
+                assert now == pytest.approx(clicked, abs=1.5), (now, clicked)
+            half_px_mm = 1.0 / _screen_px_per_mm(page)  # a click lands on a whole screen pixel
+            assert measured == pytest.approx(STEP_MM * (N_FRAMES - 1), abs=2 * half_px_mm + 0.05)
+            assert f"{measured:.1f} mm" == page.text_content("#measure-label")
+            assert "distance" in page.inner_text("#status")
+            page.screenshot(path=str(ARTIFACTS / "viewer_tools_measure.png"))
+            page.click("#measure")
+
+            # hovering a frame of the path: seq, time, load in N, status
+            page.mouse.move(*_element_xy(page, STEP_MM * 4, 0.0))
+            page.wait_for_selector("#tooltip:not([hidden])", timeout=5000)
+            tip = page.inner_text("#tooltip")
+            assert tip.startswith("frame 4") and "t 0.40 s" in tip and "load 6.0 N" in tip and "ok" in tip, tip
+            page.mouse.move(*_element_xy(page, STEP_MM * 15, 0.0))  # a lost frame, marked between its neighbours
+            page.wait_for_function("() => document.querySelector('#tooltip').textContent.startsWith('frame 15')")
+            assert "lost (few inliers)" in page.inner_text("#tooltip")
+            page.mouse.move(5, 5)
+
+            # coverage layer: colour where the vein layer is grey, with its legend
+            probe = _element_xy(page, STEP_MM * 12, 6.0)  # off the drawn path
+            box = page.locator("#viewer").bounding_box()
+            vein = cv2.imdecode(np.frombuffer(page.locator("#viewer").screenshot(), np.uint8), cv2.IMREAD_COLOR)
+            page.check('input[name="layer"][value="coverage"]')
+            page.wait_for_function("() => window.veinmosaicViewer.state.layer === 'coverage'")
+            _wait_idle(page)
+            assert page.is_visible("#coverage-legend") and not page.is_visible("#force-legend")
+            shot = page.locator("#viewer").screenshot()
+            (ARTIFACTS / "viewer_tools_coverage.png").write_bytes(shot)
+            cov = cv2.imdecode(np.frombuffer(shot, np.uint8), cv2.IMREAD_COLOR)
+            vein_px, cov_px = _pixel(vein, probe, box), _pixel(cov, probe, box)
+            assert np.ptp(vein_px, axis=1).max() <= 6, vein_px  # grey veins
+            assert np.ptp(cov_px, axis=1).min() >= 40, cov_px  # a colour of the VIRIDIS scale
+            page.check('input[name="layer"][value="force"]')
+            _wait_idle(page)
+            assert "N" in page.inner_text("#force-legend")
+            assert not problems, problems
+        finally:
+            browser.close()
