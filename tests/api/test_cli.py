@@ -138,3 +138,23 @@ def test_console_entry_point_runs(scan_dir: Path, tmp_path: Path) -> None:
         [sys.executable, "-m", "api.cli", "reconstruct"], capture_output=True, text=True, timeout=60, check=False
     )
     assert usage.returncode == 2 and "--out" in usage.stderr
+
+
+def test_every_option_has_help_and_shows_its_default() -> None:
+    import argparse
+
+    from api.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, p in sub.choices.items():
+        text = " ".join(p.format_help().split())
+        for action in p._actions:
+            if isinstance(action, argparse._HelpAction):
+                continue
+            assert action.help, f"{name} {action.dest}: no help text"
+            if action.option_strings and action.default not in (None, False, [], "", argparse.SUPPRESS):
+                assert "(default" in (action.help or "") or f"(default: {action.default})" in text
+    demo = sub.choices["demo"]
+    assert demo.parse_args([]).hold is False  # never silently dependent on the terminal
+    assert "stop at the end" in demo.format_help()
