@@ -7,6 +7,11 @@ Keys (prefix default "vm:"; tests use their own prefix):
     <prefix>session:<id>:enqueued  set of seqs (and "finish") already put on the stream, so a re-sent frame
                                    is never enqueued twice, while a frame stored but not yet enqueued (crash
                                    or Redis outage between the two) is enqueued by the client's retry
+    <prefix>session:<id>:enqueued_at  hash seq -> ms of its last enqueue, and
+    <prefix>session:<id>:handled   set of seqs the prepare stage finished (prepared or poison): a frame
+                                   re-sent HEAL_AFTER_MS or more after its last enqueue and still not handled
+                                   (its job was lost, or is waiting out a fault) is enqueued again. Frame jobs
+                                   are idempotent, so a second job for a frame changes nothing.
     <prefix>session:<id>           hash {"processed": n, "lost": n}: progress written by workers
     <prefix>session:<id>:done      set of seqs already counted, so a redelivered job is not counted twice
 Where counters live: frames *received* are counted from durable storage (the source of truth: a frame is
@@ -26,16 +31,27 @@ import redis
 DEFAULT_PREFIX = "vm:"
 GROUP = "workers"
 
+HEAL_AFTER_MS = 10_000
+
+# ARGV: seq (or "finish"), session, heal_after_ms ("0": never again), force ("1": even if handled)
 _ENQUEUE_ONCE = """
+local t = redis.call('TIME')
+local now = tonumber(t[1]) * 1000 + math.floor(tonumber(t[2]) / 1000)
 if redis.call('SADD', KEYS[2], ARGV[1]) == 1 then
   if ARGV[1] == 'finish' then
     redis.call('XADD', KEYS[1], '*', 'kind', 'finish', 'session', ARGV[2])
-  else
-    redis.call('XADD', KEYS[1], '*', 'kind', 'frame', 'session', ARGV[2], 'seq', ARGV[1])
+    return 1
   end
-  return 1
+elseif ARGV[1] == 'finish' or ARGV[3] == '0' then
+  return 0
+elseif ARGV[4] ~= '1' and redis.call('SISMEMBER', KEYS[4], ARGV[1]) == 1 then
+  return 0
+elseif now - tonumber(redis.call('HGET', KEYS[3], ARGV[1]) or '0') < tonumber(ARGV[3]) then
+  return 0
 end
-return 0
+redis.call('HSET', KEYS[3], ARGV[1], now)
+redis.call('XADD', KEYS[1], '*', 'kind', 'frame', 'session', ARGV[2], 'seq', ARGV[1])
+return 1
 """
 
 _RECORD_ONCE = """
@@ -67,38 +83,43 @@ def ensure_group(r: redis.Redis, prefix: str = DEFAULT_PREFIX) -> None:
             raise
 
 
-def enqueue_frame(r: redis.Redis, session_id: str, seq: int, prefix: str = DEFAULT_PREFIX) -> bool:
-    """Put a frame job on the stream unless it was put there before; return True if it was added now."""
-    keys = [frames_stream(prefix), f"{session_key(session_id, prefix)}:enqueued"]
-    return bool(r.eval(_ENQUEUE_ONCE, 2, *keys, str(int(seq)), session_id))
+def _enqueue_keys(session_id: str, prefix: str) -> list[str]:
+    base = session_key(session_id, prefix)
+    return [frames_stream(prefix), f"{base}:enqueued", f"{base}:enqueued_at", f"{base}:handled"]
 
 
-_REQUEUE = """
-if ARGV[3] ~= '0' and not redis.call('SET', KEYS[3], '1', 'NX', 'PX', ARGV[3]) then return 0 end
-redis.call('SADD', KEYS[2], ARGV[1])
-redis.call('XADD', KEYS[1], '*', 'kind', 'frame', 'session', ARGV[2], 'seq', ARGV[1])
-return 1
-"""
+def enqueue_frame(
+    r: redis.Redis, session_id: str, seq: int, prefix: str = DEFAULT_PREFIX, heal_after_ms: int = HEAL_AFTER_MS
+) -> bool:
+    """Put a frame job on the stream unless it was put there before; return True if it was added now.
+
+    A frame enqueued before is enqueued again when its prepare job has not finished heal_after_ms after its
+    last enqueue (a client re-sending after a failure heals a lost job); heal_after_ms=0 never does.
+    """
+    args = [str(int(seq)), session_id, str(int(heal_after_ms)), "0"]
+    return bool(r.eval(_ENQUEUE_ONCE, 4, *_enqueue_keys(session_id, prefix), *args))
 
 
 def requeue_frame(
-    r: redis.Redis, session_id: str, seq: int, prefix: str = DEFAULT_PREFIX, at_most_every_ms: int = 0
+    r: redis.Redis, session_id: str, seq: int, prefix: str = DEFAULT_PREFIX, at_most_every_ms: int = 1
 ) -> bool:
-    """Put a frame job on the stream even if it was enqueued before; return True if it was added.
+    """Put a frame job on the stream even if it was enqueued before, unless that was within at_most_every_ms.
 
-    For healing (a job lost with Redis data, a re-sent frame still without a result): frame jobs are
-    idempotent, so a second job for a frame costs a check and changes nothing. With at_most_every_ms, a frame
-    is re-enqueued at most once in that time (a key <prefix>session:<id>:requeued:<seq> with a TTL).
+    For healing (a job lost with Redis data, a frame that waits too long): frame jobs are idempotent, so a
+    second job for a frame costs a check and changes nothing. Returns True if a job was added.
     """
-    base = session_key(session_id, prefix)
-    keys = [frames_stream(prefix), f"{base}:enqueued", f"{base}:requeued:{int(seq)}"]
-    return bool(r.eval(_REQUEUE, 3, *keys, str(int(seq)), session_id, str(int(at_most_every_ms))))
+    args = [str(int(seq)), session_id, str(max(1, int(at_most_every_ms))), "1"]
+    return bool(r.eval(_ENQUEUE_ONCE, 4, *_enqueue_keys(session_id, prefix), *args))
+
+
+def mark_frame_handled(r: redis.Redis, session_id: str, seq: int, prefix: str = DEFAULT_PREFIX) -> None:
+    """Record that frame `seq` was prepared or marked poison (its re-sends need no new job)."""
+    r.sadd(f"{session_key(session_id, prefix)}:handled", str(int(seq)))
 
 
 def enqueue_finish(r: redis.Redis, session_id: str, prefix: str = DEFAULT_PREFIX) -> bool:
     """Put the session's finish marker on the stream once; return True if it was added now."""
-    keys = [frames_stream(prefix), f"{session_key(session_id, prefix)}:enqueued"]
-    return bool(r.eval(_ENQUEUE_ONCE, 2, *keys, "finish", session_id))
+    return bool(r.eval(_ENQUEUE_ONCE, 4, *_enqueue_keys(session_id, prefix), "finish", session_id, "0", "0"))
 
 
 def queue_depth(r: redis.Redis, prefix: str = DEFAULT_PREFIX) -> int:

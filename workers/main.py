@@ -269,6 +269,7 @@ class Worker:
                 kind = None  # the session is gone: nothing to mark
             else:
                 ctx.results.mark_poison(sid, LIVE_VERSION, int(fields["seq"]), error)
+                queue.mark_frame_handled(ctx.r, sid, int(fields["seq"]), ctx.prefix)
         ctx.r.xadd(
             queue.dead_stream(ctx.prefix),
             {**fields, "stream": stream, "entry": entry_id, "error": error[:300], "at": repr(time.time())},

@@ -116,6 +116,7 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
     opts, calib = live_options(ctx, sid)
     v = LIVE_VERSION
     if ctx.results.has_prepared(sid, v, seq) or ctx.results.is_poison(sid, v, seq):
+        queue.mark_frame_handled(ctx.r, sid, seq, ctx.prefix)
         queue.enqueue_register(ctx.r, sid, v, ctx.prefix)
         return DONE
     rec = ctx.store.get_frame(sid, seq)
@@ -141,5 +142,6 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
     )
     if ctx.results.write_prepared(sid, v, pf):
         queue.incr_metric(ctx.r, "frames_prepared_total", prefix=ctx.prefix)
+    queue.mark_frame_handled(ctx.r, sid, seq, ctx.prefix)
     queue.enqueue_register(ctx.r, sid, v, ctx.prefix)
     return DONE

@@ -112,7 +112,9 @@ def reconcile(ctx: Context) -> dict[str, int]:
     if stats["frames_requeued"]:
         queue.incr_metric(ctx.r, "reconciled_frames_total", stats["frames_requeued"], prefix=ctx.prefix)
     queue.incr_metric(ctx.r, "reconcile_runs_total", prefix=ctx.prefix)
-    log.info(
+    acted = stats["frames_requeued"] or stats["kicks"] or stats["counters_rebuilt"]
+    log.log(
+        logging.INFO if acted else logging.DEBUG,
         "reconciled %d sessions: %d frames re-enqueued, %d registration kicks, %d counter sets rebuilt (%.0f ms)",
         stats["sessions"],
         stats["frames_requeued"],

@@ -91,3 +91,25 @@ def test_embedded_server_shared_by_processes(tmp_path: Path) -> None:
 
 def test_ping_false_when_unreachable() -> None:
     assert not ping(connect("redis://127.0.0.1:1/0", Path(".")))
+
+
+def test_a_resent_frame_without_a_result_is_enqueued_again_after_the_heal_delay(rq: tuple[redis.Redis, str]) -> None:
+    import time
+
+    r, prefix = rq
+    stream = queue.frames_stream(prefix)
+    assert queue.enqueue_frame(r, "s1", 0, prefix=prefix, heal_after_ms=300)
+    assert not queue.enqueue_frame(r, "s1", 0, prefix=prefix, heal_after_ms=300)  # too soon: the job may be fine
+    time.sleep(0.35)
+    assert not queue.enqueue_frame(r, "s1", 0, prefix=prefix, heal_after_ms=0)  # healing off
+    assert queue.enqueue_frame(r, "s1", 0, prefix=prefix, heal_after_ms=300)  # no result yet: queued again
+    assert not queue.enqueue_frame(r, "s1", 0, prefix=prefix, heal_after_ms=300)  # ... once per delay
+    queue.mark_frame_handled(r, "s1", 0, prefix=prefix)
+    time.sleep(0.35)
+    assert not queue.enqueue_frame(r, "s1", 0, prefix=prefix, heal_after_ms=300)  # prepared: never again
+    assert queue.requeue_frame(r, "s1", 0, prefix=prefix)  # the reconciler's forced re-enqueue
+    assert queue.requeue_frame(r, "s1", 1, prefix=prefix, at_most_every_ms=60_000)  # never enqueued: added
+    assert not queue.requeue_frame(r, "s1", 1, prefix=prefix, at_most_every_ms=60_000)
+    seqs = [f[b"seq"] for _, f in r.xrange(stream)]
+    assert seqs == [b"0", b"0", b"0", b"1"]
+    assert queue.enqueue_finish(r, "s1", prefix=prefix) and not queue.enqueue_finish(r, "s1", prefix=prefix)

@@ -1,0 +1,301 @@
+"""Faults injected into real processes (redis-server with AOF, worker processes, `veinmosaic serve`): every
+test ends with every accepted frame processed exactly once and prints a FAULT-REPORT line.
+
+Registration accuracy is not asserted here (the algorithm is being changed); delivery is."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import functools
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from api.client import VeinmosaicClient
+from services import queue
+from services.results_store import LIVE_VERSION, ResultsStore
+from services.scan import Scan
+from services.simulation.scenarios import simulate
+from services.storage import SessionStore
+from tests.faults.conftest import (
+    FAST,
+    PREFIX,
+    REPO,
+    RedisServer,
+    Uploader,
+    Workers,
+    client_for,
+    delivery,
+    free_port,
+    png,
+    report,
+    wait_done,
+)
+
+pytestmark = pytest.mark.slow
+
+
+@functools.cache
+def short_scan() -> Scan:
+    """Return the simulated short scan (40 frames of 640x480), made once."""
+    return simulate("short", 3)
+
+
+def test_worker_sigkill_mid_scan(
+    tmp_path: Path, redis_server: RedisServer, workers_factory: Callable[[Path, str], Workers]
+) -> None:
+    data = tmp_path / "data"
+    store, r = SessionStore(data), client_for(redis_server)
+    workers = workers_factory(data, redis_server.url)
+    workers.start("a")
+    workers.start("b")
+    workers.wait_started()
+    up = Uploader(store, r, short_scan())
+    sid = up.create()
+    for seq in range(len(short_scan())):
+        up.send(sid, seq)
+        if seq == 15:
+            workers.procs["a"].send_signal(signal.SIGKILL)
+        time.sleep(0.05)
+    up.finish(sid)
+    wait_done(store, sid, 120, workers)
+    assert workers.procs["a"].poll() == -signal.SIGKILL and workers.procs["b"].poll() is None
+    report("worker SIGKILL", up.operations, 1, delivery(data, r, sid, up.accepted))
+
+
+def _mount_tmpfs(path: Path, size_mb: int) -> None:
+    if os.geteuid() != 0:
+        pytest.skip("disk-full test needs root to mount a small tmpfs (mount -t tmpfs -o size=...)")
+    path.mkdir(parents=True)
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "tmpfs", str(path)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode(errors='replace').strip()}")
+
+
+def _fill(path: Path) -> int:
+    """Write zeros into `path` until the volume is full; return the bytes written."""
+    written = 0
+    chunk = b"\0" * (256 * 1024)
+    with open(path, "wb") as fh:
+        try:
+            while True:
+                fh.write(chunk)
+                fh.flush()
+                written += len(chunk)
+        except OSError as exc:
+            assert exc.errno == errno.ENOSPC
+    with contextlib.suppress(OSError), open(path.with_suffix(".small"), "wb") as fh:
+        while True:  # the last few KiB too
+            fh.write(b"\0" * 4096)
+            fh.flush()
+    return written
+
+
+def test_disk_full_mid_scan_then_space_returns(
+    tmp_path: Path, redis_server: RedisServer, workers_factory: Callable[[Path, str], Workers]
+) -> None:
+    mnt = tmp_path / "mnt"
+    _mount_tmpfs(mnt, 48)
+    try:
+        data = mnt / "data"
+        store, r = SessionStore(data), client_for(redis_server)
+        workers = workers_factory(data, redis_server.url)
+        workers.start("a")
+        workers.start("b")
+        workers.wait_started()
+        up = Uploader(store, r, short_scan())
+        sid = up.create()
+        for seq in range(28):  # the live run's setup needs the first 24 frames
+            assert up.send(sid, seq)
+        results = ResultsStore(data)
+        deadline = time.monotonic() + 60
+        while not results.read_state(sid, LIVE_VERSION) and time.monotonic() < deadline:
+            time.sleep(0.1)  # registration has flushed at least once: the disk fills mid-session
+        ballast = mnt / "ballast"
+        _fill(ballast)
+        refused_before = up.refused
+        for seq in range(28, 40):  # uploads while the disk is full: refused, never accepted
+            assert not up.send(sid, seq, retry_for_s=0.0)
+        assert up.refused - refused_before == 12 and up.accepted == set(range(28))
+        time.sleep(4.0)  # workers meet ENOSPC for a while
+        logs = workers.log("a") + workers.log("b")
+        assert "ENOSPC" in logs, "the workers never met the full disk"
+        assert all(workers.alive().values()), "a worker died of the full disk"
+        assert r.xlen(queue.dead_stream(PREFIX)) == 0, "a frame was dead-lettered for a full disk"
+        assert not list((results.version_dir(sid, LIVE_VERSION) / "poison").glob("*.json"))
+        ballast.unlink()
+        ballast.with_suffix(".small").unlink(missing_ok=True)
+        for seq in range(40):  # the client re-sends everything (the first 28 are duplicates: 200)
+            assert up.send(sid, seq)
+        up.finish(sid)
+        wait_done(store, sid, 120, workers)
+        assert all(workers.alive().values())
+        assert r.xlen(queue.dead_stream(PREFIX)) == 0
+        report("disk full (48 MB tmpfs)", up.operations, 1, delivery(data, r, sid, up.accepted))
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def test_redis_sigkill_and_restart_from_aof(
+    tmp_path: Path, redis_server: RedisServer, workers_factory: Callable[[Path, str], Workers]
+) -> None:
+    data = tmp_path / "data"
+    store, r = SessionStore(data), client_for(redis_server)
+    workers = workers_factory(data, redis_server.url)
+    workers.start("a")
+    workers.start("b")
+    workers.wait_started()
+    up = Uploader(store, r, short_scan())
+    sid = up.create()
+    restarted = threading.Event()
+
+    def restart_later() -> None:
+        time.sleep(3.0)
+        redis_server.start()  # same dir and port: loads the AOF
+        restarted.set()
+
+    for seq in range(len(short_scan())):
+        if seq == 15:
+            redis_server.kill()
+            threading.Thread(target=restart_later, daemon=True).start()
+        assert up.send(sid, seq)
+        time.sleep(0.05)
+    assert restarted.wait(10)
+    assert up.refused > 0, "no upload met the Redis outage"
+    up.finish(sid)
+    wait_done(store, sid, 120, workers)
+    assert all(workers.alive().values()), "a worker died of the Redis outage"
+    assert "infrastructure fault" in workers.log("a") + workers.log("b"), "the workers never met the outage"
+    assert r.xlen(queue.dead_stream(PREFIX)) == 0
+    report("redis SIGKILL + AOF restart", up.operations, 1, delivery(data, r, sid, up.accepted))
+
+
+def test_reconciler_recovers_uploads_redis_forgot(
+    tmp_path: Path, redis_server: RedisServer, workers_factory: Callable[[Path, str], Workers]
+) -> None:
+    """Redis wiped after the uploads were stored (FLUSHALL): the start-up reconciler re-enqueues them."""
+    data = tmp_path / "data"
+    store, r = SessionStore(data), client_for(redis_server)
+    up = Uploader(store, r, short_scan())
+    sid = up.create()
+    for seq in range(len(short_scan())):
+        assert up.send(sid, seq)
+    up.finish(sid)
+    r.flushall()  # every job, the finish marker and the enqueued sets are gone; the disk has everything
+    workers = workers_factory(data, redis_server.url)
+    workers.start("a")
+    wait_done(store, sid, 120, workers)
+    assert int(r.hget(queue.metrics_key(PREFIX), "reconciled_frames_total") or 0) == len(short_scan())
+    report("redis wiped (reconciler)", up.operations + 1, 1, delivery(data, r, sid, up.accepted))
+
+
+def test_poison_frames_are_rejected_and_the_rest_delivered(
+    tmp_path: Path, redis_server: RedisServer, workers_factory: Callable[[Path, str], Workers]
+) -> None:
+    data = tmp_path / "data"
+    store, r = SessionStore(data), client_for(redis_server)
+    workers = workers_factory(data, redis_server.url)
+    workers.start("a")
+    up = Uploader(store, r, short_scan())
+    sid = up.create()
+    scan = short_scan()
+    poison = {30: png(scan.frame(30))[:5000], 35: png(np.full((240, 320), 128, np.uint8))}  # truncated; wrong size
+    for seq in range(len(short_scan())):
+        assert up.send(sid, seq, poison.get(seq))
+    up.finish(sid)
+    wait_done(store, sid, 120, workers)
+    assert workers.alive() == {"a": True}
+    dead = [{k.decode(): v.decode() for k, v in f.items()} for _, f in r.xrange(queue.dead_stream(PREFIX))]
+    assert sorted(int(d["seq"]) for d in dead) == sorted(poison)
+    result = delivery(data, r, sid, up.accepted, poison=set(poison))
+    assert result["poison"] == len(poison)
+    report("poison frames", up.operations, len(poison), result)
+
+
+def _children(pid: int) -> dict[str, int]:
+    """Return {"api": pid, "worker": [pids]}-like map of a process's children by their command line."""
+    out: dict[str, int] = {}
+    with contextlib.suppress(FileNotFoundError):
+        kids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+        for i, kid in enumerate(kids):
+            cmd = Path(f"/proc/{kid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            out["api" if "uvicorn" in cmd else f"worker{i}"] = int(kid)
+    return out
+
+
+def test_serve_restarts_a_killed_api_and_worker(tmp_path: Path, redis_server: RedisServer) -> None:
+    port = free_port()
+    key = "fault-test-key"
+    env = dict(os.environ)
+    env.update(
+        {
+            "PYTHONPATH": str(REPO) + os.pathsep + env.get("PYTHONPATH", ""),
+            "REDIS_URL": redis_server.url,
+            "VEINMOSAIC_DATA_DIR": str(tmp_path / "data"),
+            "VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view", "admin"]}),
+            "VEINMOSAIC_REDIS_PREFIX": PREFIX,
+            "VEINMOSAIC_WORKER_CONFIG": json.dumps(FAST),
+        }
+    )
+    log = open(tmp_path / "serve.log", "wb")  # noqa: SIM115 (kept open for the process)
+    cmd = [sys.executable, "-m", "api.cli", "serve", "--port", str(port), "--workers", "2"]
+    serve = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    client = VeinmosaicClient(f"http://127.0.0.1:{port}", key, timeout_s=10.0, max_retries=12)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            with contextlib.suppress(httpx.HTTPError):
+                if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1.0).status_code == 200:
+                    break
+            time.sleep(0.2)
+        sid = client.create_session(short_scan().calibration.to_dict(), "fault-test")["id"]
+        client.upload_forces(sid, np.column_stack([short_scan().force_t_s, short_scan().forces_n]))
+        kills = 0
+        accepted: set[int] = set()
+        for seq in range(len(short_scan())):
+            if seq in (12, 26):
+                kids = _children(serve.pid)
+                victim = kids["api"] if seq == 12 else next(v for k, v in kids.items() if k != "api")
+                os.kill(victim, signal.SIGKILL)
+                kills += 1
+            scan = short_scan()
+            status = client.upload_frame(sid, seq, float(scan.frame_t_s[seq]), png(scan.frame(seq)), f"{seq}.png")
+            assert status in (200, 202)
+            accepted.add(seq)
+        client.finish(sid)
+        state: dict = {}
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            state = client.session(sid)
+            if state["status"] == "done":
+                break
+            time.sleep(0.3)
+        assert state["status"] == "done", state
+        assert state["frames_received"] == state["frames_processed"] == len(short_scan())
+        metrics = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5).text
+        restarts = re.search(r"^veinmosaic_process_restarts_total (\d+)", metrics, re.M)
+        assert restarts and int(restarts.group(1)) >= kills, metrics[:400]
+        assert serve.poll() is None, "serve stopped"
+        r = client_for(redis_server)
+        result = delivery(tmp_path / "data", r, sid, accepted)
+        report("API + worker SIGKILL under serve", len(short_scan()) + 3, kills, result)
+    finally:
+        client.close()
+        serve.send_signal(signal.SIGTERM)
+        try:
+            serve.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            serve.kill()
+    assert "restarting in" in (tmp_path / "serve.log").read_text()
