@@ -12,6 +12,8 @@ FEATURE_KINDS = ("sift", "modified-asift", "asift")
 MODIFIED_ASIFT_TILT = math.sqrt(1.13)
 MODIFIED_ASIFT_ROLLS_DEG = tuple(range(0, 180, 20))  # 0, 20, ..., 160
 EDGE_THRESHOLD = 10.0
+ADAPTIVE_CONTRAST_THRESHOLD = 0.005  # low enough for faint vessels; the target count does the selecting
+SPREAD_GRID = (8, 6)  # cells across x, y over which adaptive keypoints are spread
 
 
 @dataclass(frozen=True)
@@ -57,22 +59,58 @@ def _detector(kind: str, max_features: int, contrast_threshold: float) -> cv2.Fe
     raise ValueError(f"unknown feature kind {kind!r}; expected one of {FEATURE_KINDS}")
 
 
+def spread_keypoints(
+    keypoints: list[cv2.KeyPoint], shape: tuple[int, int], target: int, grid: tuple[int, int] = SPREAD_GRID
+) -> list[cv2.KeyPoint]:
+    """Return at most `target` keypoints, the strongest of each grid cell first, so they cover the image.
+
+    Rounds take the next-strongest keypoint of every cell that still has one, until the target is reached:
+    a cell crossed by a strong vessel cannot starve the rest of the window.
+    """
+    if len(keypoints) <= target:
+        return list(keypoints)
+    h, w = shape
+    gx, gy = grid
+    cells: dict[tuple[int, int], list[cv2.KeyPoint]] = {}
+    for k in sorted(keypoints, key=lambda k: -k.response):
+        key = (min(int(k.pt[0] * gx / w), gx - 1), min(int(k.pt[1] * gy / h), gy - 1))
+        cells.setdefault(key, []).append(k)
+    chosen: list[cv2.KeyPoint] = []
+    depth = 0
+    while len(chosen) < target:
+        layer = [c[depth] for c in cells.values() if len(c) > depth]
+        if not layer:
+            break
+        layer.sort(key=lambda k: -k.response)
+        chosen.extend(layer[: target - len(chosen)])
+        depth += 1
+    return chosen
+
+
 def detect_features(
     image: np.ndarray,
     mask: np.ndarray | None,
     kind: str = "sift",
     max_features: int = 0,
     contrast_threshold: float = 0.03,
+    target: int = 0,
 ) -> Features:
     """Return keypoints (pixels) and descriptors of an 8-bit image, kept only where mask > 0.
 
     AffineFeature does not apply the mask to its unwarped view, so every kind is filtered here too.
-    max_features caps SIFT per view (0 = no cap).
+    max_features caps SIFT per view (0 = no cap). target > 0 makes the threshold adaptive: detect with a low
+    contrast threshold, then keep `target` keypoints spread over the image (spread_keypoints), so a faint frame
+    and a contrasted one both yield a usable, well-spread set instead of 10 or 2000 points.
     """
     if image.dtype != np.uint8:
         raise ValueError("detect_features expects an 8-bit image")
-    detector = _detector(kind, max_features, contrast_threshold)
-    keypoints, descriptors = detector.detectAndCompute(image, mask)
+    if target > 0:
+        detector = _detector(kind, 0, min(contrast_threshold, ADAPTIVE_CONTRAST_THRESHOLD))
+        found = detector.detect(image, mask)
+        keypoints, descriptors = detector.compute(image, spread_keypoints(found, image.shape[:2], target))
+    else:
+        detector = _detector(kind, max_features, contrast_threshold)
+        keypoints, descriptors = detector.detectAndCompute(image, mask)
     if descriptors is None or len(keypoints) == 0:
         return empty_features()
     points = np.array([k.pt for k in keypoints], dtype=np.float64)

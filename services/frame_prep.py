@@ -14,6 +14,7 @@ from services.features import Features, detect_features
 from services.force_model import LoadState, centre_stretch, load_state, local_load_n
 from services.methods import MethodOptions
 from services.rectification import pixel_grid, rectify_map
+from services.vein_enhancement import enhance_veins
 
 UNLOADED = LoadState(0.0, 0.0, 0.0)
 FEATURE_MARGIN_PX = 6  # keypoints this close to the window edge straddle the dark housing: drop them
@@ -32,6 +33,8 @@ class PreparedFrame:
     image: np.ndarray  # (H, W) uint8, rectified, photometrically normalised (median skin = 128)
     mask: np.ndarray  # (H, W) uint8 0/255, the window in rectified pixels
     features: Features  # points in mm about the principal point (rectified, undeformed)
+    vein: np.ndarray  # (H, W) uint8 vein map of the rectified frame (0 = skin), what registration aligns
+    vein_mask: np.ndarray  # (H, W) uint8 0/255, where the vein map is valid (the window less a margin)
     sharpness: float  # variance of the Laplacian inside the window, grey levels^2
 
 
@@ -106,8 +109,12 @@ def prepare_frame(
     map_x, map_y = rectify_map(calib, geometry)
     image = cv2.remap(normalise_photometry(raw, mask, flat), map_x, map_y, cv2.INTER_LINEAR)
     rect_mask = cv2.remap(mask, map_x, map_y, cv2.INTER_NEAREST, borderValue=0)
-    inner = cv2.erode(rect_mask, np.ones((2 * FEATURE_MARGIN_PX + 1,) * 2, np.uint8))
-    found = detect_features(image, inner, options.features, options.max_features)
+    vein = enhance_veins(image, rect_mask, FEATURE_MARGIN_PX)
+    inner = vein.mask
+    source = vein.image if options.enhance else image
+    found = detect_features(
+        source, inner, options.features, options.max_features, options.contrast_threshold, options.target_features
+    )
     features = Features(px_to_mm(found.points, calib), found.descriptors, found.sizes_px)
     lap = cv2.Laplacian(image, cv2.CV_32F)
     sharpness = float(np.var(lap[inner > 0])) if np.any(inner) else 0.0
@@ -121,6 +128,8 @@ def prepare_frame(
         image=image,
         mask=rect_mask,
         features=features,
+        vein=vein.image,
+        vein_mask=vein.mask,
         sharpness=sharpness,
     )
 

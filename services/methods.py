@@ -16,7 +16,10 @@ class MethodOptions:
     name: str
     rectify: bool = True  # spec §2 force rectification (else lens undistortion only)
     features: str = "sift"  # sift | modified-asift | asift
-    max_features: int = 1000  # SIFT cap per view (0 = no cap)
+    max_features: int = 1000  # SIFT cap per view (0 = no cap); ignored when target_features > 0
+    enhance: bool = True  # detect features on the vein map (the paper's segmentation step), not raw grey levels
+    target_features: int = 500  # adaptive detection: keypoints kept per frame, spread over it (0 = fixed thresholds)
+    contrast_threshold: float = 0.03  # SIFT contrast threshold when target_features is 0
     registration: str = "keyframes"  # previous (frame-to-frame) | mosaic (paper) | keyframes (pose graph)
     rigid_stitch: bool = False  # stitch with yaw + x/y only (the paper's correction) instead of the similarity
     refine: bool = True  # global pose-graph refinement on loop closures (beyond the paper)

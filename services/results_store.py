@@ -119,6 +119,8 @@ def prepared_to_bytes(pf: PreparedFrame) -> bytes:
         forces_n=np.asarray(pf.forces_n, np.float64),
         image=pf.image,
         mask=pf.mask,
+        vein=pf.vein,
+        vein_mask=pf.vein_mask,
         points=np.asarray(pf.features.points, np.float64),
         descriptors=desc_stored,
         desc_width=np.array([desc.shape[1] if desc.ndim == 2 else 128], np.int64),
@@ -144,6 +146,8 @@ def prepared_from_bytes(data: bytes) -> PreparedFrame:
         image=z["image"],
         mask=z["mask"],
         features=features,
+        vein=z["vein"],
+        vein_mask=z["vein_mask"],
         sharpness=sharpness,
     )
 

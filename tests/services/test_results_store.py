@@ -44,6 +44,8 @@ def _prepared(seq: int, desc: np.ndarray) -> PreparedFrame:
         image=rng.integers(0, 256, (48, 64), dtype=np.uint8),
         mask=(rng.random((48, 64)) > 0.5).astype(np.uint8) * 255,
         features=Features(rng.normal(size=(n, 2)) * 10, desc, rng.random(n) * 5),
+        vein=rng.integers(0, 256, (48, 64), dtype=np.uint8),
+        vein_mask=(rng.random((48, 64)) > 0.5).astype(np.uint8) * 255,
         sharpness=123.456,
     )
 
@@ -62,6 +64,8 @@ def _assert_same(a: PreparedFrame, b: PreparedFrame) -> None:
         (a.forces_n, b.forces_n),
         (a.image, b.image),
         (a.mask, b.mask),
+        (a.vein, b.vein),
+        (a.vein_mask, b.vein_mask),
         (a.features.points, b.features.points),
         (a.features.descriptors, b.features.descriptors),
         (a.features.sizes_px, b.features.sizes_px),
