@@ -20,7 +20,7 @@ from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.audit import AuditMiddleware
-from api.auth import key_table
+from api.auth import document_security, key_table
 from api.errors import BodyTooLarge, add_exception_handlers, document_errors, error_response
 from api.log_format import configure_json_logging, request_id_var
 from api.routes import ROUTERS
@@ -172,7 +172,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def openapi() -> dict[str, Any]:
         """Return the OpenAPI document with every error status and the settings' frame size cap stated."""
         if app.openapi_schema is None:
-            schema = document_errors(generate())
+            schema = document_security(document_errors(generate()))
             side = schema["components"]["schemas"]["CalibrationDoc"]["properties"]["image_size"]
             for item in side["prefixItems"]:
                 item["maximum"] = s.max_frame_side

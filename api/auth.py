@@ -13,6 +13,7 @@ import hashlib
 import hmac
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from fastapi import Request
 
@@ -152,3 +153,27 @@ def visible_session(store: SessionStore, principal: Principal, session_id: str) 
     if not principal.can_see(meta):
         raise NotFound("no such session")
     return meta
+
+
+SECURITY_SCHEMES: dict[str, dict[str, str]] = {
+    "bearer": {"type": "http", "scheme": "bearer", "description": "an API key of VEINMOSAIC_API_KEYS"},
+    "viewerToken": {
+        "type": "apiKey",
+        "in": "query",
+        "name": "token",
+        "description": "a signed, expiring, view-only token for one session (from POST /v1/sessions)",
+    },
+}
+
+
+def document_security(schema: dict[str, Any]) -> dict[str, Any]:
+    """State in an OpenAPI document which credential each operation takes: a bearer key on /v1/ and /viewer/
+    routes, or a viewer token on the GET routes of one session (view_principal); none elsewhere."""
+    schema.setdefault("components", {})["securitySchemes"] = SECURITY_SCHEMES
+    for path, item in schema.get("paths", {}).items():
+        for method, operation in item.items():
+            if not isinstance(operation, dict) or not path.startswith(("/v1/", "/viewer/")):
+                continue
+            viewable = method == "get" and path.startswith(("/v1/sessions/{session_id}", "/viewer/{session_id}"))
+            operation["security"] = [{"bearer": []}, {"viewerToken": []}] if viewable else [{"bearer": []}]
+    return schema

@@ -151,15 +151,29 @@ def _field(loc: tuple[Any, ...]) -> str:
 def validation_response(errors: list[dict[str, Any]]) -> JSONResponse:
     """Return 400 for unparseable JSON, else 422 naming every failing field (values never echoed).
 
-    The code is "invalid_calibration" when every failing field is inside the calibration, as the semantic
-    checks of services.calibration answer, else "validation_error".
+    The code is "invalid_calibration" when every failing field is inside a calibration, "invalid_options"
+    inside reprocess options (as their semantic checks answer), else "validation_error".
     """
     if any(e.get("type") == "json_invalid" for e in errors):
         return error_response(400, "malformed_json", "the request body is not valid JSON")
     details = [{"field": _field(tuple(e.get("loc", ()))), "message": str(e.get("msg", "invalid"))} for e in errors]
     message = "; ".join(f"{d['field']}: {d['message']}" for d in details) or "invalid request"
-    calibration = bool(details) and all(d["field"].split(".")[0] == "calibration" for d in details)
-    return error_response(422, "invalid_calibration" if calibration else "validation_error", message, details=details)
+    return error_response(422, _validation_code(details), message, details=details)
+
+
+# a 422 whose failing fields all lie in one part of a body is named after that part (as its semantic checks are)
+_PART_CODES = (("calibration", "invalid_calibration"), ("options.calibration", "invalid_calibration"))
+
+
+def _validation_code(details: list[dict[str, str]]) -> str:
+    if not details:
+        return "validation_error"
+    for prefix, code in _PART_CODES[::-1]:  # the longest prefix first
+        if all(d["field"] == prefix or d["field"].startswith(prefix + ".") for d in details):
+            return code
+    if all(d["field"] == "options" or d["field"].startswith("options.") for d in details):
+        return "invalid_options"
+    return "validation_error"
 
 
 def add_exception_handlers(app: FastAPI) -> None:

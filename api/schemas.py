@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import fields as dataclass_fields
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictInt
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, StrictInt, create_model
 
+from services.features import FEATURE_KINDS
+from services.methods import METHOD_NAMES, REGISTRATION_KINDS, MethodOptions
 from services.storage import MAX_SEQ
 
 # A JSON number that is finite: NaN/Infinity literals (which Python's json accepts) are rejected, and so are
@@ -22,8 +25,17 @@ Force = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-1e4, le=1e4
 TiltDeg = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-360, le=360)]
 ForceRow = tuple[DeviceTime, Force, Force, Force, Force]
 ImuRow = tuple[DeviceTime, TiltDeg, TiltDeg]
+Zero = Annotated[float, Field(strict=True, ge=0, le=0)]  # 0 or 0.0, never false
+One = Annotated[float, Field(strict=True, ge=1, le=1)]
+
+
+def _integral(value: Any) -> Any:
+    """Return an integral float (640.0: an integer in JSON Schema) as an int; anything else unchanged."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
 # image_size: whole pixels; the upper bound is the max_frame_side setting (api.app writes it into the schema)
-Side = Annotated[int, Field(strict=True, ge=16, le=16384)]
+Side = Annotated[int, BeforeValidator(_integral), Field(strict=True, ge=16, le=16384)]
 Coefficients = (
     Annotated[list[Finite], Field(min_length=4, max_length=4)]
     | Annotated[list[Finite], Field(min_length=5, max_length=5)]
@@ -39,15 +51,14 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+CameraMatrix = tuple[tuple[Positive, Zero, Finite], tuple[Zero, Positive, Finite], tuple[Zero, Zero, One]]
+
+
 class CalibrationDoc(Strict):
     """calibration.json (spec §3) as the API accepts it; services.calibration.parse_calibration checks the same."""
 
     image_size: tuple[Side, Side] = Field(description="frame width, height in pixels")
-    camera_matrix: tuple[
-        tuple[Positive, Literal[0], Finite],
-        tuple[Literal[0], Positive, Finite],
-        tuple[Literal[0], Literal[0], Literal[1]],
-    ] = Field(description="[[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels")
+    camera_matrix: CameraMatrix = Field(description="[[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels")
     px_per_mm: Positive
     dist_coeffs: Coefficients | None = Field(default=None, description="OpenCV order k1, k2, p1, p2[, k3, ...]")
     young_modulus_kpa: Positive | None = None
@@ -140,17 +151,71 @@ class Health(Strict):
 # ----- results, reprocess and jobs (issue 3) ---------------------------------------------------------------------
 
 
-class ReprocessRequest(Strict):
-    """POST /v1/sessions/{id}/reprocess body: {"options": {"method": ..., <method options>, "calibration": {...}}}."""
+NonNegative = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0)]
+Count = Annotated[int, Field(strict=True, ge=0, le=1_000_000)]
 
-    options: dict[str, Any] = Field(default_factory=dict)
+
+def _method_options_model() -> type[BaseModel]:
+    """Return the model of "method_options", made from services.methods.MethodOptions' fields and defaults.
+
+    Booleans stay booleans, counts are whole numbers >= 0, thresholds finite numbers >= 0, and the two
+    choices (features, registration) their known kinds, as api.routes.reprocess.validate_options requires.
+    """
+    specs: dict[str, Any] = {}
+    for f in dataclass_fields(MethodOptions):
+        default = f.default
+        if f.name == "features":
+            specs[f.name] = (Literal[FEATURE_KINDS] | None, None)  # type: ignore[valid-type]
+        elif f.name == "registration":
+            specs[f.name] = (Literal[REGISTRATION_KINDS] | None, None)  # type: ignore[valid-type]
+        elif isinstance(default, bool):
+            specs[f.name] = (StrictBool | None, None)
+        elif isinstance(default, int):
+            specs[f.name] = (Count | None, None)
+        elif isinstance(default, float):
+            specs[f.name] = (NonNegative | None, None)
+    return create_model("MethodOptionsDoc", __config__=ConfigDict(extra="forbid"), **specs)
+
+
+MethodOptionsDoc = _method_options_model()
+
+
+class CalibrationOverrides(Strict):
+    """Calibration fields a reprocess may change (not image_size: the stored frames fix it)."""
+
+    camera_matrix: CameraMatrix | None = None
+    px_per_mm: Positive | None = None
+    dist_coeffs: Coefficients | None = None
+    young_modulus_kpa: Positive | None = None
+    poisson_ratio: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=0.5)] | None = None
+    hooke_n_per_mm: Positive | None = None
+    sensor_separation_mm: tuple[Positive, Positive] | None = None
+    scanner_area_m2: Positive | None = None
+
+
+class ReprocessOptions(Strict):
+    """The options of a results version: the method, overrides of its options, calibration overrides."""
+
+    method: Literal[METHOD_NAMES] = "best"  # type: ignore[valid-type]
+    method_options: MethodOptionsDoc | None = None  # type: ignore[valid-type]
+    calibration: CalibrationOverrides | None = None
+
+    def document(self) -> dict[str, Any]:
+        """Return the options document the workers read (fields left out are not sent)."""
+        return self.model_dump(mode="json", exclude_none=True)
+
+
+class ReprocessRequest(Strict):
+    """POST /v1/sessions/{id}/reprocess body: {"options": {"method", "method_options", "calibration"}}."""
+
+    options: ReprocessOptions = Field(default_factory=ReprocessOptions)
 
 
 class BatchReprocessRequest(Strict):
     """POST /v1/reprocess body: the sessions to reprocess (1..500, each visible to the key) and the options."""
 
     sessions: list[str] = Field(min_length=1, max_length=500)
-    options: dict[str, Any] = Field(default_factory=dict)
+    options: ReprocessOptions = Field(default_factory=ReprocessOptions)
 
 
 class JobAccepted(Strict):

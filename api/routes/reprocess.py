@@ -138,7 +138,7 @@ def reprocess_session(
     settings: AppSettings,
 ) -> JobAccepted:
     """Queue a reprocess of one session (a new results version; raw uploads untouched): 202 {"job"}."""
-    options = validate_options(body.options, store.calibration(meta.id))
+    options = validate_options(body.options.document(), store.calibration(meta.id))
     _check_reprocessable(store, meta)
     _queue_guard(r, settings, 1)
     (job_id,) = enqueue_jobs(r, settings.redis_prefix, principal, [meta.id], options)
@@ -157,7 +157,7 @@ def reprocess_batch(
         if not isinstance(sid, str) or not _ID.match(sid):
             raise NotFound("no such session")
         metas.append(visible_session(store, principal, sid))
-    checked = [validate_options(body.options, store.calibration(m.id)) for m in metas]
+    checked = [validate_options(body.options.document(), store.calibration(m.id)) for m in metas]
     for m in metas:
         _check_reprocessable(store, m)
     _queue_guard(r, settings, len(metas))

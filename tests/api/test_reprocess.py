@@ -71,7 +71,7 @@ def test_default_options_are_best(client: TestClient) -> None:
 @pytest.mark.parametrize(
     ("options", "code", "needle"),
     [
-        ({"method": "magic"}, "invalid_options", "magic"),
+        ({"method": "magic"}, "invalid_options", "method"),
         ({"method": 3}, "invalid_options", "method"),
         ({"method_options": {"turbo": True}}, "invalid_options", "turbo"),
         ({"method_options": {"min_inliers": "many"}}, "invalid_options", "min_inliers"),
@@ -81,7 +81,7 @@ def test_default_options_are_best(client: TestClient) -> None:
         ({"method_options": {"name": "x"}}, "invalid_options", "name"),
         ({"calibration": {"young_modulus_kpa": -2}}, "invalid_calibration", "young_modulus_kpa"),
         ({"calibration": {"colour": "red"}}, "invalid_calibration", "colour"),
-        ({"calibration": {"image_size": [10, 10]}}, "invalid_options", "image_size"),
+        ({"calibration": {"image_size": [10, 10]}}, "invalid_calibration", "image_size"),
         ({"speed": "fast"}, "invalid_options", "speed"),
     ],
 )
