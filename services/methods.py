@@ -20,6 +20,9 @@ class MethodOptions:
     enhance: bool = True  # detect features on the vein map (the paper's segmentation step), not raw grey levels
     target_features: int = 500  # adaptive detection: keypoints kept per frame, spread over it (0 = fixed thresholds)
     contrast_threshold: float = 0.03  # SIFT contrast threshold when target_features is 0
+    direct_fallback: bool = True  # when features fail, align the vein maps directly (phase correlation + ECC)
+    direct_refine: bool = False  # refine every feature match to the latest frame by direct alignment
+    min_correlation: float = 0.6  # ECC correlation of the vein maps for an accepted direct alignment
     registration: str = "keyframes"  # previous (frame-to-frame) | mosaic (paper) | keyframes (pose graph)
     rigid_stitch: bool = False  # stitch with yaw + x/y only (the paper's correction) instead of the similarity
     refine: bool = True  # global pose-graph refinement on loop closures (beyond the paper)

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.direct_alignment import AlignmentImage, DirectFit, align, alignment_image
 from services.features import Features
 from services.frame_prep import PreparedFrame
 from services.methods import MethodOptions
@@ -37,6 +38,10 @@ REASONS = (
     REASON_BAD_FRAME,
 )
 MOVED_MM = 0.05  # a refined pose that moves a frame by less than this (0.4 px) does not re-render its tiles
+MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the placed frame's window
+DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
+DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - correlation)
+ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
 
 
 @dataclass(frozen=True)
@@ -67,6 +72,9 @@ class Registrar:
     sharpness: list[float] = field(default_factory=list)
     order: list[int] = field(default_factory=list)
     loops_since_refine: int = 0
+    veins: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # placed: (vein, mask)
+    centre_px: tuple[float, float] = (0.0, 0.0)  # the principal point (rectified pixels)
+    _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
 
     @property
     def ransac_mm(self) -> float:
@@ -179,11 +187,47 @@ class Registrar:
             return self._accept(pf, pose, [], n, blurred)
         return self._add_keyframes(pf, predicted, lost_for, blurred)
 
+    def _alignment(self, index: int, pf: PreparedFrame | None = None) -> AlignmentImage:
+        """Return the direct-alignment pyramid of a frame (placed ones cached, the latest few only)."""
+        cached = self._pyramids.get(index)
+        if cached is not None:
+            return cached
+        vein, mask = (pf.vein, pf.vein_mask) if pf is not None else self.veins[index]
+        pyramid = alignment_image(vein, mask, self.centre_px, self.px_per_mm)
+        self._pyramids[index] = pyramid
+        while len(self._pyramids) > ALIGNMENT_CACHE:
+            del self._pyramids[min(self._pyramids)]
+        return pyramid
+
+    def _direct(self, pf: PreparedFrame, other: int, starts: list[Similarity], recentre: bool) -> DirectFit | None:
+        """Return the best accepted direct alignment of the frame onto a placed one (frame mm -> other's mm)."""
+        moving = self._alignment(pf.index, pf)
+        fixed = self._alignment(other)
+        best: DirectFit | None = None
+        for start in starts:
+            fit = align(fixed, moving, start, recentre=recentre)
+            if fit is None or fit.correlation < self.options.min_correlation or fit.overlap < MIN_DIRECT_OVERLAP:
+                continue
+            if best is None or fit.correlation > best.correlation:
+                best = fit
+        return best
+
     def _add_keyframes(self, pf: PreparedFrame, predicted: Similarity, lost_for: int, blurred: bool) -> FrameResult:
         latest = self.order[-1]
         edges: list[Edge] = []
         anchor: Similarity | None = None
         found = self._pairwise(pf, latest)
+        if found is not None and self.options.direct_refine:
+            refined = self._direct(pf, latest, [found[0]], recentre=False)
+            if refined is not None:
+                found = (refined.transform, found[1], found[2])
+        if found is None and self.options.direct_fallback:
+            # features failed: align the vein maps from the motion prediction, and from "no motion" (a turn)
+            to_latest = self.poses[latest].inverse()
+            starts = [to_latest.compose(predicted), Similarity(predicted.a / self.poses[latest].a, 0j)]
+            direct = self._direct(pf, latest, starts, recentre=True)
+            if direct is not None:
+                found = (direct.transform, 0, self._direct_rms(direct))
         if found is not None:
             pose = self.poses[latest].compose(found[0])
             if abs(pose.t - self.poses[latest].t) < 2 * self.window_radius_mm:  # the frames can overlap
@@ -203,7 +247,7 @@ class Registrar:
                 continue
             edges.append(self._edge(pf, other, *found))
         if not edges:
-            return self._fail(pf, blurred, REASON_FEW_INLIERS)
+            return self._fail(pf, blurred, self._why_not(pf))
         pose = place_node(self.poses, edges, pf.index)
         total = sum(e.inliers for e in edges)
         result = self._accept(pf, pose, edges, total, blurred)
@@ -213,10 +257,24 @@ class Registrar:
             return FrameResult(pf.index, result.status, result.pose, total, blurred, self.refine())
         return result
 
+    def _direct_rms(self, fit: DirectFit) -> float:
+        """Return an RMS-equivalent residual (mm) of a direct alignment, for its edge's sigma."""
+        return DIRECT_SIGMA_MM + DIRECT_SIGMA_PER_DECORRELATION_MM * (1.0 - fit.correlation)
+
+    def _why_not(self, pf: PreparedFrame) -> str:
+        """Return why a frame that produced no edge was not placed (few keypoints, low correlation, few inliers)."""
+        if len(pf.features) < self.options.min_inliers:
+            return REASON_FEW_KEYPOINTS
+        return REASON_LOW_CORRELATION if self.options.direct_fallback else REASON_FEW_INLIERS
+
     def _edge(self, pf: PreparedFrame, other: int, rel: Similarity, inliers: int, rms: float) -> Edge:
-        """Return the pose-graph edge of a match, its sigma from the evidence and the loads (heavier = looser)."""
+        """Return the pose-graph edge of a match, its sigma from the evidence and the loads (heavier = looser).
+
+        A feature edge's sigma is its RMS residual over sqrt(inliers); a direct edge (inliers 0) carries an
+        RMS-equivalent from its correlation (see _direct_rms), measured against feature edges on the shared scans.
+        """
         load = 1.0 + 10.0 * max(pf.stretch, self.stretches[other])
-        sigma = (0.01 + rms / np.sqrt(inliers)) * load
+        sigma = (0.01 + (rms / np.sqrt(inliers) if inliers > 0 else rms)) * load
         loop = self.order[-1] - other > self.options.loop_gap
         return Edge(other, pf.index, rel, sigma, loop=loop, inliers=inliers)
 
@@ -239,6 +297,7 @@ class Registrar:
         self.stretches[pf.index] = pf.stretch
         self.edges.extend(edges)
         self.order.append(pf.index)
+        self.veins[pf.index] = (pf.vein, pf.vein_mask)
         if not blurred:  # only sharp, placed frames set the reference (noise frames would inflate it)
             self.sharpness.append(pf.sharpness)
         return FrameResult(pf.index, STATUS_OK, pose, inliers, blurred)

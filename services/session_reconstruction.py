@@ -98,7 +98,9 @@ class SessionReconstruction:
     finished: bool = False
 
     def __post_init__(self) -> None:
-        self.registrar = Registrar(self.options, self.calibration.px_per_mm, self.window_radius_mm)
+        self.registrar = Registrar(
+            self.options, self.calibration.px_per_mm, self.window_radius_mm, centre_px=self.calibration.principal_point
+        )
         self.canvas = SparseCanvas(self.calibration.px_per_mm)
 
     def add(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:
