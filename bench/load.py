@@ -1,0 +1,262 @@
+"""Bounded load test on loopback: frame uploaders at a fixed arrival rate and Deep Zoom tile viewers together,
+against a real `veinmosaic serve` (API + workers, own redis-server with AOF), while the scans process.
+
+    python bench/load.py --upload-rate 200 --viewers 32 --tile-rate 5 --seconds 10
+
+Open loop: upload i is started at t0 + i / rate whether or not earlier ones finished (a slow server shows
+as latency, not as a lower offered rate). 640x480 PNG frames of the simulated short scan, spread over
+--sessions sessions; each viewer reads mosaic.json of a finished session, then fetches its tiles at
+--tile-rate per second. Stops by itself after --seconds and prints one table (throughput, p50/p99, errors).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import random
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from services.simulation.scenarios import simulate  # noqa: E402
+
+KEY = "load-test-key"
+
+
+def free_port() -> int:
+    """Return a free TCP port on loopback."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Stats:
+    """Latencies (s) and error counts of one kind of request."""
+
+    latencies: list[float] = field(default_factory=list)
+    errors: dict[str, int] = field(default_factory=dict)
+    late: int = 0  # requests started more than 50 ms after their scheduled time (the client fell behind)
+
+    def add(self, seconds: float, error: str | None) -> None:
+        """Record one request."""
+        if error is None:
+            self.latencies.append(seconds)
+        else:
+            self.errors[error] = self.errors.get(error, 0) + 1
+
+    def row(self, name: str, wall_s: float) -> str:
+        """Return a Markdown table row."""
+        lat = np.array(self.latencies) * 1000.0
+        n_err = sum(self.errors.values())
+        p50, p99, mx = (np.percentile(lat, 50), np.percentile(lat, 99), lat.max()) if len(lat) else (0, 0, 0)
+        errs = ", ".join(f"{k} x{v}" for k, v in sorted(self.errors.items())) or "0"
+        return (
+            f"| {name} | {len(lat) + n_err} | {len(lat) / wall_s:.1f} | {p50:.1f} | {p99:.1f} | {mx:.1f} | "
+            f"{errs} | {self.late} |"
+        )
+
+
+class Server:
+    """redis-server (AOF) + `python -m api.cli serve` in a temp dir; stopped by stop()."""
+
+    def __init__(self, workers: int, redis_url: str | None) -> None:
+        self.tmp = Path(tempfile.mkdtemp(prefix="vm-load-"))
+        self.port = free_port()
+        self.redis: subprocess.Popen[bytes] | None = None
+        self.redis_url = redis_url
+        if not redis_url:
+            rport = free_port()
+            (self.tmp / "redis").mkdir()
+            self.redis = subprocess.Popen(
+                ["redis-server", "--port", str(rport), "--dir", str(self.tmp / "redis"), "--appendonly", "yes",
+                 "--save", "", "--bind", "127.0.0.1"],
+                stdout=subprocess.DEVNULL,
+            )  # fmt: skip
+            self.redis_url = f"redis://127.0.0.1:{rport}/0"
+        env = dict(os.environ)
+        env.update(
+            {
+                "PYTHONPATH": str(ROOT) + os.pathsep + env.get("PYTHONPATH", ""),
+                "REDIS_URL": self.redis_url,
+                "VEINMOSAIC_DATA_DIR": str(self.tmp / "data"),
+                "VEINMOSAIC_API_KEYS": json.dumps({KEY: ["ingest", "view", "admin"]}),
+                "VEINMOSAIC_LOG_LEVEL": "WARNING",
+            }
+        )
+        cmd = [sys.executable, "-m", "api.cli", "serve", "--port", str(self.port), "--workers", str(workers)]
+        self.serve = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+        self.base = f"http://127.0.0.1:{self.port}"
+
+    def wait_ready(self, timeout_s: float = 90.0) -> None:
+        """Block until /readyz answers 200."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with contextlib.suppress(httpx.HTTPError):
+                if httpx.get(f"{self.base}/readyz", timeout=1.0).status_code == 200:
+                    return
+            time.sleep(0.2)
+        raise RuntimeError("server not ready")
+
+    def stop(self) -> None:
+        """Stop serve, then Redis; remove the temp dir."""
+        self.serve.send_signal(signal.SIGTERM)
+        try:
+            self.serve.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.serve.kill()
+        if self.redis is not None:
+            self.redis.terminate()
+            self.redis.wait()
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+async def create_session(http: httpx.AsyncClient, calibration: dict, t_end: float) -> str:
+    """Create a session and send forces (1 N per sensor, 100 Hz) up to t_end; return its id."""
+    resp = await http.post("/v1/sessions", json={"calibration": calibration, "label": "load"})
+    resp.raise_for_status()
+    sid = resp.json()["id"]
+    t = np.arange(0.0, t_end, 0.01)
+    samples = np.column_stack([t, np.ones((len(t), 4))]).tolist()
+    for i in range(0, len(samples), 20_000):
+        (await http.post(f"/v1/sessions/{sid}/forces", json={"samples": samples[i : i + 20_000]})).raise_for_status()
+    return sid
+
+
+async def upload(http: httpx.AsyncClient, sid: str, seq: int, t_s: float, data: bytes, stats: Stats) -> None:
+    """Upload one frame and record its latency."""
+    started = time.perf_counter()
+    try:
+        resp = await http.post(
+            f"/v1/sessions/{sid}/frames",
+            files={"image": (f"{seq}.png", data, "image/png")},
+            data={"meta": json.dumps({"seq": seq, "t_s": t_s})},
+        )
+        err = None if resp.status_code in (200, 202) else str(resp.status_code)
+    except httpx.HTTPError as exc:
+        err = type(exc).__name__
+    stats.add(time.perf_counter() - started, err)
+
+
+async def uploaders(
+    http: httpx.AsyncClient, sids: list[str], frames: list[bytes], rate: float, seconds: float, stats: Stats
+) -> None:
+    """Start uploads at `rate` per second for `seconds` (open loop), round-robin over sessions."""
+    t0 = time.perf_counter()
+    tasks = []
+    n = int(rate * seconds)
+    for i in range(n):
+        due = t0 + i / rate
+        delay = due - time.perf_counter()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        elif delay < -0.05:
+            stats.late += 1
+        sid, k = sids[i % len(sids)], i // len(sids)
+        tasks.append(asyncio.create_task(upload(http, sid, k, 0.1 * k, frames[k % len(frames)], stats)))
+    await asyncio.gather(*tasks)
+
+
+async def viewer(
+    http: httpx.AsyncClient, sid: str, rate: float, seconds: float, stats: Stats, rng: random.Random
+) -> None:
+    """Read mosaic.json, then fetch random tiles (with their revision) at `rate` per second for `seconds`."""
+    doc = (await http.get(f"/v1/sessions/{sid}/mosaic.json")).json()
+    names = list(doc["revisions"]["vein"].items())
+    t0 = time.perf_counter()
+    i = 0
+    while time.perf_counter() - t0 < seconds:
+        due = t0 + i / rate + rng.uniform(0, 1 / rate)
+        await asyncio.sleep(max(0.0, due - time.perf_counter()))
+        name, rev = rng.choice(names)
+        level, rest = name.split("/")
+        started = time.perf_counter()
+        try:
+            resp = await http.get(f"/v1/sessions/{sid}/mosaic_files/{level}/{rest}.png", params={"rev": rev, "v": 1})
+            err = None if resp.status_code == 200 else str(resp.status_code)
+        except httpx.HTTPError as exc:
+            err = type(exc).__name__
+        stats.add(time.perf_counter() - started, err)
+        i += 1
+
+
+async def run(args: argparse.Namespace, base: str) -> tuple[Stats, Stats, float, dict]:
+    """Prepare a finished session for the viewers, then run uploaders and viewers together."""
+    scan = simulate("short", 1)
+    frames = [cv2.imencode(".png", scan.frame(i))[1].tobytes() for i in range(len(scan))]
+    calibration = scan.calibration.to_dict()
+    limits = httpx.Limits(max_connections=args.connections, max_keepalive_connections=args.connections)
+    headers = {"Authorization": f"Bearer {KEY}"}
+    async with httpx.AsyncClient(base_url=base, headers=headers, timeout=30.0, limits=limits) as http:
+        view_sid = await create_session(http, calibration, 0.1 * len(frames) + 1)
+        warm = Stats()
+        await asyncio.gather(*(upload(http, view_sid, i, 0.1 * i, frames[i], warm) for i in range(len(frames))))
+        await http.post(f"/v1/sessions/{view_sid}/finish")
+        deadline = time.monotonic() + 300
+        while (await http.get(f"/v1/sessions/{view_sid}")).json()["status"] != "done":
+            if time.monotonic() > deadline:
+                raise RuntimeError("the viewers' session did not finish")
+            await asyncio.sleep(0.5)
+        per_session = int(args.upload_rate * args.seconds / args.sessions) + 1
+        sids = [await create_session(http, calibration, 0.1 * per_session + 1) for _ in range(args.sessions)]
+        up, tiles = Stats(), Stats()
+        rng = random.Random(0)
+        t0 = time.perf_counter()
+        await asyncio.gather(
+            uploaders(http, sids, frames, args.upload_rate, args.seconds, up),
+            *(viewer(http, view_sid, args.tile_rate, args.seconds, tiles, rng) for _ in range(args.viewers)),
+        )
+        wall = time.perf_counter() - t0
+        state = (await http.get(f"/v1/sessions/{sids[0]}")).json()
+    return up, tiles, wall, state
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the load test and print the table."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--upload-rate", type=float, default=200.0, help="frame uploads started per second")
+    p.add_argument("--sessions", type=int, default=4, help="upload sessions (the rate is spread over them)")
+    p.add_argument("--viewers", type=int, default=32)
+    p.add_argument("--tile-rate", type=float, default=5.0, help="tile requests per second per viewer")
+    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--connections", type=int, default=256, help="client connection pool size")
+    p.add_argument("--redis-url", default=None, help="default: a private redis-server with AOF")
+    args = p.parse_args(argv)
+    server = Server(args.workers, args.redis_url)
+    try:
+        server.wait_ready()
+        up, tiles, wall, state = asyncio.run(run(args, server.base))
+    finally:
+        server.stop()
+    print(
+        f"\n{os.cpu_count()} CPUs; {args.upload_rate:g} uploads/s offered over {args.sessions} sessions, "
+        f"{args.viewers} viewers x {args.tile_rate:g} tiles/s, {args.seconds:g} s, {args.workers} workers\n"
+    )
+    print("| requests | sent | ok/s | p50 ms | p99 ms | max ms | errors | started late |")
+    print("|---|---:|---:|---:|---:|---:|---|---:|")
+    print(up.row("frame uploads (640x480 PNG)", wall))
+    print(tiles.row("Deep Zoom tiles", wall))
+    received, processed = state["frames_received"], state["frames_processed"]
+    print(f"\nfirst upload session when the load stopped: {received} frames received, {processed} processed")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
