@@ -1,4 +1,5 @@
-"""Sequential registration on the simulator's short scan: identity start, loss and re-localisation, blur."""
+"""Sequential registration on the simulator's short scan: identity start, loss and re-localisation, blur,
+direct alignment when features fail, and the reason of every frame not placed."""
 
 from __future__ import annotations
 
@@ -9,8 +10,19 @@ import numpy as np
 import pytest
 
 from services import pipeline
+from services.frame_prep import PreparedFrame
 from services.methods import MethodOptions, method_options
-from services.registrar import STATUS_LOST, STATUS_OK, STATUS_REJECTED, FrameResult, Registrar
+from services.registrar import (
+    REASON_FEW_INLIERS,
+    REASON_FEW_KEYPOINTS,
+    REASON_LOW_CORRELATION,
+    REASONS,
+    STATUS_LOST,
+    STATUS_OK,
+    STATUS_REJECTED,
+    FrameResult,
+    Registrar,
+)
 from services.registration import IDENTITY, Similarity
 from services.scan import Scan
 from services.simulation.scenarios import simulate
@@ -123,3 +135,56 @@ def test_junk_burst_does_not_make_clean_frames_look_blurred(scan: Scan) -> None:
     junk = dataclasses.replace(scan, frame_loader=lambda i: noise[i] if i in noise else scan.frame(i))
     results, _ = _run(junk, method_options("sift-chain"))
     assert not any(r.blurred for r in results[21:])  # sharp frames (measured 105..147 grey levels^2)
+
+
+FALLBACK_FRAMES = 8  # the first frames of the short scan: ~2.2 mm apart, a straight sweep
+
+
+@pytest.fixture(scope="module")
+def first_frames(scan: Scan) -> tuple[list[PreparedFrame], float]:
+    """The first frames of the short scan prepared once (the options below change registration only)."""
+    options = method_options("best")
+    forces = pipeline.frame_forces(scan)
+    mask, flat = pipeline.window_setup(scan, options)
+    frames = [pipeline.prepare_scan_frame(scan, i, forces[i], mask, flat, options) for i in range(FALLBACK_FRAMES)]
+    return frames, pipeline.window_radius_mm(mask, scan.calibration)
+
+
+def _register(scan: Scan, prepared: tuple[list[PreparedFrame], float], overrides: dict) -> list[FrameResult]:
+    frames, radius = prepared
+    options = method_options("best").with_overrides(overrides)
+    registrar = Registrar(options, scan.calibration.px_per_mm, radius, centre_px=scan.calibration.principal_point)
+    results = [registrar.add(pf) for pf in frames]
+    for r in results:  # a frame that is not placed always says why
+        assert (r.status == STATUS_OK) == (r.reason == "")
+        assert r.status == STATUS_OK or r.reason in REASONS
+    return results
+
+
+# features made to fail two ways: no registration can have 100000 inliers (and no frame has that many
+# keypoints), or a ratio test of 0 that keeps (almost) no match
+NO_FEATURES = [{"min_inliers": 100000}, {"ratio": 0.0}]
+
+
+@pytest.mark.parametrize("overrides", NO_FEATURES)
+def test_direct_alignment_places_frames_when_features_fail(scan: Scan, first_frames, overrides: dict) -> None:
+    results = _register(scan, first_frames, overrides)
+    assert all(r.status == STATUS_OK for r in results)
+    assert all(r.inliers == 0 for r in results[1:])  # every edge is a direct one
+    errors = _errors_mm(scan, results)
+    assert max(errors.values()) < RELOCALISED_MM  # measured 0.12 mm (0.48 mm with the default centre_px (0, 0))
+
+
+@pytest.mark.parametrize("overrides", NO_FEATURES)
+def test_without_the_fallback_the_same_frames_are_lost(scan: Scan, first_frames, overrides: dict) -> None:
+    results = _register(scan, first_frames, {**overrides, "direct_fallback": False})
+    assert results[0].status == STATUS_OK  # the first frame sits at the origin without any match
+    assert all(r.status == STATUS_LOST for r in results[1:])
+    expected = REASON_FEW_KEYPOINTS if "min_inliers" in overrides else REASON_FEW_INLIERS
+    assert {r.reason for r in results[1:]} == {expected}
+
+
+def test_direct_alignment_below_the_correlation_threshold_is_refused(scan: Scan, first_frames) -> None:
+    results = _register(scan, first_frames, {"ratio": 0.0, "min_correlation": 1.01})
+    assert all(r.status == STATUS_LOST for r in results[1:])
+    assert {r.reason for r in results[1:]} == {REASON_LOW_CORRELATION}
