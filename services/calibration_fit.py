@@ -17,8 +17,10 @@ import cv2
 import numpy as np
 
 from services.calibration import Calibration
+from services.features import detect_features
 from services.force_model import interpolate_forces, load_state
 from services.scan import Scan
+from services.vein_enhancement import enhance_veins
 
 # Frame selection for the modulus fit (values from the task brief).
 NORMAL_TILT_DEG = 0.05  # "pressed normally": |theta_x|, |theta_y| below this
@@ -181,6 +183,9 @@ def fit_hooke(
 # ------------------------------------------------------------------------------------- image measurement
 
 
+CENTRAL_RADIUS_MM = 25.0  # keypoints farther than this from the principal point are not used to fit E
+
+
 def _prepare_frame(scan: Scan, index: int) -> tuple[np.ndarray, np.ndarray]:
     """Return (undistorted 8-bit frame, 8-bit keypoint mask) for frame `index`."""
     calib = scan.calibration
@@ -206,22 +211,27 @@ def _prepare_frame(scan: Scan, index: int) -> tuple[np.ndarray, np.ndarray]:
     return img, valid
 
 
-def _features(scan: Scan, index: int, sift: cv2.SIFT) -> tuple[np.ndarray, np.ndarray | None]:
+def _features(scan: Scan, index: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Return keypoints (pixels, float32) and descriptors of a frame's vein map, as registration detects them."""
     img, valid = _prepare_frame(scan, index)
-    kps, desc = sift.detectAndCompute(img, valid)
-    pts = np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2)
-    return pts, desc
+    vein = enhance_veins(img, valid)
+    found = detect_features(vein.image, vein.mask, "sift", target=SIFT_FEATURES)
+    # only the central part of the window: far from the centre, deformation the spec §2 model does not
+    # capture (tissue non-linearity) grows with the radius and would bias the fitted stretch
+    centre = np.array(scan.calibration.principal_point)
+    near = np.linalg.norm(found.points - centre, axis=1) <= CENTRAL_RADIUS_MM * scan.calibration.px_per_mm
+    found = found.subset(near)
+    return found.points.astype(np.float32).reshape(-1, 2), (found.descriptors if len(found) else None)
 
 
 def measure_similarities(scan: Scan, ref_index: int, indices: list[int]) -> ScaleMeasurements:
     """Return each frame's similarity to the reference frame: scale, content shift at (cx, cy) in mm, inliers.
 
-    Both frames undistorted, SIFT (1500 features, inside the eroded mask), ratio test 0.75, RANSAC
+    Both frames undistorted, SIFT on the vein map (1500 adaptive features, inside the eroded mask), ratio 0.75, RANSAC
     partial-affine (1.5 px, seeded); scale = sqrt|det| of the 2x2 part, mapping reference -> frame pixels.
     """
-    sift = cv2.SIFT_create(nfeatures=SIFT_FEATURES)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
-    ref_pts, ref_desc = _features(scan, ref_index, sift)
+    ref_pts, ref_desc = _features(scan, ref_index)
     idx = np.asarray(list(indices), dtype=np.int64)
     scales = np.full(len(idx), np.nan)
     shifts = np.full((len(idx), 2), np.nan)
@@ -231,7 +241,7 @@ def measure_similarities(scan: Scan, ref_index: int, indices: list[int]) -> Scal
     for j, k in enumerate(idx):
         if ref_desc is None or len(ref_pts) < MIN_INLIERS:
             break
-        pts, desc = _features(scan, int(k), sift)
+        pts, desc = _features(scan, int(k))
         if desc is None or len(pts) < MIN_INLIERS:
             continue
         pairs = matcher.knnMatch(ref_desc, desc, k=2)

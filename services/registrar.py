@@ -64,6 +64,7 @@ class Registrar:
     options: MethodOptions
     px_per_mm: float
     window_radius_mm: float
+    centre_px: tuple[float, float]  # the principal point (rectified pixels): direct alignment's centre
     poses: dict[int, Similarity] = field(default_factory=dict)
     features: dict[int, Features] = field(default_factory=dict)
     times: dict[int, float] = field(default_factory=dict)
@@ -73,7 +74,6 @@ class Registrar:
     order: list[int] = field(default_factory=list)
     loops_since_refine: int = 0
     veins: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # placed: (vein, mask)
-    centre_px: tuple[float, float] = (0.0, 0.0)  # the principal point (rectified pixels)
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
 
     @property

@@ -22,6 +22,7 @@ import numpy as np
 VEIN_SCALES_PX = (2.0, 3.5, 6.0)  # Hessian scales (px at 8 px/mm): vessels about 1-6 mm wide
 SKIN_SIGMA_PX = 20.0  # local skin level: several vein widths, below the vignetting's scale
 NORMALISE_PERCENTILE = 99.5  # this percentile of the window's ridge strength maps to grey 255
+MIN_RIDGE = 1e-3  # ridge strength below this (a 0.1 % dip) is no vessel: a featureless window stays black
 
 
 @dataclass(frozen=True)
@@ -67,5 +68,5 @@ def enhance_veins(image: np.ndarray, mask: np.ndarray, margin_px: int = 0) -> Ve
     ridge[inner == 0] = 0.0
     inside = ridge[inner > 0]
     top = float(np.percentile(inside, NORMALISE_PERCENTILE)) if inside.size else 0.0
-    scale = 255.0 / top if top > 1e-6 else 0.0
+    scale = 255.0 / top if top > MIN_RIDGE else 0.0
     return VeinMap(np.clip(ridge * scale, 0, 255).astype(np.uint8), inner)

@@ -18,9 +18,11 @@ from services.registration import Similarity
 from services.session_reconstruction import SessionReconstruction
 from services.simulation.scenarios import simulate
 
-# Measured on short seed 1: the real stitch agrees with its frames at median NCC 0.994 (worst frame 0.962);
-# jittering every pose by 0.25 mm (2 px) drops that to 0.940 (worst 0.818). The thresholds sit between.
-MEDIAN_NCC_MIN = 0.98
+# Measured on the realistic short scan, seed 1 (smooth skin: the veins are the only structure, so sensor noise
+# weighs more than on the old textured frames): the real stitch agrees with its frames at median NCC 0.9735
+# (worst frame 0.959); jittering every pose by 0.25 mm (2 px) drops that to 0.961 (worst 0.898). The
+# thresholds sit between.
+MEDIAN_NCC_MIN = 0.967
 WORST_NCC_MIN = 0.93
 JITTER_MM = 0.25
 

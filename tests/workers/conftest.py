@@ -99,7 +99,7 @@ def store_scan(
 
 
 FAST = {
-    "lease_ms": 1500,
+    "lease_ms": 4000,  # registration of a 640x480 realistic frame takes up to ~0.5 s on a loaded 2-core machine
     "claim_idle_ms": 1500,
     "claim_every_s": 0.5,
     "flush_every_s": 0.3,

@@ -51,7 +51,7 @@ def test_failing_frame_is_retried_then_dead_lettered(backend: Backend) -> None:
     assert len(dead) == 1
     fields = dead[0][1]
     assert fields[b"kind"] == b"frame" and fields[b"seq"] == b"1" and fields[b"attempt"] == b"2"
-    assert b"differs from calibration" in fields[b"error"]  # the third failure's message (no patient data)
+    assert b"calibration image_size" in fields[b"error"]  # the third failure's message (no patient data)
     assert ResultsStore(backend.data_dir).is_poison(sid, 1, 1)
     assert int(r.hget(queue.metrics_key(p), "dead_letters_total")) == 1
     assert r.xlen(queue.frames_stream(p)) == 0  # acknowledged and deleted
