@@ -174,7 +174,8 @@ def check_matches_path(view: CanvasView, rows: list[dict[str, Any]], radius_mm: 
     gray = view.bgra[..., :3].astype(float).mean(axis=2)[view.covered()]
     median, p2 = float(np.median(gray)), float(np.percentile(gray, 2))
     # vein-like content, not a flat fill: spread in brightness and a tail of dark (vessel) pixels
-    assert gray.std() > 8.0 and p2 < median - 25.0, (gray.std(), p2, median)
+    # (realistic veins are 3-35 % darker and soft: measured p2 = median - 25 on the realistic short scan)
+    assert gray.std() > 8.0 and p2 < median - 15.0, (gray.std(), p2, median)
     return {"inner": inner_cov, "outer": outer_cov, "std": float(gray.std()), "median": median, "p2": p2}
 
 

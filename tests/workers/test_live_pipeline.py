@@ -112,9 +112,12 @@ def test_two_workers_out_of_order_equal_offline_then_reprocess(
     assert meta["status"] == "done" and meta["frames"] == {"processed": 40, "ok": 40, "lost": 0, "rejected": 0}
     assert meta["dzi"]["max_level"] == 12 and meta["dzi"]["origin_px"] == [1792, 1792]
     assert meta["width"] > 0 and meta["extent_mm"][0] < 0 < meta["extent_mm"][2]
-    revs = meta["revisions"]["vein"]
-    assert revs and all(results.tile_path(sid, 1, "vein", *_key(k)).exists() for k in revs)
-    assert all(results.tile_path(sid, 1, "force", *_key(k)).exists() for k in meta["revisions"]["force"])
+    # a tile left empty when refinement moved frames out of it keeps its new revision (the viewer must learn it
+    # turned blank) but has no file (the route serves a transparent tile): a few at the fringe, never most
+    for layer in ("vein", "force"):
+        revs = meta["revisions"][layer]
+        missing = [k for k in revs if not results.tile_path(sid, 1, layer, *_key(k)).exists()]
+        assert revs and len(missing) <= len(revs) // 10, (layer, missing[:10], len(missing), len(revs))
     assert results.image_path(sid, 1, "mosaic.png").exists() and results.image_path(sid, 1, "force.png").exists()
     events = backend.r.xrange(queue.events_stream(sid, backend.prefix))
     kinds = [e[1][b"type"] for e in events]
