@@ -1,0 +1,250 @@
+"""Outputs a hospital archives over HTTP: GET export.dcm?layer= (DICOM) and the one-page sheet.png / sheet.pdf.
+
+The results are a known fixture written with ResultsStore as a worker writes them (mosaic.png, layers.npz,
+mosaic.json, path.json): a 20-frame straight path at 8 px/mm with one lost and one rejected frame, a force
+ramp of 0..29.9 N and a coverage of 1..4 frames with an unscanned corner. So every DICOM pixel is known
+exactly, and the sheet's text (read from the PDF's content streams) can be checked for what it must say.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+import zlib
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from api_helpers import INGEST, auth
+from fastapi.testclient import TestClient
+from pydicom import dcmread
+from pydicom.pixels import apply_rescale
+
+from api.auth import make_viewer_token
+from services.dicom_export import MF_GRAY_BYTE_SC, MF_GRAY_WORD_SC, study_uid
+from services.mosaic import MosaicImage
+from services.results_store import ResultsStore
+from services.session_reconstruction import PathRow
+
+PX_PER_MM = 8.0
+H, W = 120, 200  # px: 15 x 25 mm
+N_FRAMES = 20
+LOST, REJECTED = 5, 12
+LAYERS = ("vein", "force", "coverage")
+
+
+def known_mosaic() -> MosaicImage:
+    """Return a mosaic whose layers are known pixel by pixel (force in N, NaN and coverage 0 where unscanned)."""
+    yy, xx = np.mgrid[0:H, 0:W]
+    vein = ((xx * 7 + yy * 3) % 256).astype(np.uint8)
+    coverage = (1 + (xx * 4) // W).astype(np.float32)  # 1..4 frames, left to right
+    coverage[:30, :40] = 0  # a corner never scanned
+    force = np.where(coverage > 0, np.round(xx * 29.9 / (W - 1), 2), np.nan).astype(np.float32)
+    return MosaicImage(vein, force, coverage, PX_PER_MM, (20.0, 60.0))
+
+
+def path_rows() -> list[PathRow]:
+    """Return the path: frames 1 mm apart along x, frame LOST lost and frame REJECTED rejected."""
+    nan = float("nan")
+    rows = []
+    for seq in range(N_FRAMES):
+        status = "lost" if seq == LOST else "rejected" if seq == REJECTED else "ok"
+        placed = status == "ok"
+        reason = {"lost": "few_inliers", "rejected": "blur"}.get(status, "")
+        x = float(seq) if placed else nan
+        rows.append(PathRow(seq, 0.1 * seq, x, 0.0 if placed else nan, 0.0 if placed else nan, 5.0, 0.0, 0.0, 1.0,
+                            80 if placed else 0, status, reason))  # fmt: skip
+    return rows
+
+
+def install_known(client: TestClient, sid: str) -> MosaicImage:
+    """Write results version 1 of `sid` (as a worker does when the version completes); return its mosaic."""
+    rs = ResultsStore(client.app.state.settings.data_dir)  # type: ignore[attr-defined]
+    mosaic = known_mosaic()
+    rs.ensure_version(sid, 1, {"method": "best"})
+    rs.write_mosaic_images(sid, 1, mosaic)
+    rs.write_mosaic_meta(sid, 1, {**mosaic.meta(), "version": 1, "results_version": 1, "status": "done"})
+    rs.write_path(sid, 1, path_rows())
+    rs.write_state(sid, 1, {"cursor": N_FRAMES, "fence": 1, "finished": True, "lost": [LOST], "rejected": [REJECTED]})
+    return mosaic
+
+
+def create(client: TestClient, key: dict[str, str] = INGEST) -> dict[str, Any]:
+    """Create a session (64 x 48 frames at 8 px/mm); return the 201 body."""
+    calibration = {
+        "image_size": [64, 48],
+        "camera_matrix": [[80.0, 0.0, 31.5], [0.0, 80.0, 23.5], [0.0, 0.0, 1.0]],
+        "px_per_mm": PX_PER_MM,
+    }
+    resp = client.post("/v1/sessions", json={"calibration": calibration, "label": "Jane Doe 1970"}, headers=key)
+    assert resp.status_code == 201, resp.text
+    return resp.json()
+
+
+@pytest.fixture
+def ready(client: TestClient) -> tuple[TestClient, dict[str, Any], MosaicImage]:
+    """Return (client, create body, mosaic) of a session whose finished results are installed."""
+    created = create(client)
+    return client, created, install_known(client, created["id"])
+
+
+def _error(resp: Any) -> dict[str, Any]:
+    body = resp.json()
+    assert set(body) == {"error"}, body
+    return body["error"]
+
+
+def pdf_text(data: bytes) -> str:
+    """Return the text drawn in a (matplotlib) PDF: the strings of its content streams' Tj/TJ operators."""
+    out = []
+    for m in re.finditer(rb"stream\r?\n(.*?)\r?\nendstream", data, re.S):
+        try:
+            content = zlib.decompress(m.group(1))
+        except zlib.error:
+            continue
+        for block in re.findall(rb"BT(.*?)ET", content, re.S):
+            parts = re.findall(rb"\(((?:\\.|[^\\)])*)\)", block)
+            out.append(b"".join(re.sub(rb"\\(.)", rb"\1", p) for p in parts).decode("latin-1"))
+    return "\n".join(out)
+
+
+# ----- DICOM ------------------------------------------------------------------------------------------------------
+
+
+def test_export_each_layer_is_dicom_with_known_pixels(ready: tuple[TestClient, dict, MosaicImage]) -> None:
+    client, created, mosaic = ready
+    sid = created["id"]
+    got = {}
+    for layer in LAYERS:
+        resp = client.get(f"/v1/sessions/{sid}/export.dcm?layer={layer}", headers=INGEST)
+        assert resp.status_code == 200, (layer, resp.text)
+        assert resp.headers["content-type"] == "application/dicom"
+        assert resp.headers["X-Results-Version"] == "1"
+        assert "no-store" in resp.headers["Cache-Control"] and "private" in resp.headers["Cache-Control"]
+        assert resp.headers["Content-Disposition"] == f'attachment; filename="{layer}.dcm"'
+        assert resp.content[128:132] == b"DICM"  # a Part-10 file: preamble then the magic
+        got[layer] = dcmread(io.BytesIO(resp.content))
+    # the default layer is the vein mosaic
+    default = client.get(f"/v1/sessions/{sid}/export.dcm", headers=INGEST)
+    assert default.status_code == 200
+    again = dcmread(io.BytesIO(default.content))  # the same results export with the same UIDs (not bytes: the
+    assert again.SOPInstanceUID == got["vein"].SOPInstanceUID  # secondary capture time is the export's)
+    assert again.SeriesInstanceUID == got["vein"].SeriesInstanceUID
+    for ds in got.values():
+        assert [float(v) for v in ds.PixelSpacing] == [0.125, 0.125]  # mm: 1 / 8 px/mm
+        assert (ds.Rows, ds.Columns) == (H, W)
+        assert ds.StudyInstanceUID == study_uid(sid)  # one study per session
+        assert re.fullmatch(r"\d{8}", ds.StudyDate) and ds.AcquisitionDateTime.startswith(ds.StudyDate)
+        for name in ("PatientName", "PatientID", "PatientBirthDate", "PatientSex"):
+            # the session's label is not patient identity: nothing is invented or copied into the file
+            assert str(ds.data_element(name).value or "") == "", name
+        assert "Jane" not in str(ds) and "1970" not in ds.PatientBirthDate
+    assert len({ds.SeriesInstanceUID for ds in got.values()}) == 3  # one series per layer
+    assert got["vein"].SOPClassUID == MF_GRAY_BYTE_SC and np.array_equal(got["vein"].pixel_array, mosaic.vein)
+    force = got["force"]
+    assert force.SOPClassUID == MF_GRAY_WORD_SC and force.BitsStored == 16
+    newtons = apply_rescale(force.pixel_array, force)
+    scanned = mosaic.coverage > 0
+    # 0.01 N steps (RescaleSlope), half a step of rounding; 0 where never scanned
+    np.testing.assert_allclose(newtons[scanned], mosaic.force_n[scanned], atol=0.005 + 1e-6)
+    assert np.all(newtons[~scanned] == 0)
+    assert np.array_equal(got["coverage"].pixel_array, mosaic.coverage.astype(np.uint8))
+
+
+def test_export_bad_layer_is_a_clear_422(ready: tuple[TestClient, dict, MosaicImage]) -> None:
+    client, created, _ = ready
+    for bad in ("mosaic.png", "FORCE", "", "../force"):
+        resp = client.get(f"/v1/sessions/{created['id']}/export.dcm", params={"layer": bad}, headers=INGEST)
+        assert resp.status_code == 422, (bad, resp.text)
+        assert resp.headers["content-type"].startswith("application/json")
+        err = _error(resp)
+        # names the parameter that was wrong and what is allowed; the bad value is not echoed
+        assert err["code"] == "validation_error" and "layer" in err["message"], err
+        assert all(f"'{name}'" in err["message"] for name in LAYERS), err
+
+
+def test_export_and_sheet_before_results_are_404_not_ready(client: TestClient) -> None:
+    sid = create(client)["id"]
+    for route in ("/export.dcm?layer=force", "/sheet.png", "/sheet.pdf"):
+        resp = client.get(f"/v1/sessions/{sid}{route}", headers=INGEST)
+        assert resp.status_code == 404, route
+        assert _error(resp)["code"] == "not_ready", route
+
+
+AUTH_ROUTES = (
+    "/export.dcm?layer=vein",
+    "/export.dcm?layer=force",
+    "/export.dcm?layer=coverage",
+    "/sheet.png",
+    "/sheet.pdf",
+)
+
+
+def test_export_and_sheet_auth(ready: tuple[TestClient, dict, MosaicImage]) -> None:
+    client, created, _ = ready
+    sid, token = created["id"], created["viewer_token"]
+    other = create(client, key=auth("ingest-key-b"))
+    expired = make_viewer_token(client.app.state.token_secret, sid, 10, now=1000.0)  # type: ignore[attr-defined]
+    for route in AUTH_ROUTES:
+        url = f"/v1/sessions/{sid}{route}"
+        sep = "&" if "?" in url else "?"
+        assert client.get(url).status_code == 401, route  # no key
+        assert client.get(url, headers=auth("no-such-key")).status_code == 401, route
+        assert client.get(url, headers=auth("ingest-key-b")).status_code == 404, route  # another key's session
+        assert client.get(url, headers=auth("view-key")).status_code == 404, route  # view scope, not the owner
+        assert client.get(f"{url}{sep}token={other['viewer_token']}").status_code == 401, route  # another session
+        assert client.get(f"{url}{sep}token={expired}").status_code == 401, route
+        assert client.get(url, headers=auth("admin-key")).status_code == 200, route
+        assert client.get(url, headers=INGEST).status_code == 200, route
+        assert client.get(f"{url}{sep}token={token}").status_code == 200, route  # the viewer's link
+    # a refusal says nothing about the session (no patient data in errors)
+    refused = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=auth("ingest-key-b"))
+    assert _error(refused)["code"] == "not_found" and "Jane" not in refused.text
+
+
+# ----- the one-page sheet -----------------------------------------------------------------------------------------
+
+
+def test_sheet_png_and_pdf(ready: tuple[TestClient, dict, MosaicImage]) -> None:
+    client, created, _ = ready
+    sid = created["id"]
+    png = client.get(f"/v1/sessions/{sid}/sheet.png", headers=INGEST)
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert png.headers["X-Results-Version"] == "1" and "no-store" in png.headers["Cache-Control"]
+    img = cv2.imdecode(np.frombuffer(png.content, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[1] > img.shape[0] > 800  # one landscape page, print resolution
+    assert np.ptp(img.reshape(-1, 3), axis=1).max() > 100  # colour scales: not a grey page
+    pdf = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=INGEST)
+    assert pdf.status_code == 200 and pdf.headers["content-type"] == "application/pdf"
+    assert pdf.content.startswith(b"%PDF") and "no-store" in pdf.headers["Cache-Control"]
+    assert len(re.findall(rb"/Type\s*/Page\b", pdf.content)) == 1  # one page
+    text = pdf_text(pdf.content)
+    assert f"session {sid[:8]}" in text  # the heading: the session key's prefix, never the label
+    assert "Jane" not in text
+    assert "local load (N)" in text, text  # the force map's colour scale is in N
+    assert "frames that saw the point" in text and "never scanned" in text  # the coverage scale
+    assert text.count("x (mm") == 3 and text.count("y (mm") == 3  # the three maps' axes are in mm
+    assert f"frames: {N_FRAMES}, placed {N_FRAMES - 2}" in text, text  # the lost-frame summary
+    assert "lost: 1" in text and "few inliers: 1" in text and "rejected: 1" in text and "blur: 1" in text
+    assert "no reference track: accuracy not measured" in text
+    assert "WARNING: 2 of 20 frames (10.0 %) were not placed" in text  # the 5 % rule, on the page
+
+
+def test_sheet_shows_accuracy_with_a_reference(ready: tuple[TestClient, dict, MosaicImage]) -> None:
+    client, created, _ = ready
+    sid = created["id"]
+    # a reference 2 % longer than the path and 0.5 mm beside it: an error to show, whatever is aligned first
+    lines = ["seq,x_mm,y_mm", *(f"{s},{1.02 * s:.4f},0.5" for s in range(N_FRAMES))]
+    resp = client.post(
+        f"/v1/sessions/{sid}/reference",
+        content=("\n".join(lines) + "\n").encode(),
+        headers={**INGEST, "Content-Type": "text/csv"},
+    )
+    assert resp.status_code == 200, resp.text
+    pdf = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=INGEST)
+    assert pdf.status_code == 200
+    text = pdf_text(pdf.content)
+    assert "no reference track" not in text
+    assert "accuracy: RMSE" in text and "error (mm)" in text, text  # the figures and the error plot in mm
+    assert "reference" in text  # the reference track is drawn (and named) over the mosaic with the estimate
