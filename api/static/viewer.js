@@ -306,7 +306,9 @@
     for (const p of lostPoints) {
       const e = toElement(p, t);
       const cross = document.createElementNS(SVG_NS, "path");
-      cross.setAttribute("class", "lost");
+      const entry = state.path.get(p[2]);
+      // every not-placed frame is a "lost" cross; a rejected one is also classed "rejected" (its own colour)
+      cross.setAttribute("class", entry && entry[2] === "rejected" ? "lost rejected" : "lost");
       cross.setAttribute("d", "M" + (e[0] - 5) + "," + (e[1] - 5) + "l10,10m0,-10l-10,10");
       lostGroup.appendChild(cross);
     }

@@ -21,7 +21,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from test_viewer_browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, _free_port, open_viewer
+from test_viewer_browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, _free_port
 
 from api.client import VeinmosaicClient
 from api.launcher import Service
@@ -38,7 +38,8 @@ KEY = "viewer-tools-key"
 PX_PER_MM = 8.0
 N_FRAMES = 30
 STEP_MM = 2.0
-LOST = (7, 8, 15, 21, 22)  # 5 of 30 = 16.7 % > 5 %: the banner must show
+LOST = (7, 8, 15, 21, 22)  # not placed: 5 of 30 = 16.7 % > 5 %, the banner must show
+REJECTED = (22,)  # of those, rejected (blur) rather than lost
 FRAME_SHAPE = (160, 200)  # h, w px: 20 x 25 mm
 
 
@@ -83,13 +84,15 @@ def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:
     for seq in range(N_FRAMES):
         x = STEP_MM * seq
         lost = seq in LOST
+        status = "rejected" if seq in REJECTED else "lost" if lost else "ok"
+        reason = "blur" if seq in REJECTED else "few_inliers" if lost else ""
         if not lost:
             canvas.paste(_frame(seq), Similarity(1 + 0j, complex(x, 0.0)))
         nan = float("nan")
         rows.append(
             PathRow(
                 seq, 0.1 * seq, nan if lost else x, nan if lost else 0.0, nan if lost else 0.0, 4.0 + 0.5 * seq,
-                0.0, 0.0, 1.0, 0 if lost else 120, "lost" if lost else "ok", "few_inliers" if lost else "",
+                0.0, 0.0, 1.0, 0 if lost else 120, status, reason,
             )
         )  # fmt: skip
     rs = ResultsStore(data_dir)
@@ -113,14 +116,31 @@ def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:
         "revisions": revisions,
         "dzi": geometry.to_dict(),
         "extent_mm": [-half_w, -half_h, STEP_MM * (N_FRAMES - 1) + half_w, half_h],
-        "frames": {"processed": N_FRAMES, "ok": N_FRAMES - len(LOST), "lost": len(LOST), "rejected": 0},
+        "frames": {
+            "processed": N_FRAMES,
+            "ok": N_FRAMES - len(LOST),
+            "lost": len(LOST) - len(REJECTED),
+            "rejected": len(REJECTED),
+        },
         "status": "done",
         "method": "best",
     }
     rs.write_mosaic_meta(sid, 1, doc)
     rs.write_path(sid, 1, rows)
-    rs.write_state(sid, 1, {"cursor": N_FRAMES, "fence": 1, "finished": True, "lost": list(LOST), "rejected": []})
+    lost = [s for s in LOST if s not in REJECTED]
+    rs.write_state(sid, 1, {"cursor": N_FRAMES, "fence": 1, "finished": True, "lost": lost, "rejected": list(REJECTED)})
     return rows
+
+
+STATUS_LOG_JS = """
+window.__statusLog = [];
+document.addEventListener("DOMContentLoaded", () => {
+  const el = document.getElementById("status");
+  const note = () => window.__statusLog.push(el.textContent);
+  note();
+  new MutationObserver(note).observe(el, { childList: true, characterData: true, subtree: true });
+});
+"""
 
 
 def _element_xy(page: Any, x_mm: float, y_mm: float) -> tuple[float, float]:
@@ -176,26 +196,36 @@ def test_viewer_tools_in_chromium(service: Service) -> None:
     store.set_status(sid, "done")  # as the register stage does when the version is complete
     state = client.session(sid)
     assert [w["code"] for w in state["warnings"]] == ["frames_lost"], state
-    assert state["not_placed_reasons"] == {"few_inliers": len(LOST)}
+    assert state["not_placed_reasons"] == {"few_inliers": len(LOST) - len(REJECTED), "blur": len(REJECTED)}
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
 
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
-            page, problems = open_viewer(browser, f"{service.base_url}{created['viewer_url']}")
+            page = browser.new_page(viewport={"width": 1100, "height": 800})
+            page.add_init_script(STATUS_LOG_JS)  # every text the status line shows, from the first paint
+            problems: list[str] = []
+            page.on("pageerror", lambda e: problems.append(f"pageerror: {e}"))
+            page.on("response", lambda r: problems.append(f"{r.status} {r.url}") if r.status >= 400 else None)
+            page.goto(f"{service.base_url}{created['viewer_url']}")
             _wait_idle(page)
+            # the session is done before the page opens: while its results load the status line must not
+            # read "done · 0 frames processed"
+            shown = page.evaluate("() => window.__statusLog")
+            assert shown and not any("· 0 frames processed" in t for t in shown), shown
 
             # banner: the >5 % rule, with the reason
             page.wait_for_selector("#banner:not([hidden])", timeout=15000)
             banner = page.inner_text("#banner")
-            assert "5 of 30 frames" in banner and "few inliers" in banner, banner
+            assert "5 of 30 frames" in banner and "few inliers 4" in banner and "blur 1" in banner, banner
             status = page.inner_text("#status")
-            assert status.startswith("done · 30 frames processed (25 placed, 5 lost)"), status
+            assert status.startswith("done · 30 frames processed (25 placed, 4 lost, 1 rejected)"), status
 
             # start and end markers, lost frames marked
             assert page.get_attribute("#path-overlay circle.start", "visibility") == "visible"
             assert page.get_attribute("#path-overlay rect.end", "visibility") == "visible"
-            assert page.locator("#path-overlay path.lost").count() == len(LOST)
+            assert page.locator("#path-overlay path.lost").count() == len(LOST)  # every frame not placed
+            assert page.locator("#path-overlay path.lost.rejected").count() == len(REJECTED)  # rejected told apart
 
             # the scale bar: its length in px is its label in mm at the screen's scale, and it follows the zoom
             def scale() -> tuple[str, float, float]:
@@ -248,6 +278,9 @@ def test_viewer_tools_in_chromium(service: Service) -> None:
             page.mouse.move(*_element_xy(page, STEP_MM * 15, 0.0))  # a lost frame, marked between its neighbours
             page.wait_for_function("() => document.querySelector('#tooltip').textContent.startsWith('frame 15')")
             assert "lost (few inliers)" in page.inner_text("#tooltip")
+            page.mouse.move(*_element_xy(page, STEP_MM * 22, 0.0))  # the rejected frame
+            page.wait_for_function("() => document.querySelector('#tooltip').textContent.startsWith('frame 22')")
+            assert "rejected (blur)" in page.inner_text("#tooltip")
             page.mouse.move(5, 5)
 
             # coverage layer: colour where the vein layer is grey, with its legend
@@ -266,7 +299,20 @@ def test_viewer_tools_in_chromium(service: Service) -> None:
             assert np.ptp(cov_px, axis=1).min() >= 40, cov_px  # a colour of the VIRIDIS scale
             page.check('input[name="layer"][value="force"]')
             _wait_idle(page)
-            assert "N" in page.inner_text("#force-legend")
+            legend = page.inner_text("#force-legend")
+            assert "0 N" in legend and "30 N" in legend, legend  # the force scale in N
             assert not problems, problems
+
+            # the banner also tells of a reprocess running and of a failed processing
+            ResultsStore(service.data_dir).create_version(sid, {"method": "best"}, make_current=False)
+            assert "reprocess_running" in [w["code"] for w in client.session(sid)["warnings"]]
+            page.reload()
+            page.wait_for_function("() => document.querySelector('#banner').textContent.includes('reprocess')")
+            assert not page.is_hidden("#banner") and "5 of 30 frames" in page.inner_text("#banner")
+            store.set_status(sid, "failed")
+            page.reload()
+            page.wait_for_function("() => document.querySelector('#banner').textContent.includes('failed')")
+            assert "Processing failed" in page.inner_text("#banner")
+            page.screenshot(path=str(ARTIFACTS / "viewer_tools_banner.png"))
         finally:
             browser.close()
