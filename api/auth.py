@@ -11,7 +11,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import hmac
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -111,10 +111,10 @@ def remember(request: Request, principal: Principal) -> Principal:
     return principal
 
 
-def require_scope(*scopes: str) -> Callable[[Request], Principal]:
+def require_scope(*scopes: str) -> Callable[[Request], Awaitable[Principal]]:
     """Return a dependency yielding the key principal holding one of `scopes` (401 no key, 403 no scope)."""
 
-    def dependency(request: Request) -> Principal:
+    async def dependency(request: Request) -> Principal:  # CPU only: no thread-pool hop
         principal = key_principal(request)
         if principal is None:
             raise Unauthorized()
@@ -126,8 +126,8 @@ def require_scope(*scopes: str) -> Callable[[Request], Principal]:
     return dependency
 
 
-def view_principal(request: Request, session_id: str) -> Principal:
-    """Return a key principal with view/ingest scope, or a viewer-token principal for `session_id`."""
+async def view_principal(request: Request, session_id: str) -> Principal:
+    """Return a key principal with view/ingest scope, or a viewer-token principal for `session_id` (CPU only)."""
     principal = key_principal(request)
     if principal is not None:
         remember(request, principal)

@@ -1,4 +1,8 @@
-"""FastAPI dependencies as Annotated aliases: settings, store, Redis, principals and visible sessions."""
+"""FastAPI dependencies as Annotated aliases: settings, store, Redis, principals and visible sessions.
+
+Dependencies that only read app.state (or hash a key) are `async def`: FastAPI runs a plain `def` dependency
+in its thread pool, a hop that costs more CPU than the work. Those that touch the disk stay `def`.
+"""
 
 from __future__ import annotations
 
@@ -12,17 +16,17 @@ from api.settings import Settings
 from services.storage import SessionMeta, SessionStore
 
 
-def get_settings_dep(request: Request) -> Settings:
+async def get_settings_dep(request: Request) -> Settings:
     """Return the settings read at start-up."""
     return request.app.state.settings
 
 
-def get_store(request: Request) -> SessionStore:
+async def get_store(request: Request) -> SessionStore:
     """Return the application's SessionStore."""
     return request.app.state.store
 
 
-def get_redis(request: Request) -> redis.Redis:
+async def get_redis(request: Request) -> redis.Redis:
     """Return the application's Redis client."""
     return request.app.state.redis
 

@@ -196,7 +196,28 @@ async def viewer(
         i += 1
 
 
-async def run(args: argparse.Namespace, base: str) -> tuple[Stats, Stats, float, dict]:
+def process_cpu_s(root_pid: int, match: str) -> float:
+    """Return the CPU seconds (user + system) used so far by root_pid's descendants whose command line has `match`."""
+    total, stack, seen = 0.0, [root_pid], set()
+    while stack:
+        pid = stack.pop()
+        if pid in seen:
+            continue
+        seen.add(pid)
+        with contextlib.suppress(OSError):
+            for tid in os.listdir(f"/proc/{pid}/task"):
+                stack.extend(int(k) for k in Path(f"/proc/{pid}/task/{tid}/children").read_text().split())
+        if pid == root_pid:
+            continue
+        with contextlib.suppress(OSError, ValueError):
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            if match in cmd:
+                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+                total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+    return total
+
+
+async def run(args: argparse.Namespace, base: str, serve_pid: int) -> tuple[Stats, Stats, float, dict, float]:
     """Prepare a finished session for the viewers, then run uploaders and viewers together."""
     scan = simulate("short", 1)
     frames = [cv2.imencode(".png", scan.frame(i))[1].tobytes() for i in range(len(scan))]
@@ -217,14 +238,16 @@ async def run(args: argparse.Namespace, base: str) -> tuple[Stats, Stats, float,
         sids = [await create_session(http, calibration, 0.1 * per_session + 1) for _ in range(args.sessions)]
         up, tiles = Stats(), Stats()
         rng = random.Random(0)
+        cpu0 = process_cpu_s(serve_pid, "uvicorn")
         t0 = time.perf_counter()
         await asyncio.gather(
             uploaders(http, sids, frames, args.upload_rate, args.seconds, up),
             *(viewer(http, view_sid, args.tile_rate, args.seconds, tiles, rng) for _ in range(args.viewers)),
         )
         wall = time.perf_counter() - t0
+        api_cpu = process_cpu_s(serve_pid, "uvicorn") - cpu0
         state = (await http.get(f"/v1/sessions/{sids[0]}")).json()
-    return up, tiles, wall, state
+    return up, tiles, wall, state, api_cpu
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -242,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     server = Server(args.workers, args.redis_url)
     try:
         server.wait_ready()
-        up, tiles, wall, state = asyncio.run(run(args, server.base))
+        up, tiles, wall, state, api_cpu = asyncio.run(run(args, server.base, server.serve.pid))
     finally:
         server.stop()
     print(
@@ -253,6 +276,11 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---:|---:|---:|---:|---:|---|---:|")
     print(up.row("frame uploads (640x480 PNG)", wall))
     print(tiles.row("Deep Zoom tiles", wall))
+    requests = len(up.latencies) + sum(up.errors.values()) + len(tiles.latencies) + sum(tiles.errors.values())
+    print(
+        f"\nAPI process(es) CPU during the run: {api_cpu:.2f} s = {1000 * api_cpu / max(1, requests):.1f} ms per "
+        f"request ({requests} requests; with --viewers 0 that is the CPU cost of one upload)"
+    )
     received, processed = state["frames_received"], state["frames_processed"]
     print(f"\nfirst upload session when the load stopped: {received} frames received, {processed} processed")
     return 0

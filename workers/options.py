@@ -1,12 +1,17 @@
-"""Options of a results version: {"method": name, "method_options": {...}, "calibration": {...overrides}}."""
+"""Options of a results version: {"method": name, "method_options": {...}, "calibration": {...overrides}}.
+
+Error messages name the option and the constraint only, never a submitted value nor an unknown key (either
+could carry patient data): they reach 422 answers, job records and logs.
+"""
 
 from __future__ import annotations
 
+import re
 from dataclasses import fields
 from typing import Any
 
-from services.calibration import Calibration
-from services.methods import MethodOptions, method_options
+from services.calibration import Calibration, CalibrationError
+from services.methods import METHOD_NAMES, MethodOptions, method_options
 
 USER_KEYS = ("method", "method_options", "calibration")
 SYSTEM_KEYS = ("source", "job")  # written by the workers into options.json
@@ -18,7 +23,7 @@ def _check_override_types(base: MethodOptions, overrides: dict[str, Any]) -> Non
         if name == "name":
             raise ValueError("method_options: 'name' cannot be overridden; use 'method'")
         if name not in known:
-            raise ValueError(f"method_options: unknown option {name!r}")
+            raise ValueError(f"method_options: unknown option; expected some of {', '.join(sorted(known))}")
         default = known[name]
         if isinstance(default, bool):
             ok = isinstance(value, bool)
@@ -44,10 +49,12 @@ def parse_options(doc: Any, strict: bool = True) -> tuple[MethodOptions, dict[st
     allowed = USER_KEYS if strict else USER_KEYS + SYSTEM_KEYS
     unknown = sorted(set(doc) - set(allowed))
     if unknown:
-        raise ValueError(f"options: unknown field(s) {', '.join(unknown)}; expected {', '.join(USER_KEYS)}")
+        raise ValueError(f"options: unknown field(s); expected some of {', '.join(USER_KEYS)}")
     name = doc.get("method", "best")
     if not isinstance(name, str):
         raise ValueError("options.method must be a string")
+    if name not in METHOD_NAMES:
+        raise ValueError(f"options.method: unknown method; expected one of {', '.join(METHOD_NAMES)}")
     opts = method_options(name)
     overrides = doc.get("method_options") or {}
     if not isinstance(overrides, dict):
@@ -62,9 +69,25 @@ def parse_options(doc: Any, strict: bool = True) -> tuple[MethodOptions, dict[st
     return opts, dict(calib)
 
 
+# the tail of a message that quotes the submitted value ("..., got -2"), and a list of unknown keys
+_QUOTED_VALUE = re.compile(r",? got .*$", re.DOTALL)
+_UNKNOWN_KEYS = re.compile(r"^(unknown field\(s\)):.*$", re.DOTALL)
+
+
+def without_values(message: str) -> str:
+    """Return a validation message with any quoted submitted value or unknown key name cut out."""
+    message = _UNKNOWN_KEYS.sub(lambda m: f"{m.group(1)}; see the calibration.json fields (spec §3)", message)
+    return _QUOTED_VALUE.sub("", message)
+
+
 def apply_calibration(base: Calibration, overrides: dict[str, Any]) -> Calibration:
-    """Return the calibration with overrides applied and validated (CalibrationError names the field)."""
-    return base.with_overrides(**overrides) if overrides else base
+    """Return the calibration with overrides applied and validated (CalibrationError names the field only)."""
+    if not overrides:
+        return base
+    try:
+        return base.with_overrides(**overrides)
+    except CalibrationError as exc:
+        raise CalibrationError(without_values(str(exc))) from None
 
 
 def validate_options(doc: Any, base: Calibration | None = None) -> None:

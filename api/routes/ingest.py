@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import logging
+import struct
+import zlib
 from typing import Annotated
 
 import cv2
@@ -44,23 +46,47 @@ def sniff_image(data: bytes) -> str | None:
     return None
 
 
-def check_frame(data: bytes, size: tuple[int, int], max_side: int) -> None:
-    """Raise 422 unless the header states a grayscale `size` (width, height) image, then that it decodes so.
+def png_complete(data: bytes) -> bool:
+    """Return True if a PNG's chunks are all whole with matching CRCs, ending with IEND (no pixels decoded)."""
+    pos, end = 8, len(data)
+    view = memoryview(data)
+    while pos + 12 <= end:
+        (length,) = struct.unpack_from(">I", data, pos)
+        stop = pos + 12 + length
+        if stop > end:
+            return False
+        if zlib.crc32(view[pos + 4 : stop - 4]) != struct.unpack_from(">I", data, stop - 4)[0]:
+            return False
+        if view[pos + 4 : pos + 8] == b"IEND":
+            return True
+        pos = stop
+    return False
 
-    The header is read (Pillow, no decoding) before anything is decoded: a file claiming a huge or a colour
-    image costs no memory; only a frame of the calibrated size and format is decoded (bounded by that size).
+
+def check_frame(data: bytes, size: tuple[int, int], max_side: int) -> None:
+    """Raise 422 unless the header states a grayscale `size` (width, height) image and the file is whole.
+
+    The header is read (Pillow, no decoding) first: a file claiming a huge or a colour image costs no memory.
+    Then the file's completeness is checked without decoding its pixels (the costly part of an upload): a
+    PNG's every chunk CRC and its IEND, a JPEG's end-of-image marker; a TIFF (rare) is decoded, bounded by
+    the checked size. A whole file whose compressed pixels are still bad is the frame's own content: the
+    worker rejects it (poison, status rejected), never as an infrastructure fault.
     """
-    check_header(read_header(data), max_side, size)  # BadImageError -> 422 invalid_image
-    try:
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    except cv2.error:  # over OpenCV's own pixel limit
-        img = None
-    if img is None:
-        raise Validation("image: the file is corrupt (cannot be decoded)", code="invalid_image")
-    if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16) or (img.shape[1], img.shape[0]) != tuple(size):
-        raise Validation(
-            f"image: expected a {size[0]}x{size[1]} single-channel 8- or 16-bit image", code="invalid_image"
-        )
+    header = read_header(data)
+    check_header(header, max_side, size)  # BadImageError -> 422 invalid_image
+    if header.format == "png":
+        ok = png_complete(data)
+    elif header.format == "jpg":
+        ok = data.rstrip(b"\0\r\n").endswith(b"\xff\xd9")
+    else:
+        try:
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        except cv2.error:  # over OpenCV's own pixel limit
+            img = None
+        ok = img is not None and img.ndim == 2 and img.dtype in (np.uint8, np.uint16)
+        ok = ok and (img.shape[1], img.shape[0]) == tuple(size)
+    if not ok:
+        raise Validation("image: the file is corrupt or truncated", code="invalid_image")
 
 
 def parse_meta(raw: str) -> FrameMeta:
