@@ -28,6 +28,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from services.calibration import CalibrationError
 from services.image_header import BadImageError
 from services.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
+from workers.options import without_values
 
 log = logging.getLogger("veinmosaic.api")
 
@@ -191,7 +192,9 @@ def add_exception_handlers(app: FastAPI) -> None:
         else:  # pragma: no cover - only registered classes reach this handler
             status, code, message = 500, "internal_error", "internal error"
         headers = {"Retry-After": str(request.app.state.settings.retry_after_s)} if status == 503 else None
-        return error_response(status, code, message or str(exc), headers=headers)
+        if message is None:  # the exception's own message, less any submitted value it quotes
+            message = without_values(str(exc)) if isinstance(exc, CalibrationError) else str(exc)
+        return error_response(status, code, message, headers=headers)
 
     async def request_validation(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, RequestValidationError)

@@ -256,3 +256,60 @@ def test_full_disk_is_503_with_nothing_partial(make_client: Callable[..., TestCl
     assert upload(client, sid, 0, frame_bytes(0)).status_code == 202
     assert client.get("/readyz").status_code == 200
     assert client.get(f"/v1/sessions/{sid}", headers=INGEST).json()["frames_received"] == 1
+
+
+# ----- error messages never echo what was submitted --------------------------------------------------------------
+
+CANARY = "CANARY7741"
+CANARY_NUMBER = 97741.25  # a number can carry patient data too (a date of birth, a record number)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"calibration": {"young_modulus_kpa": -CANARY_NUMBER}},
+        {"calibration": {"poisson_ratio": CANARY_NUMBER}},
+        {"calibration": {"dist_coeffs": [CANARY_NUMBER, 0.0, 0.0]}},
+        {"calibration": {"camera_matrix": [[CANARY_NUMBER, 1.0, 3.0], [0.0, 80.0, 2.0], [0.0, 0.0, 1.0]]}},
+        {"method": CANARY},
+        {"method_options": {"features": CANARY}},
+        {"method_options": {"min_inliers": CANARY}},
+        {"method_options": {"ransac_px": -CANARY_NUMBER}},
+    ],
+)
+def test_invalid_options_are_422_without_echoing_values(client: TestClient, session_id: str, options: dict) -> None:
+    resp = client.post(f"/v1/sessions/{session_id}/reprocess", json={"options": options}, headers=INGEST)
+    assert resp.status_code == 422, resp.text
+    assert _error(resp)["code"] in ("invalid_options", "invalid_calibration")
+    assert CANARY not in resp.text and "97741" not in resp.text, resp.text
+    assert _error(resp)["message"].split(":")[0].strip(), "the message names the field"
+
+
+def test_invalid_calibration_is_422_without_echoing_values(client: TestClient) -> None:
+    for calibration in (
+        calibration_doc(poisson_ratio=CANARY_NUMBER),
+        calibration_doc(camera_matrix=[[CANARY_NUMBER, 1.0, 3.0], [0.0, 80.0, 2.0], [0.0, 0.0, 1.0]]),
+        calibration_doc(dist_coeffs=[CANARY_NUMBER, 0.0, 0.0]),
+    ):
+        resp = client.post("/v1/sessions", json={"calibration": calibration, "label": CANARY}, headers=INGEST)
+        assert resp.status_code == 422, resp.text
+        assert CANARY not in resp.text and "97741" not in resp.text, resp.text
+
+
+def test_worker_option_parser_never_echoes_keys_or_values() -> None:
+    from services.calibration import default_calibration
+    from workers.options import validate_options
+
+    for doc in (
+        {CANARY: 1},
+        {"method": CANARY},
+        {"method_options": {CANARY: 1}},
+        {"method_options": {"min_inliers": CANARY}},
+        {"calibration": {CANARY: 1}},
+        {"calibration": {"young_modulus_kpa": -CANARY_NUMBER}},
+        {"calibration": {"poisson_ratio": CANARY_NUMBER}},
+        {"calibration": {"image_size": [CANARY_NUMBER, 10]}},
+    ):
+        with pytest.raises(ValueError) as err:
+            validate_options(doc, default_calibration())
+        assert CANARY not in str(err.value) and "97741" not in str(err.value), str(err.value)
