@@ -265,8 +265,10 @@ def _run_demo(args: argparse.Namespace, kept: str) -> int:
             *[(Path(u.split("?")[0]).name, u) for u in report.get("plots", {}).values() if str(u).startswith("/")],
         ]
         for name, url in downloads:
-            with contextlib.suppress(httpx.HTTPError, RuntimeError):
+            try:
                 (out / name).write_bytes(client.request("GET", url).content)
+            except (httpx.HTTPError, RuntimeError) as exc:  # said, not hidden: the rest of the demo still runs
+                print(f"   could not fetch {name}: {exc}")
         registered = state.get("registered_fraction")
         print(
             f"session {state['status']}: {state.get('frames_processed')} frames processed, "
@@ -376,9 +378,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scan", type=Path, help="scan folder (spec §3)")
     p.add_argument("--url", required=True, help="server base URL, e.g. http://127.0.0.1:8000 (required)")
     p.add_argument("--key", required=True, help="API key with scope ingest (required)")
-    p.add_argument("--label", default="", help="session label (stored, never logged)")
+    p.add_argument("--label", default="", help="session label (stored, never logged; default: none)")
     p.add_argument("--realtime", type=float, default=0.0, help="pace at this multiple of the recorded rate (0: fast)")
-    p.add_argument("--wait", action="store_true", help="wait until processing is done and print the state")
+    p.add_argument(
+        "--wait",
+        action="store_true",
+        help="wait until processing is done and print the state (default: return after the upload)",
+    )
     p.add_argument("--timeout", type=float, default=900.0, help="seconds to wait with --wait")
     p.set_defaults(func=cmd_upload)
 

@@ -156,6 +156,46 @@ def test_every_option_has_help_and_shows_its_default() -> None:
             assert action.help, f"{name} {action.dest}: no help text"
             if action.option_strings and action.default not in (None, False, [], "", argparse.SUPPRESS):
                 assert "(default" in (action.help or "") or f"(default: {action.default})" in text
+            if action.option_strings and not action.required:
+                # every optional option says what happens without it, in its own help line
+                shown = " ".join(p._get_formatter()._expand_help(action).split())
+                assert "default" in shown or "(0:" in shown, f"{name} {'/'.join(action.option_strings)}: {shown}"
     demo = sub.choices["demo"]
     assert demo.parse_args([]).hold is False  # never silently dependent on the terminal
     assert "stop at the end" in demo.format_help()
+
+
+def test_export_writes_dicom_that_reads_back(outputs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from pydicom import dcmread
+    from pydicom.pixels import apply_rescale
+
+    from services.results_io import read_results_mosaic
+
+    out = tmp_path / "dicom"
+    args = ["export", str(outputs), "--out", str(out), "--acquired", "2025-03-04T10:20:30", "--study-key", "s1"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "no patient identity given" in printed
+    mosaic = read_results_mosaic(outputs)
+    ds = {layer: dcmread(out / f"{layer}.dcm") for layer in ("vein", "force", "coverage")}
+    for d in ds.values():
+        assert float(d.PixelSpacing[0]) == pytest.approx(1 / mosaic.px_per_mm, rel=1e-9)  # mm per pixel
+        assert d.StudyDate == "20250304" and d.AcquisitionDateTime == "20250304102030"
+        assert str(d.PatientName) == "" and d.PatientID == ""  # nothing invented
+    assert len({d.StudyInstanceUID for d in ds.values()}) == 1
+    assert (ds["vein"].pixel_array == mosaic.vein).all()
+    scanned = mosaic.coverage > 0
+    newtons = apply_rescale(ds["force"].pixel_array, ds["force"])
+    np.testing.assert_allclose(newtons[scanned], mosaic.force_n[scanned], atol=0.005 + 1e-6)  # 0.01 N steps
+    # the integrator's patient identity, when given, is written as given; --layer exports only that layer
+    only = tmp_path / "one"
+    named = ["--patient-name", "Doe^Jane", "--patient-id", "H-1", "--patient-birth-date", "19700101"]
+    assert main(["export", str(outputs), "--out", str(only), "--layer", "force", *named]) == 0
+    assert sorted(f.name for f in only.iterdir()) == ["force.dcm"]
+    d = dcmread(only / "force.dcm")
+    assert (str(d.PatientName), d.PatientID, d.PatientBirthDate, d.PatientSex) == ("Doe^Jane", "H-1", "19700101", "")
+
+
+def test_export_of_a_non_results_folder_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["export", str(tmp_path)]) == 2
+    assert "not a reconstruction output folder" in capsys.readouterr().err
