@@ -174,8 +174,10 @@ def _merge_rows(batches: list[np.ndarray], width: int) -> np.ndarray:
 class SessionStore:
     """Sessions on local disk under data_dir/sessions; safe for several threads and processes on one host."""
 
-    def __init__(self, data_dir: Path) -> None:
+    def __init__(self, data_dir: Path, max_frame_side: int | None = None) -> None:
+        """Open the store under data_dir; with max_frame_side, frames larger a side are refused from their header."""
         self.data_dir = Path(data_dir)
+        self.max_frame_side = max_frame_side
         self.root = self.data_dir / "sessions"
         self.root.mkdir(parents=True, exist_ok=True)
         self._batch_cache: dict[Path, np.ndarray] = {}
@@ -377,14 +379,16 @@ class SessionStore:
     def load_frame(self, session_id: str, seq: int, expected_size: tuple[int, int] | None = None) -> np.ndarray:
         """Return frame `seq` decoded as a 2-D uint8 or uint16 array (rows = image y).
 
-        With expected_size (width, height px: the calibration's image_size), the header is checked first and a
-        frame of another size or pixel format raises BadImageError before anything is decoded.
+        With expected_size (width, height px: the calibration's image_size), and whenever the store has a
+        max_frame_side, the header is checked first: a frame of another size or pixel format, or larger than
+        max_frame_side a side, raises BadImageError before anything is decoded.
         """
         import cv2
 
         data = self.read_frame_bytes(session_id, seq)
-        if expected_size is not None:
-            check_header(read_header(data), max(expected_size), expected_size)
+        if expected_size is not None or self.max_frame_side is not None:
+            sides = [s for s in (self.max_frame_side, max(expected_size) if expected_size else None) if s]
+            check_header(read_header(data), min(sides), expected_size)
         try:
             img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         except cv2.error:  # over OpenCV's pixel limit

@@ -32,6 +32,7 @@ from typing import Any
 import redis
 
 from services import queue
+from services.image_header import DEFAULT_MAX_FRAME_SIDE, set_decoder_limits
 from services.redis_backend import close, connect
 from services.results_store import LIVE_VERSION, ResultsStore
 from services.storage import SessionNotFoundError, SessionStore
@@ -292,9 +293,13 @@ def run_worker(
     stop: threading.Event | None = None,
     max_seconds: float | None = None,
     handle_signals: bool = True,
+    max_frame_side: int = DEFAULT_MAX_FRAME_SIDE,
     **options: Any,
 ) -> int:
     """Run one worker until SIGTERM/SIGINT (or `stop` is set, or max_seconds pass); return the exit code 0.
+
+    max_frame_side (the settings' frame size cap) sets Pillow's pixel limit in this process and makes the
+    store refuse a larger frame from its header, before any decode (OpenCV's cap is set by `services`).
 
     options: any other WorkerConfig field (lost_timeout_s, lease_ms, claim_idle_ms, claim_every_s, method,
     flush_every_s, image_every_s, max_deliveries, linger_s, half_extent_mm, debug_order, ...).
@@ -303,8 +308,10 @@ def run_worker(
     if consumer:
         cfg_args["consumer"] = consumer
     cfg = WorkerConfig(**cfg_args)
+    set_decoder_limits(max_frame_side)
     r = connect(redis_url, cfg.data_dir)
-    ctx = Context(cfg, r, SessionStore(cfg.data_dir), ResultsStore(cfg.data_dir), stop or threading.Event())
+    store = SessionStore(cfg.data_dir, max_frame_side=max_frame_side)
+    ctx = Context(cfg, r, store, ResultsStore(cfg.data_dir), stop or threading.Event())
     if handle_signals and threading.current_thread() is threading.main_thread():
 
         def on_signal(_signum: int, _frame: object) -> None:
@@ -358,6 +365,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         prefix=args.prefix or settings.redis_prefix,
         consumer=args.consumer,
         max_seconds=args.max_seconds,
+        max_frame_side=settings.max_frame_side,
         **options,
     )
 

@@ -25,6 +25,7 @@ import numpy as np
 
 from services import queue
 from services.deepzoom import DziGeometry, TilePyramid
+from services.image_header import BadImageError
 from services.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas
 from services.pipeline import reconstruct
 from services.registrar import REASON_BAD_FRAME, STATUS_REJECTED
@@ -188,7 +189,7 @@ def _unreadable_frames(ctx: Context, sid: str, image_size: tuple[int, int] | lis
             continue
         try:
             img = ctx.store.load_frame(sid, rec.seq)
-        except StorageError:
+        except (StorageError, BadImageError):  # undecodable, or over the frame size cap (from its header)
             bad.append(rec.seq)
             continue
         if img.shape != shape or img.dtype not in (np.uint8, np.uint16):

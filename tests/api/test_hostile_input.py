@@ -313,3 +313,53 @@ def test_worker_option_parser_never_echoes_keys_or_values() -> None:
         with pytest.raises(ValueError) as err:
             validate_options(doc, default_calibration())
         assert CANARY not in str(err.value) and "97741" not in str(err.value), str(err.value)
+
+
+# ----- the worker's own frame size cap ----------------------------------------------------------------------------
+
+
+def test_worker_sets_decoder_limits_and_refuses_an_oversize_frame_from_its_header(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import cv2
+    from PIL import Image
+
+    import workers.main as worker_main
+    from services.calibration import default_calibration
+    from services.image_header import BadImageError
+    from services.storage import SessionStore
+
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", Image.MAX_IMAGE_PIXELS)  # restored afterwards
+    data_dir = tmp_path / "data"
+    # a session calibrated (under an earlier, larger cap) at 1600x1200, one stored frame of that size
+    sid = SessionStore(data_dir).create_session("o" * 64, "x", default_calibration(1600, 1200)).id
+    SessionStore(data_dir).put_frame(sid, 0, 0.0, png_claiming(1600, 1200), "png")
+    seen: dict[str, object] = {}
+
+    class Probe:
+        """Stands for the worker loop: records what run_worker set up, then tries the oversize frame."""
+
+        def __init__(self, ctx: object) -> None:
+            self.ctx = ctx
+
+        def run(self, max_seconds: float | None = None) -> None:
+            seen["pillow_limit"] = Image.MAX_IMAGE_PIXELS
+            store = self.ctx.store  # type: ignore[attr-defined]
+
+            def no_decode(*_a: object, **_k: object) -> None:
+                raise AssertionError("the frame was decoded")
+
+            monkeypatch.setattr(cv2, "imdecode", no_decode)
+            started = time.perf_counter()
+            with pytest.raises(BadImageError, match="maximum frame size"):
+                store.load_frame(sid, 0, expected_size=(1600, 1200))
+            with pytest.raises(BadImageError, match="maximum frame size"):
+                store.load_frame(sid, 0)  # the reprocess path: no expected size, the cap still holds
+            seen["refused_s"] = time.perf_counter() - started
+
+    monkeypatch.setattr(worker_main, "Worker", Probe)
+    monkeypatch.setenv("VEINMOSAIC_MAX_FRAME_SIDE", "1024")
+    monkeypatch.setenv("VEINMOSAIC_DATA_DIR", str(data_dir))
+    assert worker_main.main(["--max-seconds", "1"]) == 0  # settings from the environment, as in production
+    assert seen["pillow_limit"] == 1024 * 1024
+    assert float(seen["refused_s"]) < FAST_S  # type: ignore[arg-type]
