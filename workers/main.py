@@ -247,15 +247,36 @@ class Worker:
             self.register.on_kick(sid, int(fields.get("version", LIVE_VERSION)))
             return None
         if kind == "reprocess":
+            job_id = fields.get("job", "")
+            if ctx.store.jobs.is_finished(job_id):  # a second entry of a finished job (a reconciler race)
+                log.info("entry of a finished reprocess job dropped")
+                return None
 
             def heartbeat() -> None:  # keep the entry from looking abandoned while the job runs
                 ctx.r.xclaim(stream, queue.GROUP, ctx.config.consumer, 0, [entry_id], justid=True)
                 self.beat()
 
             handle_job(ctx, fields, heartbeat)
+            self.finish_job(job_id)
             return None
         log.warning("entry of unknown kind dropped")
         return None
+
+    def finish_job(self, job_id: str, state: str | None = None) -> None:
+        """Close a reprocess job's durable record (done or failed); if the disk refuses, the reconciler does it.
+
+        Never raised: the job itself is finished, and re-running it for a failed bookkeeping write would be
+        worse than a record that stays open until the reconciler reads the job's final state from Redis.
+        """
+        if not job_id:
+            return
+        try:
+            if state is None:
+                raw = self.ctx.r.hget(queue.job_key(job_id, self.ctx.prefix), "state")
+                state = raw.decode() if isinstance(raw, bytes) else str(raw or "done")
+            self.ctx.store.jobs.finish(job_id, state)
+        except (OSError, ValueError, redis.RedisError) as exc:
+            log.warning("reprocess job record not closed (%s); the reconciler will", describe(exc))
 
     def dead_letter(self, stream: str, entry_id: str, fields: dict[str, str], error: str) -> None:
         """Move an entry to the dead-letter stream; a frame becomes poison (rejected), a job fails."""
@@ -281,6 +302,7 @@ class Worker:
             queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
         elif kind == "reprocess" and fields.get("job"):
             ctx.r.hset(queue.job_key(fields["job"], ctx.prefix), mapping={"state": "failed", "error": error[:300]})
+            self.finish_job(fields["job"], "failed")
         queue.ack_delete(ctx.r, stream, entry_id)
 
 

@@ -5,7 +5,10 @@ Redis may lose its last second of AOF, or be wiped. Then an upload that is durab
 done must have a result (a prepared file or a poison mark of the live version) or a job (an entry of the
 frames stream or of the delayed set, read in one MULTI snapshot); those with neither are enqueued again, and
 registration is kicked for sessions with work nobody holds. A done session whose Redis counters are gone gets
-them rebuilt from its path. Re-enqueueing is safe because every job is idempotent (prepared frames are
+them rebuilt from its path. Reprocess jobs likewise: every job answered 202 has an open record in the job
+ledger (data_dir/jobs) until it is done or failed; an open record whose job is neither on the jobs stream
+(pending entries included) nor delayed is enqueued again from the record, unless Redis still says the job
+finished (then the record is closed). Re-enqueueing is safe because every job is idempotent (prepared frames are
 write-once, counters are counted once per seq), so a frame is processed exactly once even when a race
 enqueues it twice.
 
@@ -109,20 +112,45 @@ def reconcile(ctx: Context) -> dict[str, int]:
         if pending and not state.get("finished") and not ctx.r.exists(queue.lease_key(sid, LIVE_VERSION, ctx.prefix)):
             queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
             stats["kicks"] += 1
+    stats["jobs_requeued"] = reconcile_jobs(ctx)
     if stats["frames_requeued"]:
         queue.incr_metric(ctx.r, "reconciled_frames_total", stats["frames_requeued"], prefix=ctx.prefix)
+    if stats["jobs_requeued"]:
+        queue.incr_metric(ctx.r, "reconciled_jobs_total", stats["jobs_requeued"], prefix=ctx.prefix)
     queue.incr_metric(ctx.r, "reconcile_runs_total", prefix=ctx.prefix)
-    acted = stats["frames_requeued"] or stats["kicks"] or stats["counters_rebuilt"]
+    acted = stats["frames_requeued"] or stats["kicks"] or stats["counters_rebuilt"] or stats["jobs_requeued"]
     log.log(
         logging.INFO if acted else logging.DEBUG,
-        "reconciled %d sessions: %d frames re-enqueued, %d registration kicks, %d counter sets rebuilt (%.0f ms)",
+        "reconciled %d sessions: %d frames re-enqueued, %d registration kicks, %d counter sets rebuilt, "
+        "%d reprocess jobs re-enqueued (%.0f ms)",
         stats["sessions"],
         stats["frames_requeued"],
         stats["kicks"],
         stats["counters_rebuilt"],
+        stats["jobs_requeued"],
         1000 * (time.monotonic() - started),
     )
     return stats
+
+
+def reconcile_jobs(ctx: Context) -> int:
+    """Re-enqueue every reprocess job with an open ledger record that Redis no longer holds; return how many."""
+    records = ctx.store.jobs.open_jobs()
+    if not records:
+        return 0
+    known = queue.known_jobs(ctx.r, ctx.prefix)
+    requeued = 0
+    for record in records:
+        job_id = record.get("id", "")
+        if not job_id or job_id in known:
+            continue
+        state = _text(ctx.r.hget(queue.job_key(job_id, ctx.prefix), "state") or b"")
+        if state in ("done", "failed"):  # it finished; only the record's closing was lost
+            ctx.store.jobs.finish(job_id, state)
+            continue
+        queue.requeue_job(ctx.r, record, queue.JOB_TTL_S, ctx.prefix)
+        requeued += 1
+    return requeued
 
 
 def _rebuild_counters(ctx: Context, sid: str) -> int:

@@ -11,6 +11,7 @@ created them and to admin keys; batches <prefix>batch:<id> {jobs: json list, own
 
 from __future__ import annotations
 
+import contextlib
 import hmac
 import json
 import logging
@@ -31,13 +32,13 @@ from services import queue
 from services.calibration import Calibration, CalibrationError
 from services.features import FEATURE_KINDS
 from services.methods import REGISTRATION_KINDS
-from services.storage import SessionMeta, SessionStore
+from services.storage import JobLedger, SessionMeta, SessionStore
 from workers.options import apply_calibration, parse_options
 
 router = APIRouter(tags=["reprocess"])
 log = logging.getLogger("veinmosaic.api")
 
-JOB_TTL_S = 30 * 24 * 3600  # job and batch records expire a month after they were created
+JOB_TTL_S = queue.JOB_TTL_S
 _ID = re.compile(r"^[0-9a-f]{32}$")
 FIXED_CALIBRATION = ("image_size",)  # the stored frames have this size: it cannot be overridden
 
@@ -101,9 +102,19 @@ def _job_fields(job_id: str, sid: str, owner: str, options: dict[str, Any], now:
 
 
 def enqueue_jobs(
-    r: redis.Redis, prefix: str, principal: Principal, sessions: list[str], options: dict[str, Any], batch: str = ""
+    r: redis.Redis,
+    prefix: str,
+    principal: Principal,
+    sessions: list[str],
+    options: dict[str, Any],
+    batch: str = "",
+    ledger: JobLedger | None = None,
 ) -> list[str]:
-    """Write one job hash per session and its stream entry (one MULTI); return the job ids in order."""
+    """Write one job hash per session and its stream entry (one MULTI), then record each job durably in the
+    ledger (the 202's promise: the reconciler re-enqueues a recorded job Redis lost); return the job ids.
+
+    If the durable record fails (a full disk), the jobs are taken off Redis again and the error is raised (503).
+    """
     owner = principal.fingerprint or ""
     now = time.time()
     ids = [uuid.uuid4().hex for _ in sessions]
@@ -115,11 +126,31 @@ def enqueue_jobs(
         )
         pipe.expire(queue.batch_key(batch, prefix), JOB_TTL_S)
     encoded = json.dumps(options, separators=(",", ":"))
+    records = {
+        job_id: _job_fields(job_id, sid, owner, options, now, batch) for job_id, sid in zip(ids, sessions, strict=True)
+    }
     for job_id, sid in zip(ids, sessions, strict=True):
-        pipe.hset(queue.job_key(job_id, prefix), mapping=_job_fields(job_id, sid, owner, options, now, batch))
+        pipe.hset(queue.job_key(job_id, prefix), mapping=records[job_id])
         pipe.expire(queue.job_key(job_id, prefix), JOB_TTL_S)
-        pipe.xadd(queue.jobs_stream(prefix), {"kind": "reprocess", "job": job_id, "session": sid, "options": encoded})
-    pipe.execute()
+        pipe.xadd(queue.jobs_stream(prefix), queue.job_entry(job_id, sid, encoded))
+    replies = pipe.execute()
+    if ledger is not None:
+        try:
+            for job_id in ids:
+                fields = records[job_id]
+                ledger.record(job_id, {k: fields[k] for k in ("session", "owner", "created", "options", "batch")})
+        except OSError:
+            entries = replies[2 if batch else 0 :][2::3]  # the XADD replies: the entry ids
+            with contextlib.suppress(redis.RedisError, OSError):
+                undo = r.pipeline(transaction=True)
+                if entries:
+                    undo.xdel(queue.jobs_stream(prefix), *entries)
+                undo.delete(*(queue.job_key(job_id, prefix) for job_id in ids))
+                undo.execute()
+            for job_id in ids:
+                with contextlib.suppress(OSError):
+                    ledger.discard(job_id)
+            raise
     return ids
 
 
@@ -141,7 +172,7 @@ def reprocess_session(
     options = validate_options(body.options.document(), store.calibration(meta.id))
     _check_reprocessable(store, meta)
     _queue_guard(r, settings, 1)
-    (job_id,) = enqueue_jobs(r, settings.redis_prefix, principal, [meta.id], options)
+    (job_id,) = enqueue_jobs(r, settings.redis_prefix, principal, [meta.id], options, ledger=store.jobs)
     log.info("reprocess queued", extra={"session": meta.id, "method": options["method"]})
     return JobAccepted(job=job_id, session=meta.id, status_url=f"/v1/jobs/{job_id}")
 
@@ -162,7 +193,7 @@ def reprocess_batch(
         _check_reprocessable(store, m)
     _queue_guard(r, settings, len(metas))
     batch = uuid.uuid4().hex
-    ids = enqueue_jobs(r, settings.redis_prefix, principal, sessions, checked[0], batch=batch)
+    ids = enqueue_jobs(r, settings.redis_prefix, principal, sessions, checked[0], batch=batch, ledger=store.jobs)
     log.info("batch reprocess queued", extra={"frames": len(ids), "method": checked[0]["method"]})
     return BatchAccepted(batch=batch, jobs=ids, status_url=f"/v1/batches/{batch}")
 

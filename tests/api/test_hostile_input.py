@@ -363,3 +363,28 @@ def test_worker_sets_decoder_limits_and_refuses_an_oversize_frame_from_its_heade
     assert worker_main.main(["--max-seconds", "1"]) == 0  # settings from the environment, as in production
     assert seen["pillow_limit"] == 1024 * 1024
     assert float(seen["refused_s"]) < FAST_S  # type: ignore[arg-type]
+
+
+def test_reprocess_not_recorded_durably_is_503_and_not_queued(
+    client: TestClient, session_id: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A job is answered 202 only once its ledger record is on disk; a full disk takes it off Redis again."""
+    from services import queue
+    from services.storage import JobLedger
+
+    assert upload(client, session_id, 0, frame_bytes(0)).status_code == 202
+    assert client.post(f"/v1/sessions/{session_id}/finish", headers=INGEST).status_code == 202
+
+    def full(*_a: object, **_k: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(JobLedger, "record", full)
+    resp = client.post(f"/v1/sessions/{session_id}/reprocess", json={}, headers=INGEST)
+    assert resp.status_code == 503 and resp.headers["Retry-After"], resp.text
+    r, prefix = client.app.state.redis, client.app.state.settings.redis_prefix  # type: ignore[attr-defined]
+    assert r.xlen(queue.jobs_stream(prefix)) == 0 and not list(r.scan_iter(f"{prefix}job:*"))
+    monkeypatch.undo()
+    resp = client.post(f"/v1/sessions/{session_id}/reprocess", json={}, headers=INGEST)
+    assert resp.status_code == 202
+    store = client.app.state.store  # type: ignore[attr-defined]
+    assert [d["id"] for d in store.jobs.open_jobs()] == [resp.json()["job"]]

@@ -385,3 +385,54 @@ def test_restart_backoff_comes_from_the_settings(tmp_path: Path) -> None:
     service = Service(tmp_path / "data", settings=settings)
     assert [service.backoff_s(n) for n in range(5)] == [0.25, 0.5, 1.0, 1.0, 1.0]
     assert Service(tmp_path / "data", settings=Settings(restart_first_s=2.0)).backoff_s(0) == 2.0
+
+
+def test_reprocess_job_redis_forgot_is_reconciled(
+    tmp_path: Path,
+    redis_server: RedisServer,
+    workers_factory: Callable[[Path, str], Workers],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A reprocess answered 202, then Redis wiped (its hash and stream entry gone): the job still finishes,
+    once, from the durable job ledger (the reconciler re-enqueues it)."""
+    from fastapi.testclient import TestClient
+
+    from api.app import create_app
+    from api.settings import Settings
+
+    data = tmp_path / "data"
+    store, r = SessionStore(data), client_for(redis_server)
+    up = Uploader(store, r, short_scan())
+    sid = up.create()
+    for seq in range(len(short_scan())):
+        assert up.send(sid, seq)
+    up.finish(sid)
+    for name in ("VEINMOSAIC_API_KEYS", "REDIS_URL", "VEINMOSAIC_REDIS_URL"):
+        monkeypatch.delenv(name, raising=False)
+    settings = Settings(
+        data_dir=data, redis_url=redis_server.url, redis_prefix=PREFIX, api_keys={"admin-key": ["admin", "ingest"]}
+    )
+    with TestClient(create_app(settings)) as api:
+        resp = api.post(f"/v1/sessions/{sid}/reprocess", json={}, headers={"Authorization": "Bearer admin-key"})
+        assert resp.status_code == 202, resp.text
+        job = resp.json()["job"]
+        assert [d["id"] for d in store.jobs.open_jobs()] == [job]  # durable before the 202
+        r.flushall()  # the job's hash and its stream entry are gone (as are the live run's frame jobs)
+        workers = workers_factory(data, redis_server.url)
+        workers.start("a")
+        wait_done(store, sid, 180, workers)
+        deadline = time.monotonic() + 180
+        state: dict = {}
+        while time.monotonic() < deadline:
+            got = api.get(f"/v1/jobs/{job}", headers={"Authorization": "Bearer admin-key"})
+            state = got.json() if got.status_code == 200 else {}
+            if state.get("state") in ("done", "failed"):
+                break
+            time.sleep(0.3)
+    assert state.get("state") == "done", state
+    assert store.jobs.is_finished(job) and store.jobs.open_jobs() == []
+    versions = sorted(p.name for p in ResultsStore(data).version_dir(sid, 1).parent.iterdir() if p.name.isdigit())
+    assert versions == ["1", "2"], versions  # the live run and one reprocess: the job ran once
+    assert int(r.hget(queue.metrics_key(PREFIX), "reconciled_jobs_total") or 0) == 1
+    assert r.xlen(queue.dead_stream(PREFIX)) == 0
+    report("reprocess job lost from Redis (reconciler)", up.operations + 2, 1, delivery(data, r, sid, up.accepted))
