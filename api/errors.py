@@ -27,6 +27,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from services.calibration import CalibrationError
 from services.image_header import BadImageError
+from services.results_report import BadReferenceError, NoPathYetError, NothingToCompareError
 from services.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
 from workers.options import without_values
 
@@ -124,6 +125,9 @@ SERVICE_ERRORS: dict[type[Exception], tuple[int, str, str | None]] = {
     ImplausibleTimeError: (409, "implausible_timestamp", None),
     CalibrationError: (422, "invalid_calibration", None),
     BadImageError: (422, "invalid_image", None),
+    BadReferenceError: (422, "invalid_reference", None),
+    NothingToCompareError: (422, "nothing_to_compare", None),
+    NoPathYetError: (409, "not_ready", None),
     redis.ConnectionError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
     redis.TimeoutError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
 }
@@ -241,8 +245,17 @@ ERROR_DESCRIPTIONS: dict[int, str] = {
     415: "unsupported media type",
     422: "the body or a parameter breaks the schema, or the content is invalid (the message names the field)",
     429: "too many requests",
-    503: "unavailable: Redis down, queue full, data volume full or failing (Retry-After)",
+    503: (
+        "unavailable, retry after Retry-After seconds: Redis down, queue full, or the data volume full (ENOSPC, "
+        "EDQUOT: code insufficient_storage) or failing (EIO, EROFS: storage_unavailable); nothing was stored. "
+        "A full disk is 503 rather than 507: spec §5 lists 503 as the retry-later answer and clients retry it"
+    ),
 }
+# statuses whose answers carry Retry-After (seconds)
+RETRY_AFTER_HEADER: dict[str, Any] = {
+    "Retry-After": {"description": "seconds to wait before retrying", "schema": {"type": "integer", "minimum": 1}}
+}
+RETRY_STATUSES = (429, 503)
 ERROR_SCHEMA: dict[str, Any] = {
     "type": "object",
     "required": ["error"],
@@ -299,4 +312,6 @@ def document_errors(schema: dict[str, Any]) -> dict[str, Any]:
             for status in sorted(error_statuses(method, path, operation)):
                 entry = answers.setdefault(str(status), {"description": ERROR_DESCRIPTIONS[status]})
                 entry["content"] = {"application/json": {"schema": ref}}
+                if status in RETRY_STATUSES:
+                    entry["headers"] = RETRY_AFTER_HEADER
     return schema

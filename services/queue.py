@@ -91,15 +91,26 @@ def _enqueue_keys(session_id: str, prefix: str) -> list[str]:
 
 
 def enqueue_frame(
-    r: redis.Redis, session_id: str, seq: int, prefix: str = DEFAULT_PREFIX, heal_after_ms: int = HEAL_AFTER_MS
+    r: redis.Redis,
+    session_id: str,
+    seq: int,
+    prefix: str = DEFAULT_PREFIX,
+    heal_after_ms: int = HEAL_AFTER_MS,
+    count: str | None = None,
 ) -> bool:
     """Put a frame job on the stream unless it was put there before; return True if it was added now.
 
     A frame enqueued before is enqueued again when its prepare job has not finished heal_after_ms after its
     last enqueue (a client re-sending after a failure heals a lost job); heal_after_ms=0 never does.
+    With `count`, that metrics counter is incremented in the same round trip.
     """
     args = [str(int(seq)), session_id, str(int(heal_after_ms)), "0"]
-    return bool(r.eval(_ENQUEUE_ONCE, 4, *_enqueue_keys(session_id, prefix), *args))
+    if count is None:
+        return bool(r.eval(_ENQUEUE_ONCE, 4, *_enqueue_keys(session_id, prefix), *args))
+    pipe = r.pipeline(transaction=False)  # one round trip for the job and the counter
+    pipe.eval(_ENQUEUE_ONCE, 4, *_enqueue_keys(session_id, prefix), *args)
+    pipe.hincrby(metrics_key(prefix), count, 1)
+    return bool(pipe.execute()[0])
 
 
 def requeue_frame(

@@ -8,11 +8,14 @@ from __future__ import annotations
 import json
 import logging
 import struct
+import threading
+import time
 import zlib
 from typing import Annotated
 
 import cv2
 import numpy as np
+import redis
 from fastapi import APIRouter, File, Form, Response, UploadFile, status
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
@@ -26,13 +29,47 @@ from api.errors import (
     UnsupportedMediaType,
     Validation,
 )
-from api.routes.metrics import incr
 from api.schemas import ForceBatch, ForcesAccepted, FrameAccepted, FrameMeta
 from services import queue
 from services.image_header import check_header, read_header
 
 router = APIRouter(prefix="/v1/sessions", tags=["ingest"])
 log = logging.getLogger("veinmosaic.api")
+
+
+class DepthGuard:
+    """The queue-full check, with at most one Redis round trip per `every_s` while the queue is under half full.
+
+    Far from the limit, the depth last read plus the uploads this process accepted since is a safe upper
+    bound for a short while (workers only shrink the queue); near the limit every upload reads it afresh.
+    """
+
+    def __init__(self, every_s: float = 0.25) -> None:
+        self.every_s = every_s
+        self._read: dict[str, tuple[float, int]] = {}  # prefix -> (when, depth)
+        self._since: dict[str, int] = {}  # prefix -> jobs accepted since that read
+        self._lock = threading.Lock()
+
+    def depth(self, r: redis.Redis, prefix: str, limit: int) -> int:
+        """Return the queue depth (fresh, or a bound from a recent read when far below `limit`)."""
+        now = time.monotonic()
+        with self._lock:
+            when, depth = self._read.get(prefix, (-1e9, 0))
+            bound = depth + self._since.get(prefix, 0)
+            if now - when < self.every_s and 2 * bound < limit:
+                return bound
+        depth = queue.queue_depth(r, prefix=prefix)
+        with self._lock:
+            self._read[prefix], self._since[prefix] = (now, depth), 0
+        return depth
+
+    def accepted(self, prefix: str) -> None:
+        """Count one more job this process put on `prefix`'s queue."""
+        with self._lock:
+            self._since[prefix] = self._since.get(prefix, 0) + 1
+
+
+_depth_guard = DepthGuard()
 
 
 def sniff_image(data: bytes) -> str | None:
@@ -135,19 +172,19 @@ def upload_frame(
         if not session.accepting_uploads or not store.get_meta(session.id).accepting_uploads:
             raise Conflict("session is finished; no more uploads are accepted", code="session_finished")
         check_frame(data, tuple(session.calibration["image_size"]), settings.max_frame_side)
-        depth = queue.queue_depth(r, prefix=prefix)
-        if depth >= settings.queue_max_depth:
+        if _depth_guard.depth(r, prefix, settings.queue_max_depth) >= settings.queue_max_depth:
             raise ServiceUnavailable(
                 "the processing queue is full; retry later", settings.retry_after_s, code="queue_full"
             )
     # 409 on conflict or after finish, 409 implausible_timestamp; "duplicate" for the same bytes and t_s
     outcome = store.put_frame(session.id, frame.seq, frame.t_s, data, ext, max_span_s=settings.max_session_span_s)
     # Idempotent: a frame stored by an earlier attempt whose enqueue failed is queued now, never twice.
-    queue.enqueue_frame(r, session.id, frame.seq, prefix=prefix)
-    if outcome == "duplicate":
+    duplicate = outcome == "duplicate"
+    queue.enqueue_frame(r, session.id, frame.seq, prefix=prefix, count=None if duplicate else "uploads_total")
+    if duplicate:
         response.status_code = status.HTTP_200_OK
         return FrameAccepted(seq=frame.seq, status="duplicate")
-    incr(r, prefix, "uploads_total")
+    _depth_guard.accepted(prefix)
     log.info("frame accepted", extra={"session": session.id, "seq": frame.seq, "bytes": len(data)})
     return FrameAccepted(seq=frame.seq, status="accepted")
 

@@ -388,3 +388,16 @@ def test_reprocess_not_recorded_durably_is_503_and_not_queued(
     assert resp.status_code == 202
     store = client.app.state.store  # type: ignore[attr-defined]
     assert [d["id"] for d in store.jobs.open_jobs()] == [resp.json()["job"]]
+
+
+def test_schema_documents_a_full_disk_as_503_with_retry_after(client: TestClient) -> None:
+    paths = client.get("/openapi.json").json()["paths"]
+    for path, method in (
+        ("/v1/sessions/{session_id}/frames", "post"),
+        ("/v1/sessions/{session_id}/forces", "post"),
+        ("/v1/sessions", "post"),
+        ("/v1/sessions/{session_id}/reprocess", "post"),
+    ):
+        answer = paths[path][method]["responses"]["503"]
+        assert "insufficient_storage" in answer["description"] and "507" in answer["description"], path
+        assert answer["headers"]["Retry-After"]["schema"]["type"] == "integer", path
