@@ -45,12 +45,19 @@ class DirectFit:
 
 
 def alignment_image(
-    vein: np.ndarray, mask: np.ndarray, centre_px: tuple[float, float], px_per_mm: float
+    vein: np.ndarray, mask: np.ndarray, centre_px: tuple[float, float], px_per_mm: float, scale: float = 1.0
 ) -> AlignmentImage:
-    """Return the alignment pyramid of an 8-bit vein map and its window mask (0/255)."""
-    size = (round(vein.shape[1] * WORK_SCALE), round(vein.shape[0] * WORK_SCALE))
-    image = cv2.resize(vein.astype(np.float32) / 255.0, size, interpolation=cv2.INTER_AREA)
-    window = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
+    """Return the alignment pyramid of an 8-bit vein map and its window mask (0/255).
+
+    scale: the vein map's pixels per full-resolution pixel (0.5 for a half-resolution map).
+    """
+    image = vein.astype(np.float32) / 255.0
+    window = mask
+    if scale != WORK_SCALE:
+        k = WORK_SCALE / scale
+        size = (round(vein.shape[1] * k), round(vein.shape[0] * k))
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        window = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
     levels, masks = [image], [window]
     for _ in range(LEVELS - 1):
         levels.append(cv2.pyrDown(levels[-1]))

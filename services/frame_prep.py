@@ -33,8 +33,8 @@ class PreparedFrame:
     image: np.ndarray  # (H, W) uint8, rectified, photometrically normalised (median skin = 128)
     mask: np.ndarray  # (H, W) uint8 0/255, the window in rectified pixels
     features: Features  # points in mm about the principal point (rectified, undeformed)
-    vein: np.ndarray  # (H, W) uint8 vein map of the rectified frame (0 = skin), what registration aligns
-    vein_mask: np.ndarray  # (H, W) uint8 0/255, where the vein map is valid (the window less a margin)
+    vein: np.ndarray  # (h, w) uint8 vein map of the rectified frame (0 = skin) at options.vein_scale of (H, W)
+    vein_mask: np.ndarray  # (h, w) uint8 0/255, where the vein map is valid (the window less a margin)
     sharpness: float  # variance of the Laplacian inside the window, grey levels^2
 
 
@@ -109,12 +109,13 @@ def prepare_frame(
     map_x, map_y = rectify_map(calib, geometry)
     image = cv2.remap(normalise_photometry(raw, mask, flat), map_x, map_y, cv2.INTER_LINEAR)
     rect_mask = cv2.remap(mask, map_x, map_y, cv2.INTER_NEAREST, borderValue=0)
-    vein = enhance_veins(image, rect_mask, FEATURE_MARGIN_PX)
-    inner = vein.mask
-    source = vein.image if options.enhance else image
-    found = detect_features(
-        source, inner, options.features, options.max_features, options.contrast_threshold, options.target_features
-    )
+    vein = enhance_veins(image, rect_mask, FEATURE_MARGIN_PX, options.vein_scale)
+    inner = cv2.erode(rect_mask, np.ones((2 * FEATURE_MARGIN_PX + 1,) * 2, np.uint8))
+    if options.enhance:  # features of the vein map, back in frame pixels (pixel centres scale about their corner)
+        found = _detect(vein.image, vein.mask, options)
+        found = Features((found.points + 0.5) / vein.scale - 0.5, found.descriptors, found.sizes_px / vein.scale)
+    else:
+        found = _detect(image, inner, options)
     features = Features(px_to_mm(found.points, calib), found.descriptors, found.sizes_px)
     lap = cv2.Laplacian(image, cv2.CV_32F)
     sharpness = float(np.var(lap[inner > 0])) if np.any(inner) else 0.0
@@ -131,6 +132,13 @@ def prepare_frame(
         vein=vein.image,
         vein_mask=vein.mask,
         sharpness=sharpness,
+    )
+
+
+def _detect(image: np.ndarray, mask: np.ndarray, options: MethodOptions) -> Features:
+    """Return the method's keypoints (pixels of `image`) and descriptors inside mask."""
+    return detect_features(
+        image, mask, options.features, options.max_features, options.contrast_threshold, options.target_features
     )
 
 

@@ -18,6 +18,7 @@ class MethodOptions:
     features: str = "sift"  # sift | modified-asift | asift
     max_features: int = 1000  # SIFT cap per view (0 = no cap); ignored when target_features > 0
     enhance: bool = True  # detect features on the vein map (the paper's segmentation step), not raw grey levels
+    vein_scale: float = 0.5  # vein map and its features at this fraction of full resolution (0.5: 0.25 mm/px)
     target_features: int = 500  # adaptive detection: keypoints kept per frame, spread over it (0 = fixed thresholds)
     contrast_threshold: float = 0.03  # SIFT contrast threshold when target_features is 0
     direct_fallback: bool = True  # when features fail, align the vein maps directly (phase correlation + ECC)

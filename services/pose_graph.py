@@ -18,6 +18,8 @@ from services.registration import Similarity
 
 RIDGE = 1e-9  # relative to unit-sigma rows: far below any real constraint
 DROP_WEIGHT = 1e-2  # an edge down-weighted below this is an outlier: it gets no pull at all
+PRIOR_A = 0.05  # each pose's a (scale, rotation) is held to its registered value with this sigma (5 %, ~3 deg)
+PRIOR_T_MM = 50.0  # ... and its t with this one (mm)
 
 
 @dataclass(frozen=True)
@@ -72,6 +74,10 @@ def optimise_poses(
 
     Residual rows per edge (spec-free, beyond the paper): (a_j - a_i a_ij) * lever_mm and
     t_j - t_i - a_i t_ij, each divided by the edge's sigma_mm; Cauchy scale sigma + robust_mm on the edge norm.
+    Plus a weak prior per free node, (a - a_initial) / PRIOR_A and (t - t_initial) / PRIOR_T_MM: far looser than
+    any edge, so loop closures still move poses by millimetres, but the problem stays well posed when outlier
+    edges are dropped and part of the graph loses its link to the fixed node (without it such a part is free to
+    shrink to scale 0, as it did on a simulated hard scan).
     """
     nodes = sorted(initial)
     free = [n for n in nodes if n != fixed]
@@ -127,6 +133,14 @@ def optimise_poses(
                         put(r + 1, e.i, 3, -s)
                 rhs.extend(b.tolist())
                 r += 2
+        for n in free:
+            p = initial[n]
+            for offset, (value, sigma) in enumerate(
+                ((p.a.real, PRIOR_A), (p.a.imag, PRIOR_A), (p.t.real, PRIOR_T_MM), (p.t.imag, PRIOR_T_MM))
+            ):
+                put(r, n, offset, 1.0 / sigma)
+                rhs.append(value / sigma)
+                r += 1
         A = csr_matrix((vals, (rows, cols)), shape=(r, 4 * len(free)))
         # normal equations, solved directly (SuperLU); the tiny ridge keeps a node without edges where it is
         normal = (A.T @ A + RIDGE * identity(A.shape[1], format="csr")).tocsc()

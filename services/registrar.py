@@ -44,6 +44,11 @@ DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - 
 ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
 
 
+def _vein_scale(pf: PreparedFrame) -> float:
+    """Return the vein map's pixels per full-resolution pixel of a prepared frame."""
+    return pf.vein.shape[1] / pf.image.shape[1]
+
+
 @dataclass(frozen=True)
 class FrameResult:
     """The outcome for one frame: status, pose (frame mm -> mosaic mm) or None, evidence, frames moved."""
@@ -73,7 +78,7 @@ class Registrar:
     sharpness: list[float] = field(default_factory=list)
     order: list[int] = field(default_factory=list)
     loops_since_refine: int = 0
-    veins: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # placed: (vein, mask)
+    veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)  # placed: vein, mask, scale
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
 
     @property
@@ -192,8 +197,8 @@ class Registrar:
         cached = self._pyramids.get(index)
         if cached is not None:
             return cached
-        vein, mask = (pf.vein, pf.vein_mask) if pf is not None else self.veins[index]
-        pyramid = alignment_image(vein, mask, self.centre_px, self.px_per_mm)
+        vein, mask, scale = (pf.vein, pf.vein_mask, _vein_scale(pf)) if pf is not None else self.veins[index]
+        pyramid = alignment_image(vein, mask, self.centre_px, self.px_per_mm, scale)
         self._pyramids[index] = pyramid
         while len(self._pyramids) > ALIGNMENT_CACHE:
             del self._pyramids[min(self._pyramids)]
@@ -297,7 +302,7 @@ class Registrar:
         self.stretches[pf.index] = pf.stretch
         self.edges.extend(edges)
         self.order.append(pf.index)
-        self.veins[pf.index] = (pf.vein, pf.vein_mask)
+        self.veins[pf.index] = (pf.vein, pf.vein_mask, _vein_scale(pf))
         if not blurred:  # only sharp, placed frames set the reference (noise frames would inflate it)
             self.sharpness.append(pf.sharpness)
         return FrameResult(pf.index, STATUS_OK, pose, inliers, blurred)

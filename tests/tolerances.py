@@ -41,6 +41,12 @@ class Tolerances:
     # and rectify_keypoints_px (iterative undistortion + fixed-point inverse): the 0.05 px budget.
     map_composition_px: float = 0.05
 
+    # rectify_map evaluates the model every 8 px and interpolates bilinearly: the map is lens distortion plus a
+    # load-proportional stretch, whose curvature over 8 px moves a sample by ~3e-3 px (measured at most
+    # 0.0031 px over every fifth frame of both shared scans): 0.01 px keeps a margin and is 5x below the
+    # 0.05 px composition budget above.
+    map_interpolation_px: float = 0.01
+
     # Blob centres measured in a remapped image (one bilinear resampling of a smooth Gaussian, sigma 2.5 px,
     # intensity-weighted centroid): the 0.05 px budget for a deform-then-rectify round trip.
     feature_position_px: float = 0.05

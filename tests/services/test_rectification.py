@@ -45,6 +45,24 @@ def test_unloaded_undistorted_map_is_identity() -> None:
     np.testing.assert_allclose(map_y, g[..., 1], rtol=0, atol=1e-4)
 
 
+@pytest.mark.parametrize(
+    "forces", [FORCES, np.array([0.5, 0.5, 0.5, 0.5]), np.array([3.0, 9.0, 8.0, 4.0]), np.array([7.0, 6.0, 8.0, 9.0])]
+)
+def test_interpolated_map_matches_the_exact_model(forces: np.ndarray) -> None:
+    # loads 2-30 N with tilts both ways, as on the shared scans (2-26 N): the 8 px grid is interpolated, not
+    # approximated by a different model; step 1 is the exact per-pixel evaluation
+    calib = make_calib()
+    state = load_state(forces, calib)
+    exact_x, exact_y = rectify_map(calib, state, step_px=1)
+    fast_x, fast_y = rectify_map(calib, state)
+    assert fast_x.shape == exact_x.shape == (H, W) and fast_x.dtype == np.float32
+    assert np.max(np.abs(fast_x - exact_x)) < TOL.map_interpolation_px
+    assert np.max(np.abs(fast_y - exact_y)) < TOL.map_interpolation_px
+    # and the stretch itself is there: the loaded map is not the unloaded one
+    unloaded_x, _ = rectify_map(calib, load_state(np.zeros(4), calib), step_px=1)
+    assert np.max(np.abs(exact_x - unloaded_x)) > 1.0
+
+
 def test_rectified_keypoint_known_answer() -> None:
     # No lens distortion; forces (1, 3, 2, 2) N, the worked example of test_force_model: a raw keypoint
     # 20 mm = 160 px below the principal point (+y) is rectified to r = 18.91597325 mm = 151.327786 px,

@@ -104,3 +104,16 @@ def test_faint_vessel_stands_out(with_strong: bool) -> None:
     skin = inner & _skin_only(sv.vessel_darkness((sv.H, sv.W), vessels), mask)
     # measured medians: alone 222 vs 27 DN; next to a 30 % vessel (which sets the 8-bit range) 20 vs 3 DN
     assert np.median(vm.image[on]) > 4 * max(np.median(vm.image[skin]), 1.0)
+
+
+def test_half_resolution_map_is_the_full_map_at_half_size(veins) -> None:
+    # filter sizes scale with the map, so the half-resolution map (the default, a quarter of the work) shows the
+    # same vessels as the full one: correlation measured 0.999 inside the window; 0.9 allows other seeds
+    img, mask, _ = veins
+    full = enhance_veins(img, mask, MARGIN_PX)
+    half = enhance_veins(img, mask, MARGIN_PX, scale=0.5)
+    assert half.scale == 0.5 and half.image.shape == (img.shape[0] // 2, img.shape[1] // 2)
+    assert half.mask.shape == half.image.shape and np.all(half.image[half.mask == 0] == 0)
+    shrunk = cv2.resize(full.image.astype(np.float32), half.image.shape[::-1], interpolation=cv2.INTER_AREA)
+    inner = (half.mask > 0) & (cv2.resize(full.mask, half.image.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0)
+    assert np.corrcoef(shrunk[inner], half.image[inner].astype(np.float32))[0, 1] > 0.9
