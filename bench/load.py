@@ -76,7 +76,7 @@ class Stats:
 class Server:
     """redis-server (AOF) + `python -m api.cli serve` in a temp dir; stopped by stop()."""
 
-    def __init__(self, workers: int, redis_url: str | None) -> None:
+    def __init__(self, workers: int, redis_url: str | None, api_workers: int = 1) -> None:
         self.tmp = Path(tempfile.mkdtemp(prefix="vm-load-"))
         self.port = free_port()
         self.redis: subprocess.Popen[bytes] | None = None
@@ -98,6 +98,7 @@ class Server:
                 "VEINMOSAIC_DATA_DIR": str(self.tmp / "data"),
                 "VEINMOSAIC_API_KEYS": json.dumps({KEY: ["ingest", "view", "admin"]}),
                 "VEINMOSAIC_LOG_LEVEL": "WARNING",
+                "VEINMOSAIC_API_WORKERS": str(api_workers),
             }
         )
         cmd = [sys.executable, "-m", "api.cli", "serve", "--port", str(self.port), "--workers", str(workers)]
@@ -259,10 +260,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tile-rate", type=float, default=5.0, help="tile requests per second per viewer")
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--api-workers", type=int, default=1, help="API processes (setting api_workers)")
     p.add_argument("--connections", type=int, default=256, help="client connection pool size")
     p.add_argument("--redis-url", default=None, help="default: a private redis-server with AOF")
     args = p.parse_args(argv)
-    server = Server(args.workers, args.redis_url)
+    server = Server(args.workers, args.redis_url, args.api_workers)
     try:
         server.wait_ready()
         up, tiles, wall, state, api_cpu = asyncio.run(run(args, server.base, server.serve.pid))
@@ -270,7 +272,8 @@ def main(argv: list[str] | None = None) -> int:
         server.stop()
     print(
         f"\n{os.cpu_count()} CPUs; {args.upload_rate:g} uploads/s offered over {args.sessions} sessions, "
-        f"{args.viewers} viewers x {args.tile_rate:g} tiles/s, {args.seconds:g} s, {args.workers} workers\n"
+        f"{args.viewers} viewers x {args.tile_rate:g} tiles/s, {args.seconds:g} s, {args.workers} workers, "
+        f"{args.api_workers} API process(es)\n"
     )
     print("| requests | sent | ok/s | p50 ms | p99 ms | max ms | errors | started late |")
     print("|---|---:|---:|---:|---:|---:|---|---:|")
