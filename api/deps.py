@@ -6,14 +6,19 @@ in its thread pool, a hop that costs more CPU than the work. Those that touch th
 
 from __future__ import annotations
 
+import logging
 from typing import Annotated
 
 import redis
 from fastapi import Depends, Request
 
 from api.auth import Principal, require_scope, view_principal, visible_session
+from api.errors import PayloadTooLarge
 from api.settings import Settings
+from services import queue
 from services.storage import SessionMeta, SessionStore
+
+log = logging.getLogger("veinmosaic.api")
 
 
 async def get_settings_dep(request: Request) -> Settings:
@@ -52,3 +57,22 @@ def view_session(session_id: str, principal: ViewPrincipal, store: Store) -> Ses
 
 IngestSession = Annotated[SessionMeta, Depends(ingest_session)]
 ViewSession = Annotated[SessionMeta, Depends(view_session)]
+
+
+def incr(r: redis.Redis, prefix: str, field: str, amount: int = 1) -> None:
+    """Add `amount` to counter `field` of the metrics hash; a Redis failure is logged, never raised."""
+    try:
+        queue.incr_metric(r, field, amount, prefix=prefix)
+    except (redis.RedisError, OSError):
+        log.warning("metrics counter not updated", extra={"route": field})
+
+
+async def read_body(request: Request, limit: int) -> bytes:
+    """Return the request body; PayloadTooLarge (413, api.errors) as soon as it passes `limit` bytes."""
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise PayloadTooLarge(f"request body larger than {limit} bytes")
+        chunks.append(chunk)
+    return b"".join(chunks)

@@ -27,6 +27,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from services.calibration import CalibrationError
 from services.image_header import BadImageError
+from services.results_report import BadReferenceError, NoPathYetError, NothingToCompareError
 from services.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
 from workers.options import without_values
 
@@ -124,6 +125,9 @@ SERVICE_ERRORS: dict[type[Exception], tuple[int, str, str | None]] = {
     ImplausibleTimeError: (409, "implausible_timestamp", None),
     CalibrationError: (422, "invalid_calibration", None),
     BadImageError: (422, "invalid_image", None),
+    BadReferenceError: (422, "invalid_reference", None),
+    NothingToCompareError: (422, "nothing_to_compare", None),
+    NoPathYetError: (409, "not_ready", None),
     redis.ConnectionError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
     redis.TimeoutError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
 }

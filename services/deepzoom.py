@@ -13,7 +13,10 @@ from __future__ import annotations
 import math
 import struct
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import Any
 
 import cv2
 import numpy as np
@@ -40,6 +43,15 @@ class DziGeometry:
             raise ValueError("px_per_mm and half_extent_mm must be positive")
         half = max(1, math.ceil(half_extent_mm * px_per_mm / TILE_PX)) * TILE_PX
         return cls(float(px_per_mm), int(half))
+
+    @classmethod
+    def from_dict(cls, dzi: Mapping[str, Any], px_per_mm: float) -> DziGeometry:
+        """Return the geometry of a mosaic.json "dzi" block (`to_dict`'s output) at px_per_mm."""
+        width, height, half = int(dzi["width"]), int(dzi["height"]), int(dzi["origin_px"][0])
+        geometry = cls(float(px_per_mm), half, int(dzi["tile_size"]))
+        if (geometry.width, geometry.height) != (width, height):
+            raise ValueError("dzi: width and height must be twice origin_px")
+        return geometry
 
     @property
     def width(self) -> int:
@@ -99,13 +111,20 @@ class DziGeometry:
         """Return the full-resolution DZI pixel of a point in frame 0's mm (pixel centres at integers)."""
         return self.half_px + x_mm * self.px_per_mm, self.half_px + y_mm * self.px_per_mm
 
+    def tile_size_px(self, level: int, col: int, row: int) -> tuple[int, int] | None:
+        """Return the (width, height) px of tile (level, col, row), or None when it is not a tile of this DZI."""
+        if not self.in_range(level, col, row):
+            return None
+        h, w = self.tile_shape(level, col, row)
+        return w, h
+
     def dzi_xml(self) -> str:
         """Return the .dzi descriptor (Deep Zoom XML, PNG tiles, no overlap)."""
         return (
-            '<?xml version="1.0" encoding="UTF-8"?>'
+            '<?xml version="1.0" encoding="UTF-8"?>\n'
             f'<Image TileSize="{self.tile_size}" Overlap="0" Format="png" '
             'xmlns="http://schemas.microsoft.com/deepzoom/2008">'
-            f'<Size Width="{self.width}" Height="{self.height}"/></Image>'
+            f'<Size Width="{self.width}" Height="{self.height}"/></Image>\n'
         )
 
     def to_dict(self) -> dict[str, object]:
@@ -233,7 +252,8 @@ class TilePyramid:
         return blank_png(self.geometry.tile_size)
 
 
-def blank_png(size: int = TILE_PX) -> bytes:
-    """Return a fully transparent size x size gray + alpha PNG."""
-    z = np.zeros((size, size), np.uint8)
+@lru_cache(maxsize=64)
+def blank_png(width: int = TILE_PX, height: int | None = None) -> bytes:
+    """Return a fully transparent gray + alpha PNG of width x height px (height defaults to width)."""
+    z = np.zeros((width if height is None else height, width), np.uint8)
     return encode_png_gray_alpha(z, z)

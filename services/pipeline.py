@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -54,16 +54,24 @@ def frame_forces(scan: Scan) -> np.ndarray:
     return interpolate_forces(scan.force_t_s, scan.forces_n, scan.frame_t_s)
 
 
-def window_setup(scan: Scan, options: MethodOptions) -> tuple[np.ndarray, np.ndarray | None]:
-    """Return (window mask, vignetting gain or None) from the first frames, read once.
+def window_setup_of(
+    frames: Sequence[np.ndarray], mask: np.ndarray | None, options: MethodOptions
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Return (window mask uint8 0/255, vignetting gain or None) from the first frames (MASK_SAMPLE_FRAMES).
 
-    The mask is mask.png when the scan has one, else found from the frames; the gain is skipped when the
-    method does not flat-field.
+    The one window set-up, offline and live: the mask is the scan's own (mask.png) when it has one, else
+    found from the frames; the gain is skipped when the method does not flat-field.
     """
-    frames = [scan.frame(i) for i in range(min(len(scan), MASK_SAMPLE_FRAMES))]
-    mask = scan.mask if scan.mask is not None else estimate_window_mask(frames)
+    frames = list(frames)[:MASK_SAMPLE_FRAMES]
+    mask = mask if mask is not None else estimate_window_mask(frames)
     flat = estimate_flat_field(frames, mask) if options.flat_field else None
     return mask, flat
+
+
+def window_setup(scan: Scan, options: MethodOptions) -> tuple[np.ndarray, np.ndarray | None]:
+    """Return (window mask, vignetting gain or None) of a scan from its first frames, read once (window_setup_of)."""
+    frames = [scan.frame(i) for i in range(min(len(scan), MASK_SAMPLE_FRAMES))]
+    return window_setup_of(frames, scan.mask, options)
 
 
 def window_radius_mm(mask: np.ndarray, calib: Calibration) -> float:

@@ -38,10 +38,10 @@ from services.force_model import LoadState
 from services.frame_prep import PreparedFrame
 from services.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
 from services.mosaic import MosaicImage, force_to_color
+from services.results_docs import LAYERS
 from services.session_reconstruction import PathRow, path_rows_json
 from services.storage import atomic_write_bytes, directory_lock, durable_temp_file, fsync_dir
 
-LAYERS = ("vein", "force")
 IMAGE_NAMES = ("mosaic.png", "force.png", "coverage.png", "paths.png", "errors.png", "layers.npz")
 LIVE_VERSION = 1
 

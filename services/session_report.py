@@ -5,6 +5,12 @@ report.json: "frames" (counts by status, lost/rejected per reason, registered fr
 accuracy figures at the top level (rmse_mm, max_error_mm, ..., as before) with paths.png and errors.png.
 With a mosaic, the one-page sheet (sheet.png, sheet.pdf): mosaic with path, force and coverage maps with
 colour scales, accuracy, lost-frame summary.
+
+The report of a results version (`version_report`: what the reprocess stage writes and the API serves) is
+the same document without the sheet (rendered on request), plus the version's identity, and its "plots" are
+the API's links ({"paths": "/v1/sessions/<id>/plots/paths.png?v=<v>", "errors": ...}) — the one shape of
+report.json in a results version, whoever wrote it. A report folder written by the CLI names its files
+("paths.png", ...) instead, as it has no API.
 """
 
 from __future__ import annotations
@@ -23,6 +29,9 @@ from services.session_reconstruction import PathRow
 
 SHEET_NAMES = ("sheet.png", "sheet.pdf")
 ACCURACY_PLOTS = ("paths.png", "errors.png")
+PLOT_NAMES = ("paths", "errors")  # the report plots a results version keeps (ACCURACY_PLOTS without ".png")
+
+Backdrop = tuple[np.ndarray, float, tuple[float, float]]  # (vein image uint8, px_per_mm, frame 0's centre px)
 
 
 @dataclass(frozen=True)
@@ -54,9 +63,11 @@ def build_session_report(
     extra: Mapping[str, Any] | None = None,
     heading: str = "veinmosaic session report",
     sheet: bool = True,
+    backdrop: Backdrop | None = None,
 ) -> SessionReport:
     """Return the report of a path (rows in seq order) with an optional reference (N, 2) mm and mosaic.
 
+    backdrop: the image paths.png is drawn over when there is no mosaic with layers yet (a live version).
     Raises ValueError when a reference is given but no frame can be compared with it.
     """
     frames = summarize_frames(rows)
@@ -73,8 +84,10 @@ def build_session_report(
     images: dict[str, bytes] = {}
     plots: dict[str, str] = {}
     if accuracy is not None:
-        vein = mosaic.vein if mosaic is not None else None
-        px, origin = (mosaic.px_per_mm, mosaic.origin_px) if mosaic is not None else (1.0, (0.0, 0.0))
+        if mosaic is not None:
+            vein, px, origin = mosaic.vein, mosaic.px_per_mm, mosaic.origin_px
+        else:
+            vein, px, origin = backdrop if backdrop is not None else (None, 1.0, (0.0, 0.0))
         images["paths.png"] = figure_bytes(plot_paths_over_mosaic, estimate, registered, reference_mm, vein, px, origin)
         images["errors.png"] = figure_bytes(plot_error_along_scan, accuracy)
         plots.update({"paths": "paths.png", "errors": "errors.png"})
@@ -84,3 +97,38 @@ def build_session_report(
         plots.update({"sheet": "sheet.png", "sheet_pdf": "sheet.pdf"})
     doc["plots"] = plots
     return SessionReport(doc, accuracy, frames, images)
+
+
+def plot_links(session_id: str, version: int) -> dict[str, str]:
+    """Return a results version's report "plots": {name: the API path of its PNG}."""
+    return {name: f"/v1/sessions/{session_id}/plots/{name}.png?v={int(version)}" for name in PLOT_NAMES}
+
+
+def version_report(
+    rows: Sequence[PathRow],
+    reference_mm: np.ndarray,
+    mosaic: MosaicImage | None,
+    *,
+    session_id: str,
+    version: int,
+    mosaic_version: int,
+    method: str | None,
+    backdrop: Backdrop | None = None,
+) -> SessionReport:
+    """Return the report of results version `version` (report.json + paths.png, errors.png), see the docstring.
+
+    rows: the version's path in seq order; reference_mm: (N, 2) aligned to rows; mosaic_version: the
+    mosaic.json change counter it was made from (the API rebuilds the report when it changes).
+    Raises ValueError when no frame can be compared with the reference.
+    """
+    extra = {
+        "session": session_id,
+        "results_version": int(version),
+        "mosaic_version": int(mosaic_version),
+        "path_rows": len(rows),
+        "method": method,
+    }
+    report = build_session_report(rows, reference_mm, mosaic, extra, sheet=False, backdrop=backdrop)
+    images = {name: data for name, data in report.images.items() if name in ACCURACY_PLOTS}
+    doc = {**report.doc, "plots": plot_links(session_id, version)}
+    return SessionReport(doc, report.accuracy, report.frames, images)

@@ -17,10 +17,10 @@ import numpy as np
 from services import queue
 from services.calibration import Calibration
 from services.force_model import interpolate_forces
-from services.frame_prep import estimate_flat_field, estimate_window_mask, prepare_frame
+from services.frame_prep import prepare_frame
 from services.image_header import BadImageError
 from services.methods import MethodOptions
-from services.pipeline import MASK_SAMPLE_FRAMES
+from services.pipeline import MASK_SAMPLE_FRAMES, window_setup_of
 from services.results_store import LIVE_VERSION
 from services.storage import SessionMeta, SessionNotFoundError, StorageError
 from workers.config import Context
@@ -101,8 +101,9 @@ def ensure_setup(
         if finished:
             raise ValueError("none of the first frames can be decoded at the calibration's image size")
         return None
-    mask = estimate_window_mask(frames)
-    flat = estimate_flat_field(frames, mask) if opts.flat_field else None
+    # the offline pipeline's own set-up; a session stored through the API has no mask.png (spec §5 sends none),
+    # so the window is found from the frames, as scan_from_store's Scan (mask None) has it when reprocessed
+    mask, flat = window_setup_of(frames, None, opts)
     return ctx.results.write_setup_once(sid, LIVE_VERSION, mask, flat)
 
 

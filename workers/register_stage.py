@@ -21,7 +21,6 @@ import json
 import logging
 import math
 import time
-from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -34,8 +33,18 @@ from services.calibration import Calibration
 from services.deepzoom import DziGeometry, TilePyramid
 from services.methods import MethodOptions
 from services.pipeline import window_radius_mm
-from services.registrar import REASON_BAD_FRAME, STATUS_LOST, STATUS_OK, STATUS_REJECTED
-from services.results_store import LAYERS, LIVE_VERSION
+from services.registrar import STATUS_OK
+from services.results_docs import (
+    LAYERS,
+    canvas_extent_mm,
+    empty_image_meta,
+    empty_revisions,
+    image_meta,
+    mosaic_json,
+    path_tail,
+    rejected_row,
+)
+from services.results_store import LIVE_VERSION
 from services.session_reconstruction import PathRow, SessionReconstruction
 from services.storage import SessionNotFoundError
 from workers.config import Context, debug_order_key
@@ -57,30 +66,6 @@ def encode_png(image: np.ndarray) -> bytes:
     if not ok:
         raise ValueError("PNG encoding failed")
     return buf.tobytes()
-
-
-def _num(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
-
-
-def extent_mm(rows: list[PathRow], radius_mm: float) -> list[float] | None:
-    """Return [xmin, ymin, xmax, ymax] (mm, frame 0's axes) of the placed frames' windows, or None."""
-    pts = np.array([[r.x_mm, r.y_mm] for r in rows if r.status == STATUS_OK and math.isfinite(r.x_mm)])
-    if len(pts) == 0:
-        return None
-    lo, hi = pts.min(axis=0) - radius_mm, pts.max(axis=0) + radius_mm
-    return [float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])]
-
-
-def frame_counts(rows: list[PathRow]) -> dict[str, int]:
-    """Return {"processed", "ok", "lost", "rejected"} of path rows."""
-    c = Counter(r.status for r in rows)
-    return {
-        "processed": len(rows),
-        "ok": c[STATUS_OK],
-        "lost": c[STATUS_LOST],
-        "rejected": c[STATUS_REJECTED],
-    }
 
 
 def publish_event(ctx: Context, sid: str, kind: str, data: dict[str, Any]) -> None:
@@ -426,7 +411,7 @@ class RegisterStage:
         ctx.results.write_path(sid, v, rows)
         doc = ctx.results.read_mosaic_meta(sid, v) or {}
         version = int(doc.get("version", 0)) + 1
-        revisions: dict[str, dict[str, int]] = doc.get("revisions") or {layer: {} for layer in LAYERS}
+        revisions: dict[str, dict[str, int]] = doc.get("revisions") or empty_revisions()
         images_due = final or not doc.get("width") or now - held.last_image >= cfg.image_every_s
         held.deferred |= held.pyramid.update(held.recon.canvas, held.touched)
         held.touched = set()
@@ -448,29 +433,26 @@ class RegisterStage:
                 tiles_event[layer][name] = version
         if changed:
             queue.incr_metric(ctx.r, "tile_renders_total", 2 * len(changed), prefix=ctx.prefix)
+        image = image_meta(doc, held.calib.px_per_mm)
         if images_due:
             mosaic = held.recon.canvas.render()
             ctx.results.write_mosaic_images(sid, v, mosaic, raw_layers=final)  # + coverage.png, layers.npz
-            doc.update(mosaic.meta())
+            image = mosaic.meta()
             held.last_image = now
-        counts = frame_counts(rows)
         finished = ctx.store.get_meta(sid).finished_at is not None
         status = "done" if final else ("processing" if finished else "receiving")
-        doc.update(
-            {
-                "version": version,
-                "results_version": v,
-                "revisions": revisions,
-                "dzi": held.geometry.to_dict(),
-                "extent_mm": extent_mm(rows, held.recon.window_radius_mm),
-                "frames": counts,
-                "status": status,
-                "method": held.options.name,
-            }
+        doc = mosaic_json(
+            image,
+            version=version,
+            results_version=v,
+            revisions=revisions,
+            geometry=held.geometry,
+            extent_mm=canvas_extent_mm(held.recon.canvas),
+            rows=rows,
+            status=status,
+            method=held.options.name,
+            compliance=held.recon.compliance if final else None,
         )
-        if final and held.recon.compliance is not None:
-            doc["compliance_per_n"] = held.recon.compliance.compliance_per_n
-            doc["gauge"] = held.recon.compliance.gauge
         ctx.results.write_mosaic_meta(sid, v, doc)
         ctx.results.write_state(
             sid,
@@ -485,18 +467,12 @@ class RegisterStage:
         )
         if v == LIVE_VERSION:
             self._record_counters(held, held.unreported, rows)
-        by_seq = {r.seq: r for r in rows}
-        tail = [
-            [s, _num(by_seq[s].x_mm), _num(by_seq[s].y_mm), by_seq[s].status]
-            for s in sorted(set(held.unreported))
-            if s in by_seq
-        ]
         data = {
             "version": v,
             "mosaic_version": version,
-            **counts,
+            **doc["frames"],
             "tiles": tiles_event,
-            "path_tail": tail,
+            "path_tail": path_tail(rows, held.unreported),
             "path_reset": bool(held.path_reset or final),
             "extent_mm": doc["extent_mm"],
             "status": status,
@@ -541,29 +517,25 @@ class RegisterStage:
         """A finished session with no usable frame (none, or all poison): rows rejected, no mosaic, status done."""
         ctx, sid, v = self.ctx, lease.session_id, lease.version
         rejected = sorted(rejected or [])
-        calib = ctx.store.calibration(sid)
+        opts, calib_over = parse_options(ctx.results.read_options(sid, v) or {}, strict=False)
+        calib = apply_calibration(ctx.store.calibration(sid), calib_over)
         geometry = DziGeometry.for_mosaic(calib.px_per_mm, ctx.config.half_extent_mm)
-        nan = math.nan
         rows = []
         for seq in rejected:
             rec = ctx.store.get_frame(sid, seq)
-            t = rec.t_s if rec is not None else nan
-            rows.append(PathRow(seq, t, nan, nan, nan, nan, nan, nan, nan, 0, STATUS_REJECTED, REASON_BAD_FRAME))
+            rows.append(rejected_row(seq, rec.t_s if rec is not None else math.nan))
         ctx.results.write_path(sid, v, rows)
-        counts = frame_counts(rows)
-        doc = {
-            "px_per_mm": calib.px_per_mm,
-            "origin_px": [0.0, 0.0],
-            "width": 0,
-            "height": 0,
-            "version": 1,
-            "results_version": v,
-            "revisions": {layer: {} for layer in LAYERS},
-            "dzi": geometry.to_dict(),
-            "extent_mm": None,
-            "frames": counts,
-            "status": "done",
-        }
+        doc = mosaic_json(
+            empty_image_meta(calib.px_per_mm),
+            version=1,
+            results_version=v,
+            revisions=empty_revisions(),
+            geometry=geometry,
+            extent_mm=None,
+            rows=rows,
+            status="done",
+            method=opts.name,
+        )
         ctx.results.write_mosaic_meta(sid, v, doc)
         cursor = rejected[-1] + 1 if rejected else 0
         state = {"cursor": cursor, "fence": lease.token, "finished": True, "lost": [], "rejected": rejected}
@@ -575,7 +547,7 @@ class RegisterStage:
                 queue.incr_metric(ctx.r, "frames_lost_total", sum(done), prefix=ctx.prefix)
         if session_status != "failed":
             ctx.store.set_status(sid, "done")
-        tail = [[r.seq, None, None, r.status] for r in rows]
-        data = {"version": v, "mosaic_version": 1, **counts, "tiles": {}, "path_tail": tail, "path_reset": True}
+        tail = path_tail(rows, rejected)
+        data = {"version": v, "mosaic_version": 1, **doc["frames"], "tiles": {}, "path_tail": tail, "path_reset": True}
         publish_event(ctx, sid, "done", {**data, "extent_mm": None, "status": "done"})
         lease.release(ctx.r, mode="final")

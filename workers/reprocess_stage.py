@@ -15,27 +15,27 @@ import json
 import logging
 import math
 import shutil
-import tempfile
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from services import queue
+from services.compliance import ComplianceFit
 from services.deepzoom import DziGeometry, TilePyramid
 from services.image_header import BadImageError
 from services.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas
 from services.pipeline import reconstruct
-from services.registrar import REASON_BAD_FRAME, STATUS_REJECTED
-from services.results_store import LAYERS, LIVE_VERSION, parse_reference_csv
+from services.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json, rejected_row
+from services.results_report import write_version_report
+from services.results_store import LIVE_VERSION
 from services.session_reconstruction import PathRow
 from services.storage import SessionNotFoundError, StorageError
 from workers.config import Context
 from workers.faults import is_transient
 from workers.options import apply_calibration, parse_options
-from workers.register_stage import frame_counts, publish_event
+from workers.register_stage import publish_event
 from workers.scan_from_store import scan_from_store
 
 log = logging.getLogger("veinmosaic.worker")
@@ -76,38 +76,16 @@ def _set_job(ctx: Context, job_id: str, **values: Any) -> None:
     ctx.r.hset(queue.job_key(job_id, ctx.prefix), mapping={k: str(v) for k, v in values.items()})
 
 
-def _plot_bytes(draw: Callable[[Path], None]) -> bytes:
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "plot.png"
-        draw(path)
-        return path.read_bytes()
-
-
-def write_report(ctx: Context, sid: str, v: int, rows: list[PathRow], mosaic: MosaicImage | None) -> dict | None:
-    """Evaluate version v's path against the session's stored reference; write report + plots; None if none."""
-    from services.evaluation import evaluate_path
-    from services.plots import plot_error_along_scan, plot_paths_over_mosaic
-
+def write_report(ctx: Context, sid: str, v: int) -> dict[str, Any] | None:
+    """Write version v's report (report.json + plots) against the session's reference; None without one."""
     text = ctx.results.read_reference(sid)
-    if text is None or not rows:
+    if text is None:
         return None
-    reference = parse_reference_csv(text, [r.seq for r in rows])
-    estimate = np.array([[r.x_mm, r.y_mm] for r in rows], float)
-    registered = np.array([r.status == "ok" for r in rows])
-    report = evaluate_path(estimate, registered, reference)
-    doc = report.to_dict()
-    doc["plots"] = {"paths": "paths.png", "errors": "errors.png"}
-    doc["results_version"] = v
-    if mosaic is not None:
-        png = _plot_bytes(
-            lambda p: plot_paths_over_mosaic(
-                p, estimate, registered, reference, mosaic.vein, mosaic.px_per_mm, mosaic.origin_px
-            )
-        )
-        ctx.results.write_image(sid, v, "paths.png", png)
-    ctx.results.write_image(sid, v, "errors.png", _plot_bytes(lambda p: plot_error_along_scan(p, report)))
-    ctx.results.write_report(sid, v, doc)
-    return doc
+    try:
+        return write_version_report(ctx.results, sid, v, text, (rec.seq for rec in ctx.store.list_frames(sid)))
+    except ValueError as exc:  # NoPathYetError, NothingToCompareError: the version is served without a report
+        log.warning("no report for the new version: %s", type(exc).__name__, extra={"session": sid})
+        return None
 
 
 def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], None]) -> None:
@@ -142,13 +120,11 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
                 heartbeat()
 
         recon = reconstruct(scan, opts, progress=progress)
-        rows = sorted(
-            [*recon.rows, *(_rejected_row(ctx, sid, s) for s in poison)],
-            key=lambda r: r.seq,
-        )
-        write_version(ctx, sid, v, rows, recon.mosaic, recon.method, recon.compliance)
+        rows = sorted([*recon.rows, *(_rejected_row(ctx, sid, s) for s in poison)], key=lambda r: r.seq)
         heartbeat()
-        write_report(ctx, sid, v, rows, recon.mosaic)
+        write_version(ctx, sid, v, rows, recon.mosaic, recon.method, recon.compliance, heartbeat)
+        heartbeat()
+        write_report(ctx, sid, v)
         ctx.results.set_current(sid, v)
     except JobInterruptedError:
         _set_job(ctx, job_id, state="queued", done=0)  # back on the queue; the half-made version is never current
@@ -199,9 +175,7 @@ def _unreadable_frames(ctx: Context, sid: str, image_size: tuple[int, int] | lis
 
 def _rejected_row(ctx: Context, sid: str, seq: int) -> PathRow:
     rec = ctx.store.get_frame(sid, seq)
-    nan = math.nan
-    t = rec.t_s if rec is not None else nan
-    return PathRow(seq, t, nan, nan, nan, nan, nan, nan, nan, 0, STATUS_REJECTED, REASON_BAD_FRAME)
+    return rejected_row(seq, rec.t_s if rec is not None else math.nan)
 
 
 def write_version(
@@ -211,16 +185,23 @@ def write_version(
     rows: list[PathRow],
     mosaic: MosaicImage,
     method: str,
-    compliance: Any,
+    compliance: ComplianceFit | None,
+    heartbeat: Callable[[], None] = lambda: None,
 ) -> None:
-    """Write a complete version: path, all tiles of both layers, mosaic.png/force.png, mosaic.json, state."""
+    """Write a complete version: path, all tiles of both layers, mosaic.png/force.png, mosaic.json, state.
+
+    heartbeat is called every 32 tiles: rendering a whole pyramid takes seconds on a loaded machine, longer
+    than another worker waits before it claims the job's entry as abandoned (and runs it a second time).
+    """
     ctx.results.write_path(sid, v, rows)
     geometry = DziGeometry.for_mosaic(mosaic.px_per_mm, ctx.config.half_extent_mm)
     pyramid = TilePyramid(geometry)
     canvas = canvas_from_mosaic(mosaic)
     changed = pyramid.update(canvas, set(canvas.tiles))
-    revisions: dict[str, dict[str, int]] = {layer: {} for layer in LAYERS}
-    for level, col, row in sorted(changed):
+    revisions = empty_revisions()
+    for i, (level, col, row) in enumerate(sorted(changed)):
+        if i % 32 == 31:
+            heartbeat()
         for layer in LAYERS:
             png = pyramid.render_png(level, col, row, layer)
             if png is not None:
@@ -228,31 +209,17 @@ def write_version(
                 revisions[layer][f"{level}/{col}_{row}"] = 1
     queue.incr_metric(ctx.r, "tile_renders_total", 2 * len(changed), prefix=ctx.prefix)
     ctx.results.write_mosaic_images(sid, v, mosaic)  # mosaic, force, coverage PNGs and the raw layers.npz
-    doc: dict[str, Any] = dict(mosaic.meta())
-    doc.update(
-        {
-            "version": 1,
-            "results_version": v,
-            "revisions": revisions,
-            "dzi": geometry.to_dict(),
-            "extent_mm": mosaic_extent_mm(mosaic),
-            "frames": frame_counts(rows),
-            "status": "done",
-            "method": method,
-        }
+    doc = mosaic_json(
+        mosaic.meta(),
+        version=1,
+        results_version=v,
+        revisions=revisions,
+        geometry=geometry,
+        extent_mm=canvas_extent_mm(canvas),
+        rows=rows,
+        status="done",
+        method=method,
+        compliance=compliance,
     )
-    if compliance is not None:
-        doc["compliance_per_n"] = compliance.compliance_per_n
-        doc["gauge"] = compliance.gauge
     ctx.results.write_mosaic_meta(sid, v, doc)
     ctx.results.write_state(sid, v, {"cursor": len(rows), "fence": 0, "finished": True, "lost": [], "rejected": []})
-
-
-def mosaic_extent_mm(mosaic: MosaicImage) -> list[float] | None:
-    """Return [xmin, ymin, xmax, ymax] in mm (frame 0's axes) of a rendered mosaic, None when it is empty."""
-    h, w = mosaic.vein.shape
-    if not np.any(mosaic.coverage > 0):
-        return None
-    ox, oy = mosaic.origin_px
-    k = mosaic.px_per_mm
-    return [-ox / k, -oy / k, (w - ox) / k, (h - oy) / k]

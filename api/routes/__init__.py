@@ -5,6 +5,7 @@ from api.routes.export import router as export_router
 from api.routes.health import router as health_router
 from api.routes.ingest import router as ingest_router
 from api.routes.metrics import router as metrics_router
+from api.routes.report import router as report_router
 from api.routes.reprocess import router as reprocess_router
 from api.routes.results import router as results_router
 from api.routes.sessions import router as sessions_router
@@ -16,6 +17,7 @@ ROUTERS = (
     sessions_router,
     ingest_router,
     results_router,
+    report_router,
     export_router,
     events_router,
     reprocess_router,
@@ -29,6 +31,7 @@ __all__ = [
     "health_router",
     "ingest_router",
     "metrics_router",
+    "report_router",
     "reprocess_router",
     "results_router",
     "sessions_router",

@@ -25,7 +25,7 @@ from fastapi.responses import StreamingResponse
 
 from api.deps import AppSettings, RedisClient, Store, ViewSession
 from api.errors import ServiceUnavailable
-from api.routes.results import Results, resolve_version
+from api.results_access import Results, resolve_version
 from services import queue
 from services.redis_backend import read_embedded_url
 from services.results_store import ResultsStore

@@ -8,20 +8,22 @@ caches, never logged.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from datetime import UTC, datetime
 from typing import Annotated, Literal
 
-import numpy as np
 from fastapi import APIRouter, Query, Response
 from fastapi.concurrency import run_in_threadpool
 
 from api.deps import Store, ViewSession
 from api.errors import NotFound
-from api.routes.results import Results, VersionQuery, path_row, resolve_version
+from api.results_access import Results, VersionQuery, resolve_version
 from services.dicom_export import EXPORT_LAYERS, ExportInfo, export_layer
 from services.mosaic import MosaicImage
-from services.results_store import ResultsStore, parse_reference_csv
+from services.results_docs import path_rows_from_json
+from services.results_report import BadReferenceError, reference_for_rows
+from services.results_store import ResultsStore
 from services.session_report import build_session_report
 from services.storage import SessionMeta
 
@@ -72,13 +74,12 @@ async def get_export(
 
 def _sheet(store: Store, rs: ResultsStore, meta: SessionMeta, requested: int | None, fmt: str) -> tuple[int, bytes]:
     version, mosaic = finished_layers(rs, meta.id, requested)
-    rows = sorted((path_row(d) for d in rs.read_path(meta.id, version) or []), key=lambda r: r.seq)
+    rows = path_rows_from_json(rs.read_path(meta.id, version) or [])
     reference = None
     text = rs.read_reference(meta.id)
     if text is not None and rows:
-        reference = parse_reference_csv(text, [r.seq for r in rows])
-        if not np.any(np.all(np.isfinite(reference), axis=1)):
-            reference = None
+        with contextlib.suppress(BadReferenceError):  # the sheet without accuracy
+            reference = reference_for_rows(text, rows, (f.seq for f in store.list_frames(meta.id)))
     method = (rs.read_options(meta.id, version) or {}).get("method") or "?"
     heading = f"veinmosaic session {meta.id[:8]}, results version {version}, method {method}"
     try:

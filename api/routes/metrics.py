@@ -17,7 +17,7 @@ import redis
 from fastapi import APIRouter, Response
 from fastapi.concurrency import run_in_threadpool
 
-from api.deps import AppSettings, RedisClient
+from api.deps import AppSettings, RedisClient, incr  # noqa: F401 (re-exported for api.routes.ingest)
 from services import queue
 
 router = APIRouter(tags=["health"])
@@ -41,14 +41,6 @@ KNOWN_COUNTERS: dict[str, str] = {
 }
 SUMMARIES = {"job_seconds": "Wall time of finished reprocess jobs, seconds."}
 _NAME_OK = re.compile(r"^[a-zA-Z_][a-zA-Z0-9_]*$")
-
-
-def incr(r: redis.Redis, prefix: str, field: str, amount: int = 1) -> None:
-    """Add `amount` to counter `field` of the metrics hash; a Redis failure is logged, never raised."""
-    try:
-        queue.incr_metric(r, field, amount, prefix=prefix)
-    except (redis.RedisError, OSError):
-        log.warning("metrics counter not updated", extra={"route": field})
 
 
 def _number(value: float) -> str:

@@ -17,7 +17,7 @@ from api.deps import (
     ViewSession,
 )
 from api.errors import Validation
-from api.routes.results import extent_of, get_results, reprocess_running, resolve_version
+from api.results_access import get_results, reprocess_running, resolve_version, session_extent
 from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
 from services import queue
 from services.calibration import CalibrationError, parse_calibration
@@ -88,7 +88,7 @@ def get_session(
         registered_fraction=frames.registered_fraction if frames else None,
         not_placed_reasons=frames.reasons if frames else {},
         warnings=scan_warnings(frames, meta.status, reprocess_running(results, meta.id)),
-        extent=extent_of(results, meta.id),
+        extent=session_extent(results, meta.id),
     )
 
 

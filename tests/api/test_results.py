@@ -459,10 +459,10 @@ def test_reference_media_type_auth_and_not_ready(
 
 
 def test_extent_helper(ready: tuple[TestClient, str, dict], bundle: Bundle) -> None:
-    from api.routes.results import extent_of
+    from api.results_access import session_extent
 
     client, sid, _ = ready
-    ext = extent_of(ResultsStore(client.app.state.settings.data_dir), sid)  # type: ignore[attr-defined]
+    ext = session_extent(ResultsStore(client.app.state.settings.data_dir), sid)  # type: ignore[attr-defined]
     assert ext is not None and ext["results_version"] == 1
     assert ext["width_mm"] == pytest.approx(bundle.doc["extent_mm"][2] - bundle.doc["extent_mm"][0])
     assert re.match(r"^[0-9a-f]{32}$", sid)
