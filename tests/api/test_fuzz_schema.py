@@ -5,7 +5,9 @@ accepted, no route answering without its credential (the schema declares them: a
 token on a session's GET routes). The key is made for this run. Two operations take content that JSON Schema
 cannot describe, so there a 415/422 for valid-by-schema data is expected: a frame's `image` must be a
 decodable grayscale PNG/TIFF/JPEG of the session's calibrated size, and reference.csv must name the
-session's frames. Bounded to about two minutes on two cores (one worker, 15 examples per operation).
+session's frames. Bounded by examples, not by time (one worker, MAX_EXAMPLES per operation, each phase once:
+about 2,500 cases in ~20 s on two cores). `--max-time` is not passed: it is a budget that fuzzing and
+stateful testing repeat to fill, so a 110 s value made this one test take two minutes.
 """
 
 from __future__ import annotations
@@ -19,8 +21,8 @@ from pathlib import Path
 import pytest
 from live_server import live_api
 
-MAX_EXAMPLES = 15
-MAX_TIME_S = 110
+MAX_EXAMPLES = 25
+TIMEOUT_S = 300  # a hang, not a budget: the run ends when its phases do
 CONTENT_CHECKED = ("/v1/sessions/{session_id}/frames", "/v1/sessions/{session_id}/reference")
 CONFIG = """
 [checks.positive_data_acceptance]
@@ -46,10 +48,10 @@ def test_schemathesis_finds_nothing(tmp_path: Path) -> None:
         command = [
             str(st), "--config-file", str(config), "run", f"{api.base_url}/openapi.json",
             "-H", f"Authorization: Bearer {key}", "--checks", "all", "-n", str(MAX_EXAMPLES),
-            "--seed", "8", "--max-time", str(MAX_TIME_S), "-w", "1", "--request-timeout", "10",
+            "--seed", "8", "-w", "1", "--request-timeout", "10",
         ]  # fmt: skip
         env = {**os.environ, "SCHEMATHESIS_HOOKS": ""}
-        done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=MAX_TIME_S + 90)
+        done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=TIMEOUT_S)
         server_errors = [line for line in api.log_lines() if '"status": 500' in line or "Traceback" in line]
     report = done.stdout[-6000:] + done.stderr[-2000:]
     assert server_errors == [], server_errors[:5]
