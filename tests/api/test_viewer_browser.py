@@ -9,18 +9,14 @@ from __future__ import annotations
 
 import base64
 import contextlib
-import json
-import os
-import socket
 import time
-import uuid
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 import pytest
+from browser_service import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, browser_service
 
 from api.client import FORCE_LEAD_S, VeinmosaicClient
 from api.launcher import Service
@@ -29,49 +25,16 @@ from services.simulation.scenarios import simulate
 
 pytestmark = pytest.mark.slow
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 KEY = "browser-test-key"
-ARTIFACTS = Path(__file__).resolve().parents[1] / "artifacts"
 FIRST_PART = 26  # the workers compute the window mask from the first 24 frames: the view starts after them
 WAIT_S = 60.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="module")
 def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     """Start Redis (REDIS_URL, else embedded), one worker process and the API on a free port."""
-    if not os.path.exists(CHROMIUM):
-        pytest.fail(f"{CHROMIUM} is missing: install Debian's chromium (scripts/test.sh does)")
-    extra_env = {
-        "VEINMOSAIC_API_KEYS": json.dumps({KEY: ["ingest", "view"]}),
-        "VEINMOSAIC_REDIS_PREFIX": f"vmbrowser:{uuid.uuid4().hex}:",
-        "VEINMOSAIC_TOKEN_SECRET": "browser-test-secret",
-        "VEINMOSAIC_LOG_LEVEL": "WARNING",
-        "VEINMOSAIC_WORKER_CONFIG": json.dumps({"flush_every_s": 0.3, "image_every_s": 0.5, "lost_timeout_s": 5}),
-    }
-    svc = Service(
-        tmp_path_factory.mktemp("browser") / "data",
-        port=_free_port(),
-        workers=1,
-        redis_url=os.environ.get("REDIS_URL") or None,
-        extra_env=extra_env,
-    )
-    with svc:
+    config = {"flush_every_s": 0.3, "image_every_s": 0.5, "lost_timeout_s": 5}
+    with browser_service(tmp_path_factory.mktemp("browser") / "data", KEY, workers=1, worker_config=config) as svc:
         yield svc
 
 

@@ -11,9 +11,6 @@ Screenshots go to tests/artifacts/viewer_tools_*.png.
 
 from __future__ import annotations
 
-import json
-import os
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -21,14 +18,15 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from test_viewer_browser import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, _free_port
+from browser_service import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, browser_service
 
 from api.client import VeinmosaicClient
 from api.launcher import Service
 from services.deepzoom import DziGeometry, TilePyramid
 from services.mosaic import FrameLayers, SparseCanvas, blend_weight
 from services.registration import Similarity
-from services.results_store import LAYERS, ResultsStore
+from services.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json
+from services.results_store import ResultsStore
 from services.session_reconstruction import PathRow
 from services.storage import SessionStore
 
@@ -46,22 +44,7 @@ FRAME_SHAPE = (160, 200)  # h, w px: 20 x 25 mm
 @pytest.fixture(scope="module")
 def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     """Start Redis (REDIS_URL, else embedded) and the API on a free port, without workers."""
-    if not os.path.exists(CHROMIUM):
-        pytest.fail(f"{CHROMIUM} is missing: install Debian's chromium (scripts/test.sh does)")
-    extra_env = {
-        "VEINMOSAIC_API_KEYS": json.dumps({KEY: ["ingest", "view"]}),
-        "VEINMOSAIC_REDIS_PREFIX": f"vmtools:{uuid.uuid4().hex}:",
-        "VEINMOSAIC_TOKEN_SECRET": "tools-test-secret",
-        "VEINMOSAIC_LOG_LEVEL": "WARNING",
-    }
-    svc = Service(
-        tmp_path_factory.mktemp("tools") / "data",
-        port=_free_port(),
-        workers=0,
-        redis_url=os.environ.get("REDIS_URL") or None,
-        extra_env=extra_env,
-    )
-    with svc:
+    with browser_service(tmp_path_factory.mktemp("tools") / "data", KEY, workers=0) as svc:
         yield svc
 
 
@@ -99,7 +82,7 @@ def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:
     rs.ensure_version(sid, 1, {"method": "best"})
     geometry = DziGeometry.for_mosaic(PX_PER_MM)
     pyramid = TilePyramid(geometry)
-    revisions: dict[str, dict[str, int]] = {layer: {} for layer in LAYERS}
+    revisions = empty_revisions()
     for level, col, row in pyramid.update(canvas, set(canvas.tiles)):
         for layer in LAYERS:
             png = pyramid.render_png(level, col, row, layer)
@@ -108,23 +91,18 @@ def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:
                 revisions[layer][f"{level}/{col}_{row}"] = 1
     mosaic = canvas.render()
     rs.write_mosaic_images(sid, 1, mosaic)
-    half_w, half_h = FRAME_SHAPE[1] / 2 / PX_PER_MM, FRAME_SHAPE[0] / 2 / PX_PER_MM
-    doc = {
-        **mosaic.meta(),
-        "version": 1,
-        "results_version": 1,
-        "revisions": revisions,
-        "dzi": geometry.to_dict(),
-        "extent_mm": [-half_w, -half_h, STEP_MM * (N_FRAMES - 1) + half_w, half_h],
-        "frames": {
-            "processed": N_FRAMES,
-            "ok": N_FRAMES - len(LOST),
-            "lost": len(LOST) - len(REJECTED),
-            "rejected": len(REJECTED),
-        },
-        "status": "done",
-        "method": "best",
-    }
+    doc = mosaic_json(
+        mosaic.meta(),
+        version=1,
+        results_version=1,
+        revisions=revisions,
+        geometry=geometry,
+        extent_mm=canvas_extent_mm(canvas),
+        rows=rows,
+        status="done",
+        method="best",
+    )
+    assert doc["frames"] == {"processed": N_FRAMES, "ok": N_FRAMES - len(LOST), "lost": 4, "rejected": 1}
     rs.write_mosaic_meta(sid, 1, doc)
     rs.write_path(sid, 1, rows)
     lost = [s for s in LOST if s not in REJECTED]
