@@ -105,7 +105,9 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
     v = ctx.results.create_version(sid, {**doc, "source": "reprocess", "job": job_id}, make_current=False)
     _set_job(ctx, job_id, state="running", version=v, started=time.time())
     try:
-        poison = _unreadable_frames(ctx, sid, calib.image_size)
+        heartbeat()
+        poison = _unreadable_frames(ctx, sid, calib.image_size)  # decodes every frame the live run did not prepare
+        heartbeat()
         scan = scan_from_store(ctx.store, sid, calib, exclude_seqs=poison)
         _set_job(ctx, job_id, total=len(scan) + len(poison), done=0)
         last = [0.0]
