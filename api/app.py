@@ -21,16 +21,16 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.audit import AuditMiddleware
 from api.auth import document_security, key_table
-from api.errors import BodyTooLarge, add_exception_handlers, document_errors, error_response
-from api.log_format import configure_json_logging, request_id_var
+from api.errors import BodyTooLarge, add_exception_handlers, document_errors, escaped_error_response
 from api.routes import ROUTERS
 from api.routes.audit import router as audit_router
 from api.routes.viewer import mount_static
-from api.settings import Settings, get_settings, token_secret_bytes
 from services import queue
 from services.audit import AuditLog
 from services.image_header import set_decoder_limits
+from services.log_format import configure_json_logging, request_id_var
 from services.redis_backend import close, connect
+from services.settings import Settings, get_settings, token_secret_bytes
 from services.storage import SessionStore
 
 API_VERSION = "1.0.0"
@@ -94,12 +94,12 @@ class RequestContextMiddleware:
             await self.app(scope, limited_receive, send_with_id)
         except BodyTooLarge as exc:
             if not state["started"]:
-                response = error_response(413, "payload_too_large", str(exc.detail))
+                response = escaped_error_response(exc)
                 await response(scope, receive, send_with_id)
-        except Exception:
+        except Exception as exc:
             log.exception("unhandled error")
             if not state["started"]:
-                response = error_response(500, "internal_error", "internal error; quote the X-Request-ID")
+                response = escaped_error_response(exc)
                 await response(scope, receive, send_with_id)
         finally:
             route = scope.get("route")

@@ -22,8 +22,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.auth import PRINCIPAL_KEY
 from api.errors import STORAGE_ERRNOS, error_response
-from api.log_format import request_id_var
 from services.audit import AuditLog
+from services.log_format import request_id_var
 
 log = logging.getLogger("veinmosaic.api")
 AUDITED_PREFIXES = ("/v1/", "/viewer/")

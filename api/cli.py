@@ -147,7 +147,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def _service(args: argparse.Namespace, extra_env: dict[str, str] | None = None) -> Service:
     from api.launcher import Service
-    from api.settings import get_settings
+    from services.settings import get_settings
 
     settings = get_settings()
     data_dir = args.data_dir or settings.data_dir

@@ -14,8 +14,8 @@ from fastapi import Depends, Request
 
 from api.auth import Principal, require_scope, view_principal, visible_session
 from api.errors import PayloadTooLarge
-from api.settings import Settings
 from services import queue
+from services.settings import Settings
 from services.storage import SessionMeta, SessionStore
 
 log = logging.getLogger("veinmosaic.api")

@@ -27,9 +27,9 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from services.calibration import CalibrationError
 from services.image_header import BadImageError
+from services.method_options import without_values
 from services.results_report import BadReferenceError, NoPathYetError, NothingToCompareError
 from services.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
-from workers.options import without_values
 
 log = logging.getLogger("veinmosaic.api")
 
@@ -146,6 +146,16 @@ def error_response(
     return JSONResponse(error_body(code, message, **extra), status_code=status, headers=headers)
 
 
+INTERNAL_ERROR_MESSAGE = "internal error; quote the X-Request-ID (it identifies the error in the logs)"
+
+
+def escaped_error_response(exc: Exception) -> JSONResponse:
+    """Return the answer to an exception that escaped the app into the request middleware: 413 or 500."""
+    if isinstance(exc, BodyTooLarge):
+        return error_response(413, "payload_too_large", str(exc.detail))
+    return error_response(500, "internal_error", INTERNAL_ERROR_MESSAGE)
+
+
 def _field(loc: tuple[Any, ...]) -> str:
     parts = [str(p) for p in loc]
     if parts and parts[0] in ("body", "query", "path", "header", "form"):
@@ -221,7 +231,7 @@ def add_exception_handlers(app: FastAPI) -> None:
 
     async def unhandled(request: Request, exc: Exception) -> JSONResponse:
         log.error("unhandled error", exc_info=(type(exc), exc, exc.__traceback__))
-        return error_response(500, "internal_error", "internal error; the request id identifies it in the logs")
+        return error_response(500, "internal_error", INTERNAL_ERROR_MESSAGE)
 
     app.add_exception_handler(APIError, api_error)
     for cls in SERVICE_ERRORS:

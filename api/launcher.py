@@ -26,9 +26,9 @@ from pathlib import Path
 import httpx
 import redis
 
-from api.settings import Settings, get_settings
 from services import queue
 from services.redis_backend import close, connect, discard_dead_embedded, embedded_pid, read_embedded_url
+from services.settings import Settings, get_settings
 
 READY_TIMEOUT_S = 60.0
 log = logging.getLogger("veinmosaic.launcher")
@@ -291,7 +291,7 @@ class Service:
 
     def wait(self) -> int:
         """Supervise (restart what exits) until SIGINT/SIGTERM arrives; return the exit code 0."""
-        from api.log_format import configure_json_logging
+        from services.log_format import configure_json_logging
 
         configure_json_logging(str(self.settings.log_level))
         stop = {"flag": False}

@@ -349,7 +349,7 @@ def run_worker(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Return the worker's argument parser (defaults from api.settings.Settings and VEINMOSAIC_WORKER_*)."""
+    """Return the worker's argument parser (defaults from services.settings.Settings and VEINMOSAIC_WORKER_*)."""
     p = argparse.ArgumentParser(prog="veinmosaic worker", description="Run one veinmosaic worker process.")
     p.add_argument("--data-dir", type=Path, default=None, help="default: VEINMOSAIC_DATA_DIR")
     p.add_argument("--redis-url", default=None, help="default: REDIS_URL (else the embedded server)")
@@ -369,9 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run a worker configured from the environment (api.settings.Settings) and the command line."""
-    from api.log_format import configure_json_logging
-    from api.settings import Settings
+    """Run a worker configured from the environment (services.settings.Settings) and the command line."""
+    from services.log_format import configure_json_logging
+    from services.settings import Settings
 
     args = build_parser().parse_args(argv)
     settings = Settings()

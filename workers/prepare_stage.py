@@ -19,12 +19,12 @@ from services.calibration import Calibration
 from services.force_model import interpolate_forces
 from services.frame_prep import prepare_frame
 from services.image_header import BadImageError
+from services.method_options import apply_calibration, parse_options
 from services.methods import MethodOptions
 from services.pipeline import MASK_SAMPLE_FRAMES, window_setup_of
 from services.results_store import LIVE_VERSION
 from services.storage import SessionMeta, SessionNotFoundError, StorageError
 from workers.config import Context
-from workers.options import apply_calibration, parse_options
 from workers.scan_from_store import stored_forces
 
 log = logging.getLogger("veinmosaic.worker")

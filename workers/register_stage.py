@@ -31,6 +31,7 @@ import redis
 from services import queue
 from services.calibration import Calibration
 from services.deepzoom import DziGeometry, TilePyramid
+from services.method_options import apply_calibration, parse_options
 from services.methods import MethodOptions
 from services.pipeline import window_radius_mm
 from services.registrar import STATUS_OK
@@ -50,7 +51,6 @@ from services.storage import SessionNotFoundError
 from workers.config import Context, debug_order_key
 from workers.faults import describe, is_transient
 from workers.leases import Lease, acquire
-from workers.options import apply_calibration, parse_options
 from workers.prepare_stage import stored_seqs
 
 log = logging.getLogger("veinmosaic.worker")

@@ -25,6 +25,7 @@ from services import queue
 from services.compliance import ComplianceFit
 from services.deepzoom import DziGeometry, TilePyramid
 from services.image_header import BadImageError
+from services.method_options import apply_calibration, parse_options
 from services.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas
 from services.pipeline import reconstruct
 from services.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json, rejected_row
@@ -34,7 +35,6 @@ from services.session_reconstruction import PathRow
 from services.storage import SessionNotFoundError, StorageError
 from workers.config import Context
 from workers.faults import is_transient
-from workers.options import apply_calibration, parse_options
 from workers.register_stage import publish_event
 from workers.scan_from_store import scan_from_store
 

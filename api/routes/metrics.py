@@ -17,7 +17,7 @@ import redis
 from fastapi import APIRouter, Response
 from fastapi.concurrency import run_in_threadpool
 
-from api.deps import AppSettings, RedisClient, incr  # noqa: F401 (re-exported for api.routes.ingest)
+from api.deps import AppSettings, RedisClient
 from services import queue
 
 router = APIRouter(tags=["health"])

@@ -1,6 +1,6 @@
 """Reprocessing (spec §5): a new results version from the stored raw uploads, with other options; jobs.
 
-Options document (validated here exactly as the workers will read it, by workers.options.parse_options):
+Options document (validated here exactly as the workers will read it, by services.method_options):
 {"method": "best"|"paper"|"sift-chain", "method_options": {<services.methods.MethodOptions field>: value},
 "calibration": {<calibration.json field>: value}}; every part optional. A job is a Redis hash
 <prefix>job:<id> {state: queued|running|done|failed, done, total, session, version, error, owner, created,
@@ -15,7 +15,6 @@ import contextlib
 import hmac
 import json
 import logging
-import math
 import re
 import time
 import uuid
@@ -28,12 +27,9 @@ from api.auth import Principal, require_scope, visible_session
 from api.deps import AppSettings, IngestPrincipal, IngestSession, RedisClient, Store
 from api.errors import Conflict, NotFound, ServiceUnavailable, Validation
 from api.schemas import BatchAccepted, BatchReprocessRequest, BatchState, JobAccepted, JobState, ReprocessRequest
-from services import queue
+from services import method_options, queue
 from services.calibration import Calibration, CalibrationError
-from services.features import FEATURE_KINDS
-from services.methods import REGISTRATION_KINDS
 from services.storage import JobLedger, SessionMeta, SessionStore
-from workers.options import apply_calibration, parse_options
 
 router = APIRouter(tags=["reprocess"])
 log = logging.getLogger("veinmosaic.api")
@@ -44,38 +40,13 @@ FIXED_CALIBRATION = ("image_size",)  # the stored frames have this size: it cann
 
 
 def validate_options(options: dict[str, Any], calibration: Calibration) -> dict[str, Any]:
-    """Return the normalised options document, or raise 422 naming the bad field (method, option, calibration)."""
+    """Return the normalised options document (services.method_options), or raise 422 naming the bad field."""
     try:
-        opts, calib = parse_options(options, strict=True)
-    except ValueError as exc:
-        raise Validation(str(exc), code="invalid_options") from None
-    if opts.features not in FEATURE_KINDS:
-        raise Validation(f"method_options: features must be one of {', '.join(FEATURE_KINDS)}", code="invalid_options")
-    if opts.registration not in REGISTRATION_KINDS:
-        raise Validation(
-            f"method_options: registration must be one of {', '.join(REGISTRATION_KINDS)}", code="invalid_options"
-        )
-    for name in ("ransac_px", "ratio", "max_jump_mm", "blur_ratio", "min_inliers", "neighbours", "loop_gap"):
-        value = getattr(opts, name)
-        if not (math.isfinite(value) and value >= 0):
-            raise Validation(f"method_options: {name} must be a finite number >= 0", code="invalid_options")
-    if opts.max_features < 0:
-        raise Validation("method_options: max_features must be >= 0", code="invalid_options")
-    for name in FIXED_CALIBRATION:
-        if name in calib:
-            raise Validation(
-                f"calibration.{name}: cannot be changed (the stored frames fix it)", code="invalid_options"
-            )
-    try:
-        apply_calibration(calibration, calib)
+        return method_options.validate_options(options, calibration)
     except CalibrationError as exc:
         raise Validation(f"calibration: {exc}", code="invalid_calibration") from None
-    doc: dict[str, Any] = {"method": opts.name}
-    if options.get("method_options"):
-        doc["method_options"] = dict(options["method_options"])
-    if calib:
-        doc["calibration"] = calib
-    return doc
+    except ValueError as exc:
+        raise Validation(str(exc), code="invalid_options") from None
 
 
 def _check_reprocessable(store: SessionStore, meta: SessionMeta) -> None:

@@ -17,7 +17,7 @@ from fastapi.staticfiles import StaticFiles
 
 from api.deps import AppSettings, ViewSession
 from api.errors import ServiceUnavailable
-from api.settings import Settings
+from services.settings import Settings
 
 router = APIRouter(tags=["viewer"])
 

@@ -1,0 +1,57 @@
+"""JSON-lines logging shared by the API and the workers: one object per line, request and session ids, and only
+whitelisted fields — never labels, calibrations, tokens or raw URLs (no patient data in logs)."""
+
+from __future__ import annotations
+
+import contextvars
+import json
+import logging
+from typing import Any, TextIO
+
+request_id_var: contextvars.ContextVar[str] = contextvars.ContextVar("request_id", default="-")
+LOG_FIELDS = ("session", "seq", "bytes", "frames", "method", "route", "status", "duration_ms", "worker")
+
+
+class RequestIdFilter(logging.Filter):
+    """Stamp each record with the current request id (taken when the record is made, not when formatted)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """Add record.request_id; keep every record."""
+        if not hasattr(record, "request_id"):
+            record.request_id = request_id_var.get()
+        return True
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per line: ts, level, logger, msg, request_id and the whitelisted extra fields."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        """Return the record as a JSON line."""
+        doc: dict[str, Any] = {
+            "ts": round(record.created, 3),
+            "level": record.levelname,
+            "logger": record.name,
+            "msg": record.getMessage(),
+            "request_id": getattr(record, "request_id", "-"),
+        }
+        doc.update({k: getattr(record, k) for k in LOG_FIELDS if hasattr(record, k)})
+        if record.exc_info:
+            doc["exc"] = self.formatException(record.exc_info)
+        return json.dumps(doc, default=str)
+
+
+def make_log_handler(stream: TextIO | None = None) -> logging.Handler:
+    """Return a handler writing JSON lines with request ids to `stream` (stderr by default)."""
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(JsonFormatter())
+    handler.addFilter(RequestIdFilter())
+    return handler
+
+
+def configure_json_logging(level: str, logger_name: str = "veinmosaic") -> None:
+    """Send `logger_name` logs to stderr as JSON lines at `level` (idempotent)."""
+    root = logging.getLogger(logger_name)
+    root.setLevel(level.upper())
+    if not any(isinstance(h.formatter, JsonFormatter) for h in root.handlers):
+        root.addHandler(make_log_handler())
+        root.propagate = False

@@ -1,0 +1,93 @@
+"""Service configuration from the environment (prefix VEINMOSAIC_, plus REDIS_URL); read once at start-up."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+import uuid
+from pathlib import Path
+from typing import Literal
+
+from pydantic import AliasChoices, Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from services.image_header import DEFAULT_MAX_FRAME_SIDE
+
+Scope = Literal["ingest", "view", "admin"]
+SECRET_BYTES = 32
+
+
+class Settings(BaseSettings):
+    """All knobs of the HTTP service; tests build one explicitly, the server calls `get_settings()`.
+
+    Note: pydantic-settings deep-merges dict fields from the environment into explicit values, so a test
+    building Settings(api_keys=...) must clear VEINMOSAIC_API_KEYS from its environment.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="VEINMOSAIC_", extra="ignore", populate_by_name=True)
+
+    data_dir: Path = Path("./data")
+    redis_url: str | None = Field(
+        default=None, validation_alias=AliasChoices("REDIS_URL", "VEINMOSAIC_REDIS_URL", "redis_url")
+    )
+    redis_prefix: str = "vm:"
+    api_keys: dict[str, list[Scope]] = Field(default_factory=dict, repr=False)
+    token_secret: SecretStr | None = None
+    max_frame_bytes: int = Field(default=20 * 1024 * 1024, gt=0)
+    max_force_samples: int = Field(default=100_000, gt=0)
+    # every other body (JSON, reference.csv), counted while it is read; 8 MiB holds 100k force rows
+    max_json_bytes: int = Field(default=8 * 1024 * 1024, gt=0)
+    # frames (and calibrations' image_size) at most this many pixels a side; see services/image_header.py
+    max_frame_side: int = Field(default=DEFAULT_MAX_FRAME_SIDE, ge=16, le=16384)
+    max_session_span_s: float = Field(default=86_400.0, gt=0)  # timestamps within this of the session's first
+    min_free_mb: int = Field(default=200, ge=0)  # /readyz is 503 while the data volume has less free space
+    audit_coalesce_s: float = Field(default=60.0, ge=0)  # repeated reads by one caller: one audit record per window
+    queue_max_depth: int = Field(default=5000, gt=0)
+    retry_after_s: int = Field(default=2, gt=0)
+    viewer_token_ttl_s: int = Field(default=8 * 3600, gt=0)
+    # `veinmosaic serve` supervision: a dead child (API, worker, embedded Redis) is restarted after
+    # restart_first_s, doubling per consecutive short-lived run up to restart_max_s; a child that has run
+    # healthy_after_s counts as healthy again (back to the first delay)
+    restart_first_s: float = Field(default=0.5, gt=0)
+    restart_max_s: float = Field(default=30.0, gt=0)
+    healthy_after_s: float = Field(default=30.0, gt=0)
+    # uvicorn worker processes of the API under `veinmosaic serve` (one process is bound by its GIL)
+    api_workers: int = Field(default=1, ge=1, le=32)
+    log_level: str = "INFO"
+    viewer_assets_dir: Path | None = None  # OpenSeadragon's build folder; default: node_modules of the checkout/cwd
+
+
+def get_settings() -> Settings:
+    """Return the settings read from the environment (call once, at start-up)."""
+    return Settings()
+
+
+def token_secret_bytes(settings: Settings) -> bytes:
+    """Return the HMAC key for viewer tokens: VEINMOSAIC_TOKEN_SECRET, else data_dir/secret (made once).
+
+    The file is created atomically (written to a temp file, then hard-linked into place, which fails if
+    another process won the race), so every process of one deployment reads the same 32 random bytes.
+    """
+    if settings.token_secret is not None:
+        return settings.token_secret.get_secret_value().encode()
+    path = Path(settings.data_dir) / "secret"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not path.exists():
+        tmp = path.parent / f".secret.{uuid.uuid4().hex}.tmp"
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(os.urandom(SECRET_BYTES))
+                fh.flush()
+                os.fsync(fh.fileno())
+            with contextlib.suppress(FileExistsError):
+                os.link(tmp, path)
+        finally:
+            os.unlink(tmp)
+    for _ in range(50):
+        data = path.read_bytes()
+        if len(data) >= SECRET_BYTES:
+            return data
+        time.sleep(0.01)  # pragma: no cover - only a hand-made short file gets here
+    raise RuntimeError(f"{path} holds fewer than {SECRET_BYTES} bytes; delete it to make a new one")
