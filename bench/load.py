@@ -197,24 +197,36 @@ async def viewer(
         i += 1
 
 
+def _children(pid: int) -> list[int]:
+    kids: list[int] = []
+    with contextlib.suppress(OSError):
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            kids.extend(int(k) for k in Path(f"/proc/{pid}/task/{tid}/children").read_text().split())
+    return kids
+
+
+def _cpu_s(pid: int) -> float:
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+    return 0.0
+
+
 def process_cpu_s(root_pid: int, match: str) -> float:
-    """Return the CPU seconds (user + system) used so far by root_pid's descendants whose command line has `match`."""
-    total, stack, seen = 0.0, [root_pid], set()
+    """Return the CPU seconds (user + system) used so far by root_pid's descendants whose command line has
+    `match`, and by all of their own descendants (uvicorn's worker processes)."""
+    total, stack, seen = 0.0, [(root_pid, False)], set()
     while stack:
-        pid = stack.pop()
+        pid, inside = stack.pop()
         if pid in seen:
             continue
         seen.add(pid)
-        with contextlib.suppress(OSError):
-            for tid in os.listdir(f"/proc/{pid}/task"):
-                stack.extend(int(k) for k in Path(f"/proc/{pid}/task/{tid}/children").read_text().split())
-        if pid == root_pid:
-            continue
-        with contextlib.suppress(OSError, ValueError):
-            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            if match in cmd:
-                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-                total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+        if not inside and pid != root_pid:
+            with contextlib.suppress(OSError):
+                inside = match in Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
+        if inside:
+            total += _cpu_s(pid)
+        stack.extend((kid, inside) for kid in _children(pid))
     return total
 
 
