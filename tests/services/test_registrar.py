@@ -25,7 +25,7 @@ from services.registrar import (
 )
 from services.registration import IDENTITY, Similarity
 from services.scan import Scan
-from services.simulation.scenarios import simulate
+from tests.sim_cache import simulated
 
 NOISE_FRAMES = (12, 13, 14)  # the probe lifted off / a corrupt burst: pure noise images
 BLURRED_FRAME = 8  # a heavy (sigma 4 px) blur: far below the running sharpness median
@@ -37,7 +37,7 @@ RELOCALISED_MM = 0.5
 
 @pytest.fixture(scope="module")
 def scan() -> Scan:
-    return simulate("short", 1)
+    return simulated("short", 1)
 
 
 def _run(scan: Scan, options: MethodOptions) -> tuple[list[FrameResult], Registrar]:

@@ -16,7 +16,7 @@ from services.mosaic import FrameLayers, SparseCanvas
 from services.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
 from services.registration import Similarity
 from services.session_reconstruction import SessionReconstruction
-from services.simulation.scenarios import simulate
+from tests.sim_cache import simulated
 
 # Measured on the realistic short scan, seed 1 (smooth skin: the veins are the only structure, so sensor noise
 # weighs more than on the old textured frames): the real stitch agrees with its frames at median NCC 0.9735
@@ -48,7 +48,7 @@ def frame_agreement(session: SessionReconstruction, frames: list[PreparedFrame])
 
 @pytest.fixture(scope="module")
 def stitched() -> tuple[SessionReconstruction, list[PreparedFrame]]:
-    scan = simulate("short", 1)
+    scan = simulated("short", 1)
     options = method_options("best")
     forces, (mask, flat) = frame_forces(scan), window_setup(scan, options)
     session = SessionReconstruction(scan.calibration, options, window_radius_mm(mask, scan.calibration))
