@@ -1,7 +1,8 @@
 """The whole service for real: `veinmosaic serve`'s launcher (API process, two worker processes, Redis —
 REDIS_URL when set, else the embedded one), two sessions uploaded concurrently over HTTP with frames out of
 order. Every frame is processed exactly once, in seq order per session, and each path equals the offline
-`reconstruct` of the same scan folder."""
+`reconstruct` of the same scan folder (the folder reads back exactly as the simulated scan, so that
+reconstruction is the one made once per run in tests/sim_cache.py)."""
 
 from __future__ import annotations
 
@@ -17,11 +18,10 @@ import pytest
 
 from api.client import VeinmosaicClient
 from api.launcher import Service
-from services.methods import method_options
-from services.pipeline import reconstruct
 from services.redis_backend import connect, read_embedded_url
+from services.scan import Scan
 from services.scan_folder import frame_name, read_scan_folder, write_scan_folder
-from services.simulation.scenarios import simulate
+from tests.sim_cache import live_short, offline_best, simulated
 from workers.config import debug_order_key
 
 # Live and offline feed identical prepared frames in identical order to the same deterministic code, so the
@@ -54,12 +54,25 @@ def upload_out_of_order(client: VeinmosaicClient, folder: Path, seed: int) -> st
     return sid
 
 
+def assert_same_scan(a: Scan, b: Scan) -> None:
+    """Assert two scans are the same input to the pipeline: calibration, streams, window mask and every pixel."""
+    assert a.calibration == b.calibration
+    for name in ("frame_seq", "frame_t_s", "force_t_s", "forces_n", "imu_t_s", "imu_tilt_deg", "mask"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None), name
+        if x is not None:
+            np.testing.assert_array_equal(x, y, err_msg=name)
+    assert len(a) == len(b)
+    for i in range(len(a)):
+        np.testing.assert_array_equal(a.frame(i), b.frame(i), err_msg=f"frame {i}")
+
+
 @pytest.mark.slow
 def test_two_sessions_two_workers_out_of_order_equal_offline(tmp_path: Path) -> None:
     folders = []
     for seed in (1, 2):
         folder = tmp_path / f"scan{seed}"
-        write_scan_folder(simulate("short", seed), folder)
+        write_scan_folder(simulated("short", seed), folder)
         (folder / "mask.png").unlink()  # the HTTP API carries no mask: both sides find it from the frames
         folders.append(folder)
     key, prefix = f"k-{uuid.uuid4().hex}", f"vmtest{uuid.uuid4().hex[:8]}:"
@@ -85,11 +98,12 @@ def test_two_sessions_two_workers_out_of_order_equal_offline(tmp_path: Path) -> 
             for k in r.scan_iter(f"{prefix}*"):
                 r.delete(k)
         r.close()
-    for folder, state, path, order in zip(folders, states, paths, orders, strict=True):
+    for seed, folder, state, path, order in zip((1, 2), folders, states, paths, orders, strict=True):
         assert state["status"] == "done"
         assert state["frames_received"] == state["frames_processed"] == 40 and state["frames_lost"] == 0
         assert order == list(range(40)), "each frame registered exactly once, in seq order"
-        offline = reconstruct(read_scan_folder(folder), method_options("best"))
+        assert_same_scan(read_scan_folder(folder), live_short(seed))  # what the API got is the simulated scan
+        offline = offline_best(seed)  # = reconstruct(that scan, method_options("best")), made once per run
         live_xy = np.array([[row["x_mm"], row["y_mm"]] for row in path], float)
         assert [row["status"] for row in path] == [row.status for row in offline.rows]
         np.testing.assert_allclose(live_xy, offline.estimate_mm, atol=PATH_TOL_MM, rtol=0)

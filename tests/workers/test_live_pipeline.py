@@ -4,24 +4,21 @@ lost frame that do not block the session, and reprocessing into a new version.""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import signal
 import time
 from collections.abc import Callable
-from functools import cache
 from typing import Any
 
 import numpy as np
 import pytest
 
 from services import queue
-from services.methods import method_options
-from services.pipeline import Reconstruction, reconstruct
+from services.pipeline import Reconstruction
 from services.results_store import ResultsStore
 from services.scan import Scan
-from services.simulation.scenarios import simulate
 from services.storage import SessionStore
+from tests.sim_cache import live_short, offline_best
 from tests.workers.conftest import Backend, store_scan, wait_for
 from workers.config import debug_order_key
 
@@ -35,16 +32,14 @@ YAW_TOL_DEG = 1e-6
 DONE_TIMEOUT_S = 90.0
 
 
-@cache
 def scan_of(seed: int) -> Scan:
     """The simulated "short" scan (40 frames); no mask.png, as in a live session (the window is estimated)."""
-    return dataclasses.replace(simulate("short", seed), mask=None)
+    return live_short(seed)
 
 
-@cache
 def offline_of(seed: int) -> Reconstruction:
-    """The offline pipeline's reconstruction of scan_of(seed) by the "best" method."""
-    return reconstruct(scan_of(seed), method_options("best"))
+    """The offline pipeline's reconstruction of scan_of(seed) by the "best" method (made once per run)."""
+    return offline_best(seed)
 
 
 def path_arrays(rows: list[dict[str, Any]]) -> tuple[np.ndarray, list[str]]:
