@@ -83,11 +83,19 @@ def sniff_image(data: bytes) -> str | None:
     return None
 
 
+MAX_PNG_CHUNKS = 65_536  # encoders write 8-64 KiB data chunks: a frame under max_frame_bytes has far fewer
+
+
 def png_complete(data: bytes) -> bool:
-    """Return True if a PNG's chunks are all whole with matching CRCs, ending with IEND (no pixels decoded)."""
+    """Return True if a PNG's chunks are all whole with matching CRCs, ending with IEND (no pixels decoded).
+
+    At most MAX_PNG_CHUNKS chunks are walked: a file made of millions of tiny chunks costs no more than that.
+    """
     pos, end = 8, len(data)
     view = memoryview(data)
-    while pos + 12 <= end:
+    for _ in range(MAX_PNG_CHUNKS):
+        if pos + 12 > end:
+            return False
         (length,) = struct.unpack_from(">I", data, pos)
         stop = pos + 12 + length
         if stop > end:

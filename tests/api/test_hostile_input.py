@@ -401,3 +401,18 @@ def test_schema_documents_a_full_disk_as_503_with_retry_after(client: TestClient
         answer = paths[path][method]["responses"]["503"]
         assert "insufficient_storage" in answer["description"] and "507" in answer["description"], path
         assert answer["headers"]["Retry-After"]["schema"]["type"] == "integer", path
+
+
+def test_frames_are_checked_whole_without_decoding(client: TestClient, session_id: str) -> None:
+    """Completeness from the file's structure (PNG chunk CRCs and IEND, JPEG end marker), not a decode."""
+    good = frame_bytes(4)
+    flipped = bytearray(good)
+    flipped[len(good) // 2] ^= 0xFF  # one bit flip inside the pixel data: a chunk CRC no longer matches
+    assert upload(client, session_id, 0, bytes(flipped)).status_code == 422
+    assert upload(client, session_id, 0, good[:-12]).status_code == 422  # IEND cut off
+    header = good[:33]  # signature + IHDR of a valid 640x480 frame, then a flood of empty chunks
+    flood = header + (struct.pack(">I", 0) + b"tEXt" + struct.pack(">I", zlib.crc32(b"tEXt"))) * 200_000
+    started = time.perf_counter()
+    assert upload(client, session_id, 0, flood).status_code == 422
+    assert time.perf_counter() - started < 2.0
+    assert upload(client, session_id, 0, good).status_code == 202
