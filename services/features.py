@@ -104,10 +104,16 @@ def detect_features(
     """
     if image.dtype != np.uint8:
         raise ValueError("detect_features expects an 8-bit image")
-    if target > 0:
+    if target > 0 and kind == "sift":
         detector = _detector(kind, 0, min(contrast_threshold, ADAPTIVE_CONTRAST_THRESHOLD))
         found = detector.detect(image, mask)
         keypoints, descriptors = detector.compute(image, spread_keypoints(found, image.shape[:2], target))
+    elif target > 0:  # AffineFeature describes a keypoint in the view it was found in: describe, then select
+        detector = _detector(kind, 0, min(contrast_threshold, ADAPTIVE_CONTRAST_THRESHOLD))
+        found, all_descriptors = detector.detectAndCompute(image, mask)
+        row = {id(k): i for i, k in enumerate(found)}
+        keypoints = spread_keypoints(list(found), image.shape[:2], target)
+        descriptors = all_descriptors[[row[id(k)] for k in keypoints]] if keypoints else None
     else:
         detector = _detector(kind, max_features, contrast_threshold)
         keypoints, descriptors = detector.detectAndCompute(image, mask)
