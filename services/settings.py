@@ -54,6 +54,9 @@ class Settings(BaseSettings):
     healthy_after_s: float = Field(default=30.0, gt=0)
     # uvicorn worker processes of the API under `veinmosaic serve` (one process is bound by its GIL)
     api_workers: int = Field(default=1, ge=1, le=32)
+    # workers lower their CPU priority by this much (os.nice) so uploads and tiles win a busy CPU; processing
+    # catches up when the burst is over (0: equal priority)
+    worker_nice: int = Field(default=10, ge=0, le=19)
     log_level: str = "INFO"
     viewer_assets_dir: Path | None = None  # OpenSeadragon's build folder; default: node_modules of the checkout/cwd
 

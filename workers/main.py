@@ -376,6 +376,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     settings = Settings()
     configure_json_logging(str(settings.log_level))
+    if settings.worker_nice:
+        with contextlib.suppress(OSError):
+            os.nice(settings.worker_nice)  # ingest (API) before processing when the CPU is short
     options: dict[str, Any] = json.loads(args.config_json) if args.config_json else {}
     for name in ("lost_timeout_s", "lease_ms", "claim_idle_ms", "heartbeat_file"):
         value = getattr(args, name)

@@ -359,6 +359,7 @@ def test_worker_sets_decoder_limits_and_refuses_an_oversize_frame_from_its_heade
 
     monkeypatch.setattr(worker_main, "Worker", Probe)
     monkeypatch.setenv("VEINMOSAIC_MAX_FRAME_SIDE", "1024")
+    monkeypatch.setenv("VEINMOSAIC_WORKER_NICE", "0")  # main() runs in this process: leave its priority alone
     monkeypatch.setenv("VEINMOSAIC_DATA_DIR", str(data_dir))
     assert worker_main.main(["--max-seconds", "1"]) == 0  # settings from the environment, as in production
     assert seen["pillow_limit"] == 1024 * 1024

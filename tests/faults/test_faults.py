@@ -64,6 +64,9 @@ def test_worker_sigkill_mid_scan(
     workers.start("a")
     workers.start("b")
     workers.wait_started()
+    # workers yield the CPU to ingest (setting worker_nice, 10 by default)
+    expected_nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + 10)
+    assert os.getpriority(os.PRIO_PROCESS, workers.procs["b"].pid) == expected_nice
     up = Uploader(store, r, short_scan())
     sid = up.create()
     for seq in range(len(short_scan())):
