@@ -28,7 +28,7 @@ from services.pipeline import frame_forces, prepared_frames, window_radius_mm, w
 from services.results_store import LAYERS, ResultsStore
 from services.scan import Scan
 from services.session_reconstruction import PATH_COLUMNS, PathRow, SessionReconstruction, path_rows_json
-from services.simulation.scenarios import simulate
+from tests.sim_cache import simulated
 
 # ----- a results bundle made with the workers' services code -----------------------------------------------------
 
@@ -118,7 +118,7 @@ def install(data_dir: Path, sid: str, bundle: Bundle, version: int = 1) -> Resul
 @pytest.fixture(scope="module")
 def short_scan() -> Scan:
     """Return the simulated "short" scan (40 frames, seed 1)."""
-    return simulate("short", 1)
+    return simulated("short", 1)  # made once per run, shared with other modules
 
 
 @pytest.fixture(scope="module")

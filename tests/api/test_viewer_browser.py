@@ -21,7 +21,7 @@ from browser_service import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, browser_service
 from api.client import FORCE_LEAD_S, VeinmosaicClient
 from api.launcher import Service
 from services.scan import Scan
-from services.simulation.scenarios import simulate
+from tests.sim_cache import simulated
 
 pytestmark = pytest.mark.slow
 
@@ -41,7 +41,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
 @pytest.fixture(scope="module")
 def scan() -> Scan:
     """Return the simulated short scan (40 frames)."""
-    return simulate("short", 1)
+    return simulated("short", 1)  # made once per run, shared with other modules
 
 
 def _png(img: np.ndarray) -> bytes:
