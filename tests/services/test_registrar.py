@@ -4,6 +4,7 @@ direct alignment when features fail, and the reason of every frame not placed.""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import cv2
 import numpy as np
@@ -189,3 +190,26 @@ def test_direct_alignment_below_the_correlation_threshold_is_refused(scan: Scan,
     results = _register(scan, first_frames, {"ratio": 0.0, "min_correlation": 1.01})
     assert all(r.status == STATUS_LOST for r in results[1:])
     assert {r.reason for r in results[1:]} == {REASON_LOW_CORRELATION}
+
+
+def test_a_weak_feature_match_the_vein_maps_confirm_is_used(scan: Scan, first_frames) -> None:
+    # a minimum of twice the weakest consecutive match: that pair fails the rule alone but has half of it, and
+    # its vein maps correlate, so it is placed by its features (inliers > 0) rather than by direct alignment
+    frames, radius = first_frames
+    options = method_options("best")
+    probe = Registrar(options, scan.calibration.px_per_mm, radius, centre_px=scan.calibration.principal_point)
+    counts = []
+    for a, b in itertools.pairwise(frames):
+        probe.features[a.index] = a.features
+        fit = probe._match(b, a.features, 3)
+        assert fit is not None
+        counts.append(fit.inliers)
+    weakest = min(counts)
+    results = _register(scan, first_frames, {"min_inliers": 2 * weakest, "neighbours": 0})
+    assert all(r.status == STATUS_OK for r in results)
+    weak = [i + 1 for i, n in enumerate(counts) if n < 2 * weakest]
+    assert weak and all(results[i].inliers > 0 for i in weak)
+    assert max(_errors_mm(scan, results).values()) < RELOCALISED_MM
+    # refused when the vein maps cannot confirm it (and then direct alignment cannot place it either)
+    refused = _register(scan, first_frames, {"min_inliers": 2 * weakest, "neighbours": 0, "min_correlation": 1.01})
+    assert all(refused[i].status == STATUS_LOST for i in weak[:1])
