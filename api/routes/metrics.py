@@ -1,21 +1,25 @@
-"""GET /metrics: Prometheus text exposition (format 0.0.4) of the service's counters and queue gauges.
+"""GET /metrics: Prometheus exposition of the service's counters and queue gauges, made by prometheus_client.
 
 Counters live in the Redis hash <prefix>metrics (HINCRBY / HINCRBYFLOAT by every API and worker process), so
-one scrape of any API process sees the whole deployment. Known fields get a HELP text; any other numeric
-field is exported as veinmosaic_<field> (a counter when it ends in _total), so new worker metrics appear
-without an API change. No labels carry session ids or anything about patients. Unauthenticated, like
-/healthz: it holds counts only.
+one scrape of any API process sees the whole deployment. RedisMetrics is a prometheus_client custom collector
+over that hash and the queue streams; the library writes the text (format 0.0.4, or OpenMetrics when the
+scraper asks for it in Accept). Known fields get a HELP text; any other numeric field is exported as
+veinmosaic_<field> (a counter when it ends in _total), so new worker metrics appear without an API change. No
+labels carry session ids or anything about patients. Unauthenticated, like /healthz: it holds counts only.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import re
+from collections.abc import Iterator
+from typing import Annotated
 
 import redis
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Header, Response
 from fastapi.concurrency import run_in_threadpool
+from prometheus_client.exposition import choose_encoder
+from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric, SummaryMetricFamily
 
 from api.deps import AppSettings, RedisClient
 from services import queue
@@ -23,7 +27,7 @@ from services import queue
 router = APIRouter(tags=["health"])
 log = logging.getLogger("veinmosaic.api")
 
-CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"  # what a scrape without an OpenMetrics Accept gets
 PREFIX = "veinmosaic_"
 # Redis hash field -> (help text). Fields ending in _total are counters.
 KNOWN_COUNTERS: dict[str, str] = {
@@ -43,21 +47,6 @@ SUMMARIES = {"job_seconds": "Wall time of finished reprocess jobs, seconds."}
 _NAME_OK = re.compile(r"^[a-zA-Z_][a-zA-Z0-9_]*$")
 
 
-def _number(value: float) -> str:
-    if math.isnan(value):
-        return "NaN"
-    if math.isinf(value):
-        return "+Inf" if value > 0 else "-Inf"
-    return str(int(value)) if float(value).is_integer() and abs(value) < 2**53 else repr(float(value))
-
-
-def _family(lines: list[str], name: str, kind: str, help_text: str, samples: list[tuple[str, str, float]]) -> None:
-    lines.append(f"# HELP {name} {help_text}")
-    lines.append(f"# TYPE {name} {kind}")
-    for suffix, labels, value in samples:
-        lines.append(f"{name}{suffix}{labels} {_number(value)}")
-
-
 def _stream_len(r: redis.Redis, key: str) -> int:
     try:
         return int(r.xlen(key))
@@ -65,58 +54,84 @@ def _stream_len(r: redis.Redis, key: str) -> int:
         return 0
 
 
-def render_metrics(r: redis.Redis, prefix: str) -> str:
-    """Return the exposition text: counters from the metrics hash, queue gauges, and redis_up (1 or 0)."""
-    lines: list[str] = []
-    try:
-        raw = r.hgetall(queue.metrics_key(prefix))
-        values: dict[str, float] = {}
-        for k, v in raw.items():
-            key = k.decode() if isinstance(k, bytes) else str(k)
-            try:
-                values[key] = float(v)
-            except (TypeError, ValueError):
+def _counter(field: str, help_text: str, value: float) -> CounterMetricFamily:
+    # prometheus_client names a counter family without _total and writes its sample as <name>_total
+    return CounterMetricFamily(PREFIX + field.removesuffix("_total"), help_text, value=value)
+
+
+class RedisMetrics:
+    """A prometheus_client collector: the metrics hash, queue gauges and redis_up, read from Redis per scrape."""
+
+    def __init__(self, r: redis.Redis, prefix: str) -> None:
+        self.r, self.prefix = r, prefix
+
+    def read(self) -> tuple[dict[str, float], dict[str, float], float, float, float]:
+        """Return (hash fields, stream depths, delayed jobs, dead letters, redis_up); zeros when Redis is down."""
+        r, prefix = self.r, self.prefix
+        try:
+            values: dict[str, float] = {}
+            for k, v in r.hgetall(queue.metrics_key(prefix)).items():
+                key = k.decode() if isinstance(k, bytes) else str(k)
+                try:
+                    values[key] = float(v)
+                except (TypeError, ValueError):
+                    continue
+            gauges = {
+                "frames": float(queue.queue_depth(r, prefix=prefix)),
+                "register": float(_stream_len(r, queue.register_stream(prefix))),
+                "jobs": float(_stream_len(r, queue.jobs_stream(prefix))),
+            }
+            delayed_key = queue.delayed_key(prefix)
+            delayed = float(r.zcard(delayed_key)) if r.type(delayed_key) in (b"zset", "zset") else 0.0
+            return values, gauges, delayed, float(_stream_len(r, queue.dead_stream(prefix))), 1.0
+        except (redis.RedisError, OSError):
+            return {}, {}, 0.0, 0.0, 0.0
+
+    def collect(self) -> Iterator[Metric]:
+        """Yield every metric family of one scrape."""
+        values, gauges, delayed, dead, up = self.read()
+        for field, help_text in KNOWN_COUNTERS.items():
+            yield _counter(field, help_text, values.get(field, 0.0))
+        for base, help_text in SUMMARIES.items():
+            yield SummaryMetricFamily(
+                PREFIX + base,
+                help_text,
+                count_value=values.get(f"{base}_count", 0.0),
+                sum_value=values.get(f"{base}_sum", 0.0),
+            )
+        known = set(KNOWN_COUNTERS) | {f"{b}_{s}" for b in SUMMARIES for s in ("sum", "count")}
+        for field in sorted(set(values) - known):
+            if not _NAME_OK.match(field):
                 continue
-        gauges = {
-            "frames": float(queue.queue_depth(r, prefix=prefix)),
-            "register": float(_stream_len(r, queue.register_stream(prefix))),
-            "jobs": float(_stream_len(r, queue.jobs_stream(prefix))),
-        }
-        delayed_key = queue.delayed_key(prefix)
-        delayed = float(r.zcard(delayed_key)) if r.type(delayed_key) in (b"zset", "zset") else 0.0
-        dead = float(_stream_len(r, queue.dead_stream(prefix)))
-        up = 1.0
-    except (redis.RedisError, OSError):
-        values, gauges, delayed, dead, up = {}, {}, 0.0, 0.0, 0.0
-
-    for field, help_text in KNOWN_COUNTERS.items():
-        _family(lines, PREFIX + field, "counter", help_text, [("", "", values.get(field, 0.0))])
-    for base, help_text in SUMMARIES.items():
-        samples = [("_sum", "", values.get(f"{base}_sum", 0.0)), ("_count", "", values.get(f"{base}_count", 0.0))]
-        _family(lines, PREFIX + base, "summary", help_text, samples)
-    known = set(KNOWN_COUNTERS) | {f"{b}_{s}" for b in SUMMARIES for s in ("sum", "count")}
-    for field in sorted(set(values) - known):
-        if not _NAME_OK.match(field):
-            continue
-        kind = "counter" if field.endswith("_total") else "gauge"
-        _family(lines, PREFIX + field, kind, f"Worker metric {field}.", [("", "", values[field])])
-    _family(
-        lines,
-        PREFIX + "queue_depth",
-        "gauge",
-        "Jobs waiting or in progress per stream (the queue lag).",
-        [("", f'{{stream="{name}"}}', value) for name, value in gauges.items()],
-    )
-    _family(
-        lines, PREFIX + "delayed_jobs", "gauge", "Jobs re-scheduled for later (not ready yet).", [("", "", delayed)]
-    )
-    _family(lines, PREFIX + "dead_letters", "gauge", "Entries in the dead-letter stream.", [("", "", dead)])
-    _family(lines, PREFIX + "redis_up", "gauge", "1 if Redis answered this scrape, else 0.", [("", "", up)])
-    return "\n".join(lines) + "\n"
+            if field.endswith("_total"):
+                yield _counter(field, f"Worker metric {field}.", values[field])
+            else:
+                yield GaugeMetricFamily(PREFIX + field, f"Worker metric {field}.", value=values[field])
+        depth = GaugeMetricFamily(
+            PREFIX + "queue_depth", "Jobs waiting or in progress per stream (the queue lag).", labels=["stream"]
+        )
+        for name, value in gauges.items():
+            depth.add_metric([name], value)
+        yield depth
+        yield GaugeMetricFamily(PREFIX + "delayed_jobs", "Jobs re-scheduled for later (not ready yet).", value=delayed)
+        yield GaugeMetricFamily(PREFIX + "dead_letters", "Entries in the dead-letter stream.", value=dead)
+        yield GaugeMetricFamily(PREFIX + "redis_up", "1 if Redis answered this scrape, else 0.", value=up)
 
 
-@router.get("/metrics", response_class=Response, responses={200: {"content": {CONTENT_TYPE: {}}}})
-async def metrics(r: RedisClient, settings: AppSettings) -> Response:
-    """Return the Prometheus text exposition (format 0.0.4)."""
-    text = await run_in_threadpool(render_metrics, r, settings.redis_prefix)
-    return Response(text, media_type=CONTENT_TYPE, headers={"Cache-Control": "no-store"})
+def render_metrics(r: redis.Redis, prefix: str, accept: str | None = None) -> tuple[bytes, str]:
+    """Return (exposition, content type): format 0.0.4, or OpenMetrics when `accept` asks for it."""
+    encoder, content_type = choose_encoder(accept or "")
+    return encoder(RedisMetrics(r, prefix)), content_type
+
+
+@router.get(
+    "/metrics",
+    response_class=Response,
+    responses={200: {"content": {CONTENT_TYPE: {}, "application/openmetrics-text": {}}}},
+)
+async def metrics(
+    r: RedisClient, settings: AppSettings, accept: Annotated[str | None, Header(include_in_schema=False)] = None
+) -> Response:
+    """Return the Prometheus exposition (text format 0.0.4; OpenMetrics if Accept asks for it)."""
+    body, content_type = await run_in_threadpool(render_metrics, r, settings.redis_prefix, accept)
+    return Response(body, headers={"Content-Type": content_type, "Cache-Control": "no-store"})

@@ -75,3 +75,15 @@ def test_metrics_when_redis_is_down(client: TestClient, monkeypatch: pytest.Monk
     assert resp.status_code == 200  # the scrape succeeds and says Redis is down
     samples, _ = parse_exposition(resp.text)
     assert samples["veinmosaic_redis_up"] == 0
+
+
+def test_metrics_openmetrics_on_request(client: TestClient) -> None:
+    """A scraper that asks for OpenMetrics gets it (prometheus_client's content negotiation), with the same values."""
+    r, prefix = client.app.state.redis, client.app.state.settings.redis_prefix  # type: ignore[attr-defined]
+    queue.incr_metric(r, "jobs_done_total", 2, prefix=prefix)
+    resp = client.get("/metrics", headers={"Accept": "application/openmetrics-text; version=1.0.0"})
+    assert resp.status_code == 200 and resp.headers["content-type"].startswith("application/openmetrics-text")
+    lines = resp.text.splitlines()
+    assert lines[-1] == "# EOF" and "# TYPE veinmosaic_jobs_done counter" in lines
+    assert any(line.startswith("veinmosaic_jobs_done_total ") and float(line.split()[1]) >= 2 for line in lines)
+    assert 'veinmosaic_queue_depth{stream="frames"} ' in resp.text
