@@ -4,9 +4,10 @@ The workers XADD {"type": "progress"|"done", "data": <json>} to <prefix>events:<
 the SSE ids, so a client that reconnects with Last-Event-ID (the header EventSource sends, or
 ?last_event_id=) gets exactly the entries after it. A fresh connection (or one whose Last-Event-ID was
 trimmed away) first gets a "snapshot" event: the current mosaic.json, the whole path and the counters,
-with the id of the newest entry at that moment. Comment lines keep idle connections alive. The stream
-ends after a "done" entry, or at once (after the snapshot) when the session is already done or failed.
-Reads use redis.asyncio with BLOCK, so no thread and no event-loop time is held while waiting.
+with the id of the newest entry at that moment. The stream ends after a "done" entry, or at once (after the
+snapshot) when the session is already done or failed. sse-starlette writes the framing (id/event/data lines,
+retry, the keep-alive comment every KEEPALIVE_S) and ends the generator when the client goes away. Reads use
+redis.asyncio with BLOCK, so no thread and no event-loop time is held while waiting.
 """
 
 from __future__ import annotations
@@ -17,11 +18,12 @@ import re
 from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
+import anyio
 import redis
 import redis.asyncio as aioredis
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import StreamingResponse
+from sse_starlette import EventSourceResponse, ServerSentEvent
 
 from api.deps import AppSettings, RedisClient, Store, ViewSession
 from api.errors import ServiceUnavailable
@@ -34,8 +36,9 @@ from services.storage import SessionStore
 router = APIRouter(prefix="/v1/sessions", tags=["results"])
 log = logging.getLogger("veinmosaic.api")
 
-KEEPALIVE_S = 15.0  # a comment line after this long without an event
+KEEPALIVE_S = 15.0  # a keep-alive comment this often (and the session's status checked when idle this long)
 RETRY_MS = 3000  # the reconnection delay suggested to EventSource
+SEP = "\n"  # line separator of the framing (the SSE spec allows \n, \r\n or \r)
 BATCH = 200  # stream entries read per XREAD
 FINAL_STATUSES = ("done", "failed")
 _STREAM_ID = re.compile(r"^\d{1,20}(-\d{1,20})?$")
@@ -46,11 +49,14 @@ def _id_tuple(stream_id: str) -> tuple[int, int]:
     return int(ms), int(seq or 0)
 
 
-def sse(event: str, data: str, event_id: str | None = None) -> str:
-    """Return one SSE message (multi-line data split into data: lines)."""
-    head = f"id: {event_id}\n" if event_id is not None else ""
-    body = "".join(f"data: {line}\n" for line in (data.splitlines() or [""]))
-    return f"{head}event: {event}\n{body}\n"
+def sse(event: str, data: str, event_id: str | None = None) -> ServerSentEvent:
+    """Return one SSE message (sse-starlette splits multi-line data into data: lines)."""
+    return ServerSentEvent(data, event=event, id=event_id, sep=SEP)
+
+
+def keepalive() -> ServerSentEvent:
+    """Return the keep-alive comment sse-starlette sends on an idle connection."""
+    return ServerSentEvent(comment="keep-alive", sep=SEP)
 
 
 def snapshot(store: SessionStore, rs: ResultsStore, r: redis.Redis, sid: str, prefix: str) -> dict[str, Any]:
@@ -82,7 +88,7 @@ def async_redis_url(settings: Any) -> str:
 
 @router.get(
     "/{session_id}/events",
-    response_class=StreamingResponse,
+    response_class=EventSourceResponse,
     responses={200: {"content": {"text/event-stream": {}}, "description": "snapshot, progress..., done"}},
 )
 async def events(
@@ -94,7 +100,7 @@ async def events(
     settings: AppSettings,
     last_event_id: Annotated[str | None, Header(alias="Last-Event-ID")] = None,
     last_event_id_q: Annotated[str | None, Query(alias="last_event_id", max_length=41)] = None,
-) -> StreamingResponse:
+) -> EventSourceResponse:
     """Stream the session's progress as SSE: snapshot, then progress events, then done (see module doc)."""
     sid, prefix = meta.id, settings.redis_prefix
     resume = last_event_id or last_event_id_q
@@ -102,12 +108,12 @@ async def events(
     url = async_redis_url(settings)
     stream = queue.events_stream(sid, prefix)
 
-    async def generate() -> AsyncIterator[str]:
+    async def generate() -> AsyncIterator[ServerSentEvent]:
         client = aioredis.Redis.from_url(
             url, decode_responses=True, socket_connect_timeout=2.0, socket_timeout=KEEPALIVE_S + 10.0
         )
         try:
-            yield f"retry: {RETRY_MS}\n\n"
+            yield ServerSentEvent(retry=RETRY_MS, sep=SEP)
             start = resume
             if start is not None:
                 first = await client.xrange(stream, count=1)
@@ -139,14 +145,14 @@ async def events(
                 if status in FINAL_STATUSES:
                     yield sse("done", json.dumps({"status": status, "session": sid}), start)
                     return
-                if idle_checked:
-                    yield ": keep-alive\n\n"
                 idle_checked = True
         except (redis.RedisError, OSError):
             log.warning("event stream interrupted", extra={"session": sid})
-            yield ": interrupted, reconnect\n\n"
+            yield ServerSentEvent(comment="interrupted, reconnect", sep=SEP)
         finally:
-            await client.aclose()
+            with anyio.CancelScope(shield=True):  # a client that went away cancels us: still close the connection
+                await client.aclose()
 
-    headers = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
-    return StreamingResponse(generate(), media_type="text/event-stream", headers=headers)
+    return EventSourceResponse(
+        generate(), headers={"Cache-Control": "no-cache"}, ping=KEEPALIVE_S, sep=SEP, ping_message_factory=keepalive
+    )
