@@ -1,14 +1,14 @@
 """Bearer API keys with scopes, session ownership, and signed expiring view-only viewer tokens (spec §5).
 
 Keys are held as sha256 fingerprints; the fingerprint is the session owner recorded in storage (never the
-key). "admin" satisfies every scope and sees every session. A viewer token is
-"<expiry unix s>.<urlsafe-b64 HMAC-SHA256(secret, 'view:' + session_id + ':' + expiry)>": view scope, one
-session, accepted on GET view routes via ?token= or Authorization: Bearer.
+key). "admin" satisfies every scope and sees every session. A viewer token is an itsdangerous URL-safe signed
+payload {"sid": session id, "scope": "view", "exp": expiry in Unix s} (HMAC with the token secret, salted for
+this one use): view scope, one session, until its expiry; accepted on GET view routes via ?token= or
+Authorization: Bearer. The payload is signed, not encrypted: it holds the session id, which the URL holds anyway.
 """
 
 from __future__ import annotations
 
-import base64
 import hashlib
 import hmac
 from collections.abc import Awaitable, Callable, Iterable, Mapping
@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from fastapi import Request
+from itsdangerous import BadSignature, URLSafeSerializer
 
 from api.errors import Forbidden, NotFound, Unauthorized
 from services.storage import SessionMeta, SessionNotFoundError, SessionStore
@@ -57,33 +58,33 @@ def key_table(api_keys: Mapping[str, Iterable[str]]) -> dict[str, frozenset[str]
     return {fingerprint(k): frozenset(v) for k, v in api_keys.items()}
 
 
-def _b64(data: bytes) -> str:
-    return base64.urlsafe_b64encode(data).rstrip(b"=").decode()
+TOKEN_SALT = "veinmosaic.viewer-token"  # a signature made for another use of the same secret is not a token
+MAX_TOKEN_CHARS = 512  # longer is never one of ours: refused before any signature work
 
 
-def _mac(secret: bytes, session_id: str, expires: int) -> bytes:
-    return hmac.new(secret, f"view:{session_id}:{expires}".encode(), hashlib.sha256).digest()
+def token_serializer(secret: bytes) -> URLSafeSerializer:
+    """Return the itsdangerous serializer of viewer tokens (SHA-256 HMAC, the viewer-token salt)."""
+    return URLSafeSerializer(secret, salt=TOKEN_SALT, signer_kwargs={"digest_method": hashlib.sha256})
 
 
 def make_viewer_token(secret: bytes, session_id: str, ttl_s: float, now: float) -> str:
     """Return a URL-safe view-only token for `session_id` valid until now + ttl_s (Unix seconds)."""
-    expires = int(now + ttl_s)
-    return f"{expires}.{_b64(_mac(secret, session_id, expires))}"
-
-
-def viewer_token_expiry(token: str) -> int | None:
-    """Return the token's expiry (Unix seconds) without verifying it, or None if malformed."""
-    head, _, _ = token.partition(".")
-    return int(head) if head.isdigit() and len(head) <= 12 else None
+    token = token_serializer(secret).dumps({"sid": session_id, "scope": "view", "exp": int(now + ttl_s)})
+    return str(token)
 
 
 def verify_viewer_token(secret: bytes, token: str, session_id: str, now: float) -> bool:
-    """Return True if `token` was made with `secret` for `session_id` and has not expired at `now`."""
-    expires = viewer_token_expiry(token)
-    if expires is None or now >= expires:
+    """Return True if `token` was made with `secret` for `session_id`, is view-only and has not expired at `now`."""
+    if len(token) > MAX_TOKEN_CHARS:
         return False
-    expected = f"{expires}.{_b64(_mac(secret, session_id, expires))}"
-    return hmac.compare_digest(expected.encode(), token.encode())
+    try:
+        claims = token_serializer(secret).loads(token)  # the signature is checked before the payload is decoded
+    except BadSignature:
+        return False
+    if not isinstance(claims, dict) or claims.get("scope") != "view" or claims.get("sid") != session_id:
+        return False
+    expires = claims.get("exp")
+    return isinstance(expires, int) and now < expires
 
 
 def bearer(request: Request) -> str | None:

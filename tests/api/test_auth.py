@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import base64
+import hashlib
+import json
 import time
 
 from api_helpers import INGEST, auth, calibration_doc, frame_bytes, upload
 from fastapi.testclient import TestClient
+from itsdangerous import URLSafeSerializer
 
-from api.auth import fingerprint, make_viewer_token, verify_viewer_token
+from api.auth import fingerprint, make_viewer_token, token_serializer, verify_viewer_token
 
 SECRET = b"test-secret"
 
@@ -80,6 +84,20 @@ def test_token_roundtrip_and_tamper() -> None:
     assert verify_viewer_token(SECRET, token, "a" * 32, now=1009.0)
     assert not verify_viewer_token(SECRET, token, "a" * 32, now=1010.0)  # expiry is exclusive
     assert not verify_viewer_token(SECRET, token, "b" * 32, now=1000.0)
-    expires, mac = token.split(".")
-    assert not verify_viewer_token(SECRET, f"{int(expires) + 100}.{mac}", "a" * 32, now=1000.0)
+    # a later expiry (or another session) pasted into the payload breaks the signature
+    _, signature = token.rsplit(".", 1)
+    for claims in ({"sid": "a" * 32, "scope": "view", "exp": 1100}, {"sid": "b" * 32, "scope": "view", "exp": 1010}):
+        payload = base64.urlsafe_b64encode(json.dumps(claims, separators=(",", ":")).encode()).rstrip(b"=").decode()
+        assert not verify_viewer_token(SECRET, f"{payload}.{signature}", str(claims["sid"]), now=1000.0)
+    assert not verify_viewer_token(SECRET, token + "x" * 600, "a" * 32, now=1000.0)  # oversized: refused at once
     assert all(c.isalnum() or c in "-_." for c in token)  # URL-safe as is
+
+
+def test_token_of_another_use_or_scope_is_refused() -> None:
+    """Only a view-scope payload signed with the viewer-token salt is a viewer token."""
+    other_use = URLSafeSerializer(SECRET, salt="something-else", signer_kwargs={"digest_method": hashlib.sha256})
+    claims = {"sid": "a" * 32, "scope": "view", "exp": 2000}
+    assert not verify_viewer_token(SECRET, str(other_use.dumps(claims)), "a" * 32, now=1000.0)
+    ingest = token_serializer(SECRET).dumps({**claims, "scope": "ingest"})
+    assert not verify_viewer_token(SECRET, str(ingest), "a" * 32, now=1000.0)
+    assert verify_viewer_token(SECRET, str(token_serializer(SECRET).dumps(claims)), "a" * 32, now=1000.0)
