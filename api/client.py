@@ -1,8 +1,9 @@
 """A real HTTP client for the v1 API (spec §5): what `veinmosaic upload` and hospital integrators use.
 
 It uploads a scan folder as a device would: forces a little ahead of each frame, frames in time order
-(several in flight), retrying on 503 (honouring Retry-After), on 429 and on dropped connections; every
-upload is idempotent on the server (the same seq with the same bytes is a no-op), so retries are safe.
+(several in flight), retrying with tenacity on 503 and 429 (honouring Retry-After), 502/504 and dropped
+connections or timeouts (exponential back-off); no other 4xx is ever retried. Every upload is idempotent on
+the server (the same seq with the same bytes is a no-op), so retries are safe.
 """
 
 from __future__ import annotations
@@ -11,16 +12,21 @@ import json
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from email.utils import parsedate_to_datetime
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
+from tenacity import RetryCallState, Retrying, retry_if_exception_type, stop_after_attempt, wait_exponential
 
 from services.scan_folder import frame_name, read_scan_folder
 
-RETRY_STATUSES = {429, 502, 503, 504}
+RETRY_STATUSES = {429, 502, 503, 504}  # "retry later" answers; every other 4xx/5xx is final
+CONNECTION_ERRORS = (httpx.ConnectError, httpx.ReadError, httpx.RemoteProtocolError, httpx.TimeoutException)
 FORCE_LEAD_S = 0.5  # forces are sent this far ahead of each frame's timestamp
+MAX_RETRY_AFTER_S = 30.0  # a longer Retry-After is waited this long
+BACKOFF = wait_exponential(multiplier=0.2, max=5.0)  # 0.2, 0.4, 0.8 ... 5 s when the server names no wait
 
 
 class ApiError(RuntimeError):
@@ -31,43 +37,95 @@ class ApiError(RuntimeError):
         self.status, self.code, self.message = status, code, message
 
 
+class RetryLaterError(Exception):
+    """A "retry later" answer (RETRY_STATUSES), raised inside the retry loop so tenacity retries it."""
+
+    def __init__(self, response: httpx.Response) -> None:
+        super().__init__(f"HTTP {response.status_code}")
+        self.response = response
+
+
+def retry_after_s(response: httpx.Response, now: float | None = None) -> float | None:
+    """Return the wait a Retry-After header asks for (seconds or an HTTP date), or None when absent or invalid."""
+    value = response.headers.get("Retry-After", "").strip()
+    if not value:
+        return None
+    try:
+        wait = float(value)
+    except ValueError:
+        try:
+            wait = parsedate_to_datetime(value).timestamp() - (time.time() if now is None else now)
+        except (TypeError, ValueError, IndexError):
+            return None
+    return wait if wait == wait else None  # NaN is no wait
+
+
+def wait_for(state: RetryCallState) -> float:
+    """Return the wait before the next attempt: the answer's Retry-After (capped), else exponential back-off."""
+    error = state.outcome.exception() if state.outcome is not None else None
+    if isinstance(error, RetryLaterError):
+        asked = retry_after_s(error.response)
+        if asked is not None:
+            return min(max(asked, 0.0), MAX_RETRY_AFTER_S)
+    return float(BACKOFF(state))
+
+
+def api_error(response: httpx.Response) -> ApiError:
+    """Return the ApiError of an error answer (the spec's error body, else the start of the text)."""
+    try:
+        err = response.json()["error"]
+        return ApiError(response.status_code, str(err.get("code", "")), str(err.get("message", "")))
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return ApiError(response.status_code, "http_error", response.text[:200])
+
+
 class VeinmosaicClient:
     """A thin, retrying client for one server and one API key."""
 
-    def __init__(self, base_url: str, key: str, timeout_s: float = 30.0, max_retries: int = 8) -> None:
+    def __init__(
+        self,
+        base_url: str,
+        key: str,
+        timeout_s: float = 30.0,
+        max_retries: int = 8,
+        transport: httpx.BaseTransport | None = None,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
         self.base_url = base_url.rstrip("/")
-        self.http = httpx.Client(base_url=self.base_url, headers={"Authorization": f"Bearer {key}"}, timeout=timeout_s)
+        self.http = httpx.Client(
+            base_url=self.base_url, headers={"Authorization": f"Bearer {key}"}, timeout=timeout_s, transport=transport
+        )
         self.max_retries = max_retries
+        self.sleep = sleep
 
     def close(self) -> None:
         """Close the connection pool."""
         self.http.close()
 
+    def _attempt(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
+        response = self.http.request(method, url, **kwargs)
+        if response.status_code in RETRY_STATUSES:
+            raise RetryLaterError(response)
+        return response
+
     def request(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
-        """Return the response of a request, retrying transient failures; raise ApiError on 4xx/5xx."""
-        delay = 0.2
-        for attempt in range(self.max_retries + 1):
-            try:
-                response = self.http.request(method, url, **kwargs)
-            except (httpx.ConnectError, httpx.ReadError, httpx.RemoteProtocolError, httpx.TimeoutException):
-                if attempt == self.max_retries:
-                    raise
-                time.sleep(delay)
-                delay = min(delay * 2, 5.0)
-                continue
-            if response.status_code in RETRY_STATUSES and attempt < self.max_retries:
-                wait = float(response.headers.get("Retry-After", delay))
-                time.sleep(min(wait, 30.0))
-                delay = min(delay * 2, 5.0)
-                continue
-            if response.status_code >= 400:
-                try:
-                    err = response.json()["error"]
-                    raise ApiError(response.status_code, err.get("code", ""), err.get("message", ""))
-                except (ValueError, KeyError, TypeError):
-                    raise ApiError(response.status_code, "http_error", response.text[:200]) from None
-            return response
-        raise AssertionError("unreachable")
+        """Return the response of a request, retrying transient failures; raise ApiError on 4xx/5xx.
+
+        A connection error still there after the last retry is raised as is (an httpx error)."""
+        retrying = Retrying(
+            retry=retry_if_exception_type((RetryLaterError, *CONNECTION_ERRORS)),
+            stop=stop_after_attempt(self.max_retries + 1),
+            wait=wait_for,
+            sleep=self.sleep,
+            reraise=True,
+        )
+        try:
+            response = retrying(self._attempt, method, url, **kwargs)
+        except RetryLaterError as last:
+            raise api_error(last.response) from None
+        if response.status_code >= 400:
+            raise api_error(response)
+        return response
 
     def create_session(self, calibration: dict[str, Any], label: str) -> dict[str, Any]:
         """Return the new session ({"id", "viewer_url", ...})."""
