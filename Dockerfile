@@ -1,18 +1,19 @@
-# The viewer's OpenSeadragon comes from the npm registry (pinned in package-lock.json).
+# The viewer's OpenSeadragon comes from the npm registry (pinned in package-lock.json); setup.py's build hook
+# copies it into the wheel (api/static/vendor/openseadragon), so the image serves the viewer from the package.
 FROM node:20-slim AS viewer
 WORKDIR /app
 COPY package.json package-lock.json ./
 RUN npm ci --no-audit --no-fund
 
 FROM python:3.11-slim
-WORKDIR /app
-COPY pyproject.toml README.md ./
+WORKDIR /build
+COPY pyproject.toml setup.py MANIFEST.in README.md package.json package-lock.json ./
 COPY services services
 COPY api api
 COPY workers workers
-RUN pip install --no-cache-dir .
-COPY --from=viewer /app/node_modules node_modules
-ENV VEINMOSAIC_DATA_DIR=/data \
-    VEINMOSAIC_VIEWER_ASSETS_DIR=/app/node_modules/openseadragon/build/openseadragon
+COPY --from=viewer /app/node_modules/openseadragon node_modules/openseadragon
+RUN pip install --no-cache-dir . && rm -rf /build
+WORKDIR /app
+ENV VEINMOSAIC_DATA_DIR=/data
 EXPOSE 8000
 CMD ["veinmosaic", "serve", "--host", "0.0.0.0"]

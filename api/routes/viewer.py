@@ -1,7 +1,8 @@
 """The browser tile viewer: GET /viewer/{id} (static HTML) and the static assets it loads.
 
 /static/ serves api/static (viewer.js, viewer.css); /static/vendor/openseadragon/ serves the pinned npm
-package's build (node_modules/openseadragon/build/openseadragon, installed by `npm ci` at the repo root).
+package's build: the copy an installed wheel carries in api/static/vendor/openseadragon (setup.py puts it there
+at build time; never in git), else the checkout's node_modules/openseadragon/build/openseadragon (`npm ci`).
 The page holds nothing about the session: viewer.js reads the session id from the URL path and the view-only
 token from ?token=, and passes the token on to every API call. No referrer leaves the page (the URL
 carries the token), and a strict Content-Security-Policy allows only this origin.
@@ -22,17 +23,18 @@ from services.settings import Settings
 router = APIRouter(tags=["viewer"])
 
 STATIC_DIR = Path(__file__).resolve().parent.parent / "static"
+PACKAGED_OSD = STATIC_DIR / "vendor" / "openseadragon"  # in an installed wheel (setup.py's build hook)
 REPO_ROOT = Path(__file__).resolve().parents[2]
 OSD_BUILD = Path("node_modules") / "openseadragon" / "build" / "openseadragon"
 
 
 def vendor_dir(settings: Settings) -> Path:
-    """Return OpenSeadragon's build folder: the setting, else the checkout's node_modules, else the cwd's."""
+    """Return OpenSeadragon's build folder: the setting, the wheel's copy, the checkout's node_modules, the cwd's."""
     if settings.viewer_assets_dir is not None:
         return Path(settings.viewer_assets_dir)
-    for root in (REPO_ROOT, Path.cwd()):
-        if (root / OSD_BUILD / "openseadragon.min.js").is_file():
-            return root / OSD_BUILD
+    for folder in (PACKAGED_OSD, REPO_ROOT / OSD_BUILD, Path.cwd() / OSD_BUILD):
+        if (folder / "openseadragon.min.js").is_file():
+            return folder
     return REPO_ROOT / OSD_BUILD
 
 
@@ -59,5 +61,7 @@ def viewer_page(meta: ViewSession, settings: AppSettings) -> Response:
     """Return the viewer page for a session the caller may view (a viewer link's ?token= or a key)."""
     page = STATIC_DIR / "viewer.html"
     if not (vendor_dir(settings) / "openseadragon.min.js").is_file():
-        raise ServiceUnavailable("the viewer's assets are not installed (run `npm ci` at the repository root)")
+        raise ServiceUnavailable(
+            "the viewer's assets are not installed (install a wheel built with them, or run `npm ci` in a checkout)"
+        )
     return FileResponse(page, media_type="text/html; charset=utf-8", headers=PAGE_HEADERS)
