@@ -58,7 +58,7 @@ class Settings(BaseSettings):
     # catches up when the burst is over (0: equal priority)
     worker_nice: int = Field(default=10, ge=0, le=19)
     log_level: str = "INFO"
-    viewer_assets_dir: Path | None = None  # OpenSeadragon's build folder; default: node_modules of the checkout/cwd
+    viewer_assets_dir: Path | None = None  # OpenSeadragon build folder; default: the wheel's copy, else node_modules
 
 
 def get_settings() -> Settings:
