@@ -227,14 +227,7 @@ class Registrar:
             if refined is not None:
                 found = (refined.transform, found[1], found[2])
         if found is None and self.options.direct_fallback:
-            found = self._verified_weak_match(pf, latest)
-        if found is None and self.options.direct_fallback:
-            # features failed: align the vein maps from the motion prediction, and from "no motion" (a turn)
-            to_latest = self.poses[latest].inverse()
-            starts = [to_latest.compose(predicted), Similarity(predicted.a / self.poses[latest].a, 0j)]
-            direct = self._direct(pf, latest, starts, recentre=True)
-            if direct is not None:
-                found = (direct.transform, 0, self._direct_rms(direct))
+            found = self._fallback(pf, latest, predicted)
         if found is not None:
             pose = self.poses[latest].compose(found[0])
             if abs(pose.t - self.poses[latest].t) < 2 * self.window_radius_mm:  # the frames can overlap
@@ -264,21 +257,28 @@ class Registrar:
             return FrameResult(pf.index, result.status, result.pose, total, blurred, self.refine())
         return result
 
-    def _verified_weak_match(self, pf: PreparedFrame, other: int) -> tuple[Similarity, int, float] | None:
-        """Return a feature match with too few inliers alone (half the minimum or more) that the vein maps confirm.
+    def _fallback(self, pf: PreparedFrame, latest: int, predicted: Similarity) -> tuple[Similarity, int, float] | None:
+        """Return the best-correlated placement on the latest frame when features fail the inlier rule, or None.
 
-        Fewer inliers than the rule asks for can still be the right answer (frames under heavy load share fewer
-        keypoints); the photometric check (correlation >= min_correlation over >= MIN_DIRECT_OVERLAP of the
-        window) makes them as trustworthy as a direct alignment, and their rotation is better: on a simulated
-        hard scan the vein maps of two frames at 30 N correlated best 1 deg off, where 13 inliers were 0.01 deg off.
+        Candidates: direct alignment of the vein maps from the motion prediction and from "no motion" (a turn),
+        and a feature match with half the minimum inliers or more, both as it is and as a start for direct
+        alignment. Fewer inliers than the rule asks for can still be right (frames under heavy load share fewer
+        keypoints), and vein maps can correlate best slightly off (on a simulated hard scan two frames at 30 N
+        did 1 deg off, where 13 inliers were 0.01 deg off): the vein maps' correlation arbitrates.
         """
-        fit = self._match(pf, self.features[other], max(3, self.options.min_inliers // 2))
-        if fit is None:
-            return None
-        corr, overlap = correlation(self._alignment(other), self._alignment(pf.index, pf), fit.transform)
-        if corr < self.options.min_correlation or overlap < MIN_DIRECT_OVERLAP:
-            return None
-        return fit.transform, fit.inliers, fit.rms
+        to_latest = self.poses[latest].inverse()
+        starts = [to_latest.compose(predicted), Similarity(predicted.a / self.poses[latest].a, 0j)]
+        best = self._direct(pf, latest, starts, recentre=True)
+        weak = self._match(pf, self.features[latest], max(3, self.options.min_inliers // 2))
+        if weak is not None:
+            refined = self._direct(pf, latest, [weak.transform], recentre=False)
+            if refined is not None and (best is None or refined.correlation > best.correlation):
+                best = refined
+            corr, overlap = correlation(self._alignment(latest), self._alignment(pf.index, pf), weak.transform)
+            ok = corr >= self.options.min_correlation and overlap >= MIN_DIRECT_OVERLAP
+            if ok and (best is None or corr >= best.correlation):
+                return weak.transform, weak.inliers, weak.rms
+        return None if best is None else (best.transform, 0, self._direct_rms(best))
 
     def _direct_rms(self, fit: DirectFit) -> float:
         """Return an RMS-equivalent residual (mm) of a direct alignment, for its edge's sigma."""

@@ -192,15 +192,15 @@ def test_direct_alignment_below_the_correlation_threshold_is_refused(scan: Scan,
     assert {r.reason for r in results[1:]} == {REASON_LOW_CORRELATION}
 
 
-def test_a_weak_feature_match_the_vein_maps_confirm_is_used(scan: Scan, first_frames) -> None:
-    # a minimum of twice the weakest consecutive match: that pair fails the rule alone but has half of it, and
-    # its vein maps correlate, so it is placed by its features (inliers > 0) rather than by direct alignment
+def test_frames_below_the_inlier_rule_are_placed_by_the_best_correlated_candidate(scan: Scan, first_frames) -> None:
+    # a minimum of twice the weakest consecutive match: that pair fails the rule alone but has half of it; the
+    # fallback weighs the weak feature match, direct alignment started from it and from the prediction by the
+    # vein maps' correlation, and places the frame accurately
     frames, radius = first_frames
     options = method_options("best")
     probe = Registrar(options, scan.calibration.px_per_mm, radius, centre_px=scan.calibration.principal_point)
     counts = []
     for a, b in itertools.pairwise(frames):
-        probe.features[a.index] = a.features
         fit = probe._match(b, a.features, 3)
         assert fit is not None
         counts.append(fit.inliers)
@@ -208,8 +208,8 @@ def test_a_weak_feature_match_the_vein_maps_confirm_is_used(scan: Scan, first_fr
     results = _register(scan, first_frames, {"min_inliers": 2 * weakest, "neighbours": 0})
     assert all(r.status == STATUS_OK for r in results)
     weak = [i + 1 for i, n in enumerate(counts) if n < 2 * weakest]
-    assert weak and all(results[i].inliers > 0 for i in weak)
+    assert weak
     assert max(_errors_mm(scan, results).values()) < RELOCALISED_MM
-    # refused when the vein maps cannot confirm it (and then direct alignment cannot place it either)
+    # refused when the vein maps cannot confirm any candidate
     refused = _register(scan, first_frames, {"min_inliers": 2 * weakest, "neighbours": 0, "min_correlation": 1.01})
     assert all(refused[i].status == STATUS_LOST for i in weak[:1])
