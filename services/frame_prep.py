@@ -11,9 +11,9 @@ import numpy as np
 from services.calibration import Calibration
 from services.camera import px_to_mm
 from services.features import Features, detect_features
-from services.force_model import LoadState, centre_stretch, load_state, local_load_n
+from services.force_model import LoadState, centre_stretch, depth_deviation_mm, load_state
 from services.methods import MethodOptions
-from services.rectification import pixel_grid, rectify_map
+from services.rectification import rectify_map
 from services.vein_enhancement import enhance_veins
 
 UNLOADED = LoadState(0.0, 0.0, 0.0)
@@ -143,6 +143,13 @@ def _detect(image: np.ndarray, mask: np.ndarray, options: MethodOptions) -> Feat
 
 
 def load_map_n(calib: Calibration, state: LoadState) -> np.ndarray:
-    """Return the local load F(x, y) (N, float32) over the rectified pixel grid (spec §2)."""
+    """Return the local load F(x, y) (N, float32) over the rectified pixel grid (spec §2).
+
+    F = max(0, F_Z + kappa Z(x, y)) with Z linear in x and y: built from one row and one column of Z.
+    """
     w, h = calib.image_size
-    return local_load_n(px_to_mm(pixel_grid(w, h), calib), state, calib).astype(np.float32)
+    cx, cy = calib.principal_point
+    x_mm = ((np.arange(w) - cx) / calib.px_per_mm).reshape(1, w, 1) * np.array([1.0, 0.0])
+    y_mm = ((np.arange(h) - cy) / calib.px_per_mm).reshape(h, 1, 1) * np.array([0.0, 1.0])
+    depth = depth_deviation_mm(x_mm, state) + depth_deviation_mm(y_mm, state)  # Z(x, 0) + Z(0, y), (h, w)
+    return np.maximum(0.0, state.fz_n + calib.hooke_n_per_mm * depth).astype(np.float32)

@@ -6,15 +6,18 @@ import cv2
 import numpy as np
 import pytest
 
-from services.camera import mm_to_px
+from services.camera import mm_to_px, px_to_mm
+from services.force_model import LoadState, local_load_n
 from services.frame_prep import (
     estimate_flat_field,
     estimate_window_mask,
+    load_map_n,
     normalise_photometry,
     prepare_frame,
     to_unit_float,
 )
 from services.methods import method_options
+from services.rectification import pixel_grid
 from services.registration import estimate_similarity, match_features
 from services.scan import Scan
 from services.simulation.renderer import WINDOW_SIZE_PX, vignette_gain
@@ -189,3 +192,16 @@ def test_frame_size_must_match_calibration(scan: Scan) -> None:
             flat=None,
             options=method_options("best"),
         )
+
+
+@pytest.mark.parametrize("state", [LoadState(12.0, 0.0, 0.0), LoadState(20.0, 0.2, -0.1), LoadState(2.0, 0.3, 0.3)])
+def test_load_map_is_spec_local_load_on_every_pixel(scan: Scan, state: LoadState) -> None:
+    # load_map_n builds F from one row and one column (Z is linear in x and y); it must equal spec §2's
+    # F(x, y) = max(0, F_Z + kappa Z(x, y)) evaluated pixel by pixel (float32 rounding only: 1e-5 relative),
+    # the clamp at 0 included (the last state unloads part of the window)
+    calib = scan.calibration
+    w, h = calib.image_size
+    expected = local_load_n(px_to_mm(pixel_grid(w, h), calib), state, calib)
+    got = load_map_n(calib, state)
+    assert got.shape == (h, w) and got.dtype == np.float32
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-5)

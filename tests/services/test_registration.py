@@ -5,6 +5,7 @@ from __future__ import annotations
 import cmath
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -14,6 +15,7 @@ from services.registration import (
     Similarity,
     estimate_similarity,
     match_features,
+    nearest_descriptors,
     unique_pairs,
 )
 from tests.tolerances import TOL
@@ -160,3 +162,19 @@ def test_match_features_degenerate_inputs() -> None:
     one = _features([(0.0, 0.0)], d)
     iq, it = match_features(one, one)  # a single train point: no ratio test possible
     assert len(iq) == 0 and len(it) == 0
+
+
+@pytest.mark.parametrize("guided", [False, True])
+def test_nearest_descriptors_agree_with_opencv_brute_force(guided: bool) -> None:
+    # the matrix-product search must find OpenCV BFMatcher's k nearest (L2), in order, with the same
+    # distances: float32 expansion |q|^2 + |t|^2 - 2 q.t of SIFT-sized vectors (norms ~500) is good to ~0.01
+    rng = np.random.default_rng(5)
+    train = np.round(rng.uniform(0, 120, (300, 128))).astype(np.float32)
+    query = np.round(np.clip(train[:200] + rng.normal(0, 8, (200, 128)), 0, 255)).astype(np.float32)
+    allowed = (rng.random((200, 300)) < 0.3).astype(np.uint8) if guided else None
+    idx, dist = nearest_descriptors(query, train, 4, allowed)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    knn = matcher.knnMatch(query, train, k=4, mask=allowed) if guided else matcher.knnMatch(query, train, k=4)
+    for row, matches in enumerate(knn):
+        assert [m.trainIdx for m in matches] == list(idx[row, : len(matches)])
+        np.testing.assert_allclose([m.distance for m in matches], dist[row, : len(matches)], atol=0.01)
