@@ -25,13 +25,13 @@ from api.errors import BodyTooLarge, add_exception_handlers, document_errors, es
 from api.routes import ROUTERS
 from api.routes.audit import router as audit_router
 from api.routes.viewer import mount_static
-from services import queue
-from services.audit import AuditLog
-from services.image_header import set_decoder_limits
+from services.core.image_header import set_decoder_limits
+from services.jobs import queue
+from services.jobs.redis_backend import close, connect
 from services.log_format import configure_json_logging, request_id_var
-from services.redis_backend import close, connect
 from services.settings import Settings, get_settings, token_secret_bytes
-from services.storage import SessionStore
+from services.store.audit import AuditLog
+from services.store.storage import SessionStore
 
 API_VERSION = "1.0.0"
 log = logging.getLogger("veinmosaic.api")

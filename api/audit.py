@@ -1,4 +1,4 @@
-"""Who did what to which session, when and from where: the API's side of the audit log (services/audit.py).
+"""Who did what to which session, when and from where: the API's side of the audit log (services/store/audit.py).
 
 AuditMiddleware (pure ASGI) records every request to /v1/ and /viewer/ once its status is known and *before*
 the answer leaves: if the record cannot be stored (a full disk) the client gets 503 instead of the answer, so
@@ -22,8 +22,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.auth import PRINCIPAL_KEY
 from api.errors import STORAGE_ERRNOS, error_response
-from services.audit import AuditLog
 from services.log_format import request_id_var
+from services.store.audit import AuditLog
 
 log = logging.getLogger("veinmosaic.api")
 AUDITED_PREFIXES = ("/v1/", "/viewer/")

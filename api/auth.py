@@ -19,7 +19,7 @@ from fastapi import Request
 from itsdangerous import BadSignature, URLSafeSerializer
 
 from api.errors import Forbidden, NotFound, Unauthorized
-from services.storage import SessionMeta, SessionNotFoundError, SessionStore
+from services.store.storage import SessionMeta, SessionNotFoundError, SessionStore
 
 PRINCIPAL_KEY = "veinmosaic.principal"  # where the caller's Principal is left in the ASGI scope (api.audit reads it)
 

@@ -34,8 +34,8 @@ def _bar(desc: str, total: int = 0) -> tqdm:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Write a simulated scan folder (spec §3) with reference.csv."""
-    from services.scan_folder import write_scan_folder
-    from services.simulation.scenarios import simulate
+    from services.core.simulation.scenarios import simulate
+    from services.store.scan_folder import write_scan_folder
 
     scan = simulate(args.scenario, args.seed)
     write_scan_folder(scan, args.out)
@@ -45,11 +45,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    """Reconstruct a scan folder and write path, mosaic, layers, plots and report (see services.results_io)."""
-    from services.methods import method_options
-    from services.pipeline import reconstruct
-    from services.results_io import write_reconstruction
-    from services.scan_folder import read_scan_folder
+    """Reconstruct a scan folder and write path, mosaic, layers, plots and report (see services.store.results_io)."""
+    from services.core.methods import method_options
+    from services.core.pipeline import reconstruct
+    from services.store.results_io import write_reconstruction
+    from services.store.scan_folder import read_scan_folder
 
     scan = read_scan_folder(args.scan)
     options = method_options(args.method).with_overrides(_parse_options(args.option))
@@ -78,7 +78,7 @@ def _parse_options(pairs: list[str]) -> dict[str, object]:
     """Return method overrides from KEY=VALUE strings, each value typed like the option's default."""
     from dataclasses import fields
 
-    from services.methods import MethodOptions
+    from services.core.methods import MethodOptions
 
     types = {f.name: f.type for f in fields(MethodOptions)}
     out: dict[str, object] = {}
@@ -100,8 +100,8 @@ def _parse_options(pairs: list[str]) -> dict[str, object]:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Fit E and kappa from a calibration scan; print the fits and write an updated calibration.json."""
-    from services.calibration_fit import calibrate_scan, format_calibration_report
-    from services.scan_folder import read_scan_folder
+    from services.core.calibration_fit import calibrate_scan, format_calibration_report
+    from services.store.scan_folder import read_scan_folder
 
     scan = read_scan_folder(args.scan)
     result = calibrate_scan(scan)
@@ -116,8 +116,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     """Write the vein mosaic, force map and coverage of a reconstruct output folder as DICOM files."""
     from datetime import UTC, datetime
 
-    from services.dicom_export import EXPORT_LAYERS, ExportInfo, PatientInfo, export_layer
-    from services.results_io import read_results_mosaic
+    from services.core.dicom_export import EXPORT_LAYERS, ExportInfo, PatientInfo, export_layer
+    from services.store.results_io import read_results_mosaic
 
     mosaic = read_results_mosaic(args.results)
     patient = None
@@ -215,8 +215,8 @@ def _run_demo(args: argparse.Namespace, kept: str) -> int:
     import httpx
 
     from api.client import VeinmosaicClient, upload_scan_folder
-    from services.scan_folder import write_scan_folder
-    from services.simulation.scenarios import simulate
+    from services.core.simulation.scenarios import simulate
+    from services.store.scan_folder import write_scan_folder
 
     key = "demo-" + secrets.token_urlsafe(12)
     keys = json.loads(os.environ.get("VEINMOSAIC_API_KEYS") or "{}")
@@ -412,8 +412,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the veinmosaic command line; return the exit code."""
-    from services.calibration import CalibrationError
-    from services.scan_folder import ScanFormatError
+    from services.core.calibration import CalibrationError
+    from services.store.scan_folder import ScanFormatError
 
     args = build_parser().parse_args(argv)
     try:

@@ -20,7 +20,7 @@ import httpx
 import numpy as np
 from tenacity import RetryCallState, Retrying, retry_if_exception_type, stop_after_attempt, wait_exponential
 
-from services.scan_folder import frame_name, read_scan_folder
+from services.store.scan_folder import frame_name, read_scan_folder
 
 RETRY_STATUSES = {429, 502, 503, 504}  # "retry later" answers; every other 4xx/5xx is final
 CONNECTION_ERRORS = (httpx.ConnectError, httpx.ReadError, httpx.RemoteProtocolError, httpx.TimeoutException)

@@ -14,9 +14,9 @@ from fastapi import Depends, Request
 
 from api.auth import Principal, require_scope, view_principal, visible_session
 from api.errors import PayloadTooLarge
-from services import queue
+from services.jobs import queue
 from services.settings import Settings
-from services.storage import SessionMeta, SessionStore
+from services.store.storage import SessionMeta, SessionStore
 
 log = logging.getLogger("veinmosaic.api")
 

@@ -25,11 +25,11 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from services.calibration import CalibrationError
-from services.image_header import BadImageError
-from services.method_options import without_values
-from services.results_report import BadReferenceError, NoPathYetError, NothingToCompareError
-from services.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
+from services.core.calibration import CalibrationError
+from services.core.image_header import BadImageError
+from services.core.method_options import without_values
+from services.store.results_report import BadReferenceError, NoPathYetError, NothingToCompareError
+from services.store.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
 
 log = logging.getLogger("veinmosaic.api")
 

@@ -26,8 +26,8 @@ from pathlib import Path
 import httpx
 import redis
 
-from services import queue
-from services.redis_backend import close, connect, discard_dead_embedded, embedded_pid, read_embedded_url
+from services.jobs import queue
+from services.jobs.redis_backend import close, connect, discard_dead_embedded, embedded_pid, read_embedded_url
 from services.settings import Settings, get_settings
 
 READY_TIMEOUT_S = 60.0

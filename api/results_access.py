@@ -12,8 +12,8 @@ from typing import Annotated, Any
 from fastapi import Depends, Query, Request
 
 from api.errors import NotFound
-from services.results_docs import extent_view
-from services.results_store import ResultsStore
+from services.core.results_docs import extent_view
+from services.store.results_store import ResultsStore
 
 VersionQuery = Annotated[int | None, Query(alias="v", ge=1, le=1_000_000, description="results version")]
 NOT_READY = "no mosaic yet: no frame of this session has been processed"

@@ -7,9 +7,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, StrictInt, create_model
 
-from services.features import FEATURE_KINDS
-from services.methods import METHOD_NAMES, REGISTRATION_KINDS, MethodOptions
-from services.storage import MAX_SEQ
+from services.core.features import FEATURE_KINDS
+from services.core.methods import METHOD_NAMES, REGISTRATION_KINDS, MethodOptions
+from services.store.storage import MAX_SEQ
 
 # A JSON number that is finite: NaN/Infinity literals (which Python's json accepts) are rejected, and so are
 # strings and booleans (no lax coercion of "1.5" or true).
@@ -55,7 +55,7 @@ CameraMatrix = tuple[tuple[Positive, Zero, Finite], tuple[Zero, Positive, Finite
 
 
 class CalibrationDoc(Strict):
-    """calibration.json (spec §3) as the API accepts it; services.calibration.parse_calibration checks the same."""
+    """calibration.json (spec §3) as the API accepts it; services.core.calibration.parse_calibration checks the same."""
 
     image_size: tuple[Side, Side] = Field(description="frame width, height in pixels")
     camera_matrix: CameraMatrix = Field(description="[[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels")
@@ -156,7 +156,7 @@ Count = Annotated[int, Field(strict=True, ge=0, le=1_000_000)]
 
 
 def _method_options_model() -> type[BaseModel]:
-    """Return the model of "method_options", made from services.methods.MethodOptions' fields and defaults.
+    """Return the model of "method_options", made from services.core.methods.MethodOptions' fields and defaults.
 
     Booleans stay booleans, counts are whole numbers >= 0, thresholds finite numbers >= 0, and the two
     choices (features, registration) their known kinds, as api.routes.reprocess.validate_options requires.

@@ -33,18 +33,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tqdm import tqdm
 
-from services.evaluation import evaluate_path
-from services.methods import method_options
-from services.pipeline import reconstruct
-from services.scan import Scan
-from services.scan_folder import read_scan_folder
-from services.simulation.scenarios import simulate
-from services.simulation.variants import FAINT_CONTRAST, ImagingVariant, scenario_imaging
+from services.core.evaluation import evaluate_path
+from services.core.methods import method_options
+from services.core.pipeline import reconstruct
+from services.core.scan import Scan
+from services.core.simulation.scenarios import simulate
+from services.core.simulation.variants import FAINT_CONTRAST, ImagingVariant, scenario_imaging
+from services.store.scan_folder import read_scan_folder
 
 DEFAULT_SHARED = Path(__file__).resolve().parents[2] / "shared" / "scans"
 ALL_METHODS = ("best", "paper", "sift-chain")
 
-# one knob at a time away from the scenario's own realistic look (see services/simulation/variants.py)
+# one knob at a time away from the scenario's own realistic look (see services/core/simulation/variants.py)
 LOOKS: dict[str, Callable[[ImagingVariant], ImagingVariant]] = {
     "default": lambda v: v,
     "faint": lambda v: dataclasses.replace(v, vessel_contrast=FAINT_CONTRAST),

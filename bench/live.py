@@ -41,10 +41,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from api.client import ApiError, VeinmosaicClient, upload_scan_folder
 from api.launcher import Service
-from api.settings import get_settings
-from services.scan import Scan
-from services.scan_folder import write_scan_folder
-from services.simulation.scenarios import SCENARIOS, simulate
+from services.core.scan import Scan
+from services.core.simulation.scenarios import SCENARIOS, simulate
+from services.settings import get_settings
+from services.store.scan_folder import write_scan_folder
 
 TOLERANCE = 0.05  # processing may trail the upload rate by this fraction; the backlog may grow this fast
 STEADY = 0.5  # the steady part starts half way through the frames (the start-up waits for 24 frames, see below)

@@ -34,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from services.simulation.scenarios import simulate  # noqa: E402
+from services.core.simulation.scenarios import simulate  # noqa: E402
 
 KEY = "load-test-key"
 

@@ -13,10 +13,10 @@ from functools import cache
 
 import numpy as np
 
-from services.methods import method_options
-from services.pipeline import Reconstruction, reconstruct
-from services.scan import Scan, in_memory_loader
-from services.simulation.scenarios import simulate
+from services.core.methods import method_options
+from services.core.pipeline import Reconstruction, reconstruct
+from services.core.scan import Scan, in_memory_loader
+from services.core.simulation.scenarios import simulate
 
 
 def _frozen(a: np.ndarray | None) -> np.ndarray | None:

@@ -11,7 +11,7 @@ from pathlib import Path
 import yaml
 
 from api.cli import build_parser
-from api.settings import Settings
+from services.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 

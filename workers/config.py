@@ -10,8 +10,8 @@ from pathlib import Path
 
 import redis
 
-from services.results_store import ResultsStore
-from services.storage import SessionStore
+from services.store.results_store import ResultsStore
+from services.store.storage import SessionStore
 
 
 def default_consumer() -> str:

@@ -31,12 +31,11 @@ from typing import Any
 
 import redis
 
-from services import queue
-from services.image_header import DEFAULT_MAX_FRAME_SIDE, set_decoder_limits
-from services.redis_backend import close, connect
-from services.results_store import LIVE_VERSION, ResultsStore
-from services.storage import SessionNotFoundError, SessionStore
-from workers import delayed
+from services.core.image_header import DEFAULT_MAX_FRAME_SIDE, set_decoder_limits
+from services.jobs import delayed, queue
+from services.jobs.redis_backend import close, connect
+from services.store.results_store import LIVE_VERSION, ResultsStore
+from services.store.storage import SessionNotFoundError, SessionStore
 from workers.config import Context, WorkerConfig
 from workers.faults import Backoff, describe, is_transient
 from workers.prepare_stage import Retry, handle_frame, live_options

@@ -14,16 +14,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services import queue
-from services.calibration import Calibration
-from services.force_model import interpolate_forces
-from services.frame_prep import prepare_frame
-from services.image_header import BadImageError
-from services.method_options import apply_calibration, parse_options
-from services.methods import MethodOptions
-from services.pipeline import MASK_SAMPLE_FRAMES, window_setup_of
-from services.results_store import LIVE_VERSION
-from services.storage import SessionMeta, SessionNotFoundError, StorageError
+from services.core.calibration import Calibration
+from services.core.force_model import interpolate_forces
+from services.core.frame_prep import prepare_frame
+from services.core.image_header import BadImageError
+from services.core.method_options import apply_calibration, parse_options
+from services.core.methods import MethodOptions
+from services.core.pipeline import MASK_SAMPLE_FRAMES, window_setup_of
+from services.jobs import queue
+from services.store.results_store import LIVE_VERSION
+from services.store.storage import SessionMeta, SessionNotFoundError, StorageError
 from workers.config import Context
 from workers.scan_from_store import stored_forces
 

@@ -24,9 +24,9 @@ import os
 import time
 from typing import Any
 
-from services import queue
-from services.results_store import LIVE_VERSION
-from services.storage import SessionNotFoundError
+from services.jobs import queue
+from services.store.results_store import LIVE_VERSION
+from services.store.storage import SessionNotFoundError
 from workers.config import Context
 from workers.prepare_stage import stored_seqs
 

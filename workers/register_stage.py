@@ -28,14 +28,13 @@ import cv2
 import numpy as np
 import redis
 
-from services import queue
-from services.calibration import Calibration
-from services.deepzoom import DziGeometry, TilePyramid
-from services.method_options import apply_calibration, parse_options
-from services.methods import MethodOptions
-from services.pipeline import window_radius_mm
-from services.registrar import STATUS_OK
-from services.results_docs import (
+from services.core.calibration import Calibration
+from services.core.deepzoom import DziGeometry, TilePyramid
+from services.core.method_options import apply_calibration, parse_options
+from services.core.methods import MethodOptions
+from services.core.pipeline import window_radius_mm
+from services.core.registrar import STATUS_OK
+from services.core.results_docs import (
     LAYERS,
     canvas_extent_mm,
     empty_image_meta,
@@ -45,12 +44,13 @@ from services.results_docs import (
     path_tail,
     rejected_row,
 )
-from services.results_store import LIVE_VERSION
-from services.session_reconstruction import PathRow, SessionReconstruction
-from services.storage import SessionNotFoundError
+from services.core.session_reconstruction import PathRow, SessionReconstruction
+from services.jobs import queue
+from services.jobs.leases import Lease, acquire
+from services.store.results_store import LIVE_VERSION
+from services.store.storage import SessionNotFoundError
 from workers.config import Context, debug_order_key
 from workers.faults import describe, is_transient
-from workers.leases import Lease, acquire
 from workers.prepare_stage import stored_seqs
 
 log = logging.getLogger("veinmosaic.worker")

@@ -21,18 +21,18 @@ from typing import Any
 
 import numpy as np
 
-from services import queue
-from services.compliance import ComplianceFit
-from services.deepzoom import DziGeometry, TilePyramid
-from services.image_header import BadImageError
-from services.method_options import apply_calibration, parse_options
-from services.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas
-from services.pipeline import reconstruct
-from services.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json, rejected_row
-from services.results_report import write_version_report
-from services.results_store import LIVE_VERSION
-from services.session_reconstruction import PathRow
-from services.storage import SessionNotFoundError, StorageError
+from services.core.compliance import ComplianceFit
+from services.core.deepzoom import DziGeometry, TilePyramid
+from services.core.image_header import BadImageError
+from services.core.method_options import apply_calibration, parse_options
+from services.core.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas
+from services.core.pipeline import reconstruct
+from services.core.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json, rejected_row
+from services.core.session_reconstruction import PathRow
+from services.jobs import queue
+from services.store.results_report import write_version_report
+from services.store.results_store import LIVE_VERSION
+from services.store.storage import SessionNotFoundError, StorageError
 from workers.config import Context
 from workers.faults import is_transient
 from workers.register_stage import publish_event

@@ -1,4 +1,4 @@
-"""A Scan (services.scan) over a session's stored raw uploads, for reprocessing with the offline pipeline."""
+"""A Scan (services.core.scan) over a session's stored raw uploads, for reprocessing with the offline pipeline."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from services.calibration import Calibration
-from services.scan import Scan
-from services.storage import SessionStore
+from services.core.calibration import Calibration
+from services.core.scan import Scan
+from services.store.storage import SessionStore
 
 
 def stored_forces(store: SessionStore, session_id: str, first_t_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

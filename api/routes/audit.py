@@ -1,4 +1,4 @@
-"""GET /v1/audit and /v1/audit/verify: the audit log (services/audit.py), for admin keys only."""
+"""GET /v1/audit and /v1/audit/verify: the audit log (services/store/audit.py), for admin keys only."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from api.deps import AdminPrincipal
 from api.schemas import AuditPage, AuditVerification
-from services.audit import AuditLog
+from services.store.audit import AuditLog
 
 router = APIRouter(prefix="/v1/audit", tags=["audit"])
 

@@ -28,10 +28,10 @@ from sse_starlette import EventSourceResponse, ServerSentEvent
 from api.deps import AppSettings, RedisClient, Store, ViewSession
 from api.errors import ServiceUnavailable
 from api.results_access import Results, resolve_version
-from services import queue
-from services.redis_backend import read_embedded_url
-from services.results_store import ResultsStore
-from services.storage import SessionStore
+from services.jobs import queue
+from services.jobs.redis_backend import read_embedded_url
+from services.store.results_store import ResultsStore
+from services.store.storage import SessionStore
 
 router = APIRouter(prefix="/v1/sessions", tags=["results"])
 log = logging.getLogger("veinmosaic.api")

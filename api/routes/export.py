@@ -19,13 +19,13 @@ from fastapi.concurrency import run_in_threadpool
 from api.deps import Store, ViewSession
 from api.errors import NotFound
 from api.results_access import Results, VersionQuery, resolve_version
-from services.dicom_export import EXPORT_LAYERS, ExportInfo, export_layer
-from services.mosaic import MosaicImage
-from services.results_docs import path_rows_from_json
-from services.results_report import BadReferenceError, reference_for_rows
-from services.results_store import ResultsStore
-from services.session_report import build_session_report
-from services.storage import SessionMeta
+from services.core.dicom_export import EXPORT_LAYERS, ExportInfo, export_layer
+from services.core.mosaic import MosaicImage
+from services.core.results_docs import path_rows_from_json
+from services.core.session_report import build_session_report
+from services.store.results_report import BadReferenceError, reference_for_rows
+from services.store.results_store import ResultsStore
+from services.store.storage import SessionMeta
 
 router = APIRouter(prefix="/v1/sessions", tags=["export"])
 log = logging.getLogger("veinmosaic.api")

@@ -11,7 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from api.deps import AppSettings, RedisClient, Store
 from api.errors import ServiceUnavailable
 from api.schemas import Health
-from services.redis_backend import ping
+from services.jobs.redis_backend import ping
 
 router = APIRouter(tags=["health"])
 

@@ -30,8 +30,8 @@ from api.errors import (
     Validation,
 )
 from api.schemas import ForceBatch, ForcesAccepted, FrameAccepted, FrameMeta
-from services import queue
-from services.image_header import check_header, read_header
+from services.core.image_header import check_header, read_header
+from services.jobs import queue
 
 router = APIRouter(prefix="/v1/sessions", tags=["ingest"])
 log = logging.getLogger("veinmosaic.api")

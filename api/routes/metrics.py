@@ -22,7 +22,7 @@ from prometheus_client.exposition import choose_encoder
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric, SummaryMetricFamily
 
 from api.deps import AppSettings, RedisClient
-from services import queue
+from services.jobs import queue
 
 router = APIRouter(tags=["health"])
 log = logging.getLogger("veinmosaic.api")

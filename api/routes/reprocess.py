@@ -1,7 +1,7 @@
 """Reprocessing (spec §5): a new results version from the stored raw uploads, with other options; jobs.
 
-Options document (validated here exactly as the workers will read it, by services.method_options):
-{"method": "best"|"paper"|"sift-chain", "method_options": {<services.methods.MethodOptions field>: value},
+Options document (validated here exactly as the workers will read it, by services.core.method_options):
+{"method": "best"|"paper"|"sift-chain", "method_options": {<services.core.methods.MethodOptions field>: value},
 "calibration": {<calibration.json field>: value}}; every part optional. A job is a Redis hash
 <prefix>job:<id> {state: queued|running|done|failed, done, total, session, version, error, owner, created,
 options, batch} plus an entry {"kind": "reprocess", "job", "session", "options"} on the stream <prefix>jobs,
@@ -27,9 +27,10 @@ from api.auth import Principal, require_scope, visible_session
 from api.deps import AppSettings, IngestPrincipal, IngestSession, RedisClient, Store
 from api.errors import Conflict, NotFound, ServiceUnavailable, Validation
 from api.schemas import BatchAccepted, BatchReprocessRequest, BatchState, JobAccepted, JobState, ReprocessRequest
-from services import method_options, queue
-from services.calibration import Calibration, CalibrationError
-from services.storage import JobLedger, SessionMeta, SessionStore
+from services.core import method_options
+from services.core.calibration import Calibration, CalibrationError
+from services.jobs import queue
+from services.store.storage import JobLedger, SessionMeta, SessionStore
 
 router = APIRouter(tags=["reprocess"])
 log = logging.getLogger("veinmosaic.api")
@@ -40,7 +41,7 @@ FIXED_CALIBRATION = ("image_size",)  # the stored frames have this size: it cann
 
 
 def validate_options(options: dict[str, Any], calibration: Calibration) -> dict[str, Any]:
-    """Return the normalised options document (services.method_options), or raise 422 naming the bad field."""
+    """Return the normalised options document (services.core.method_options), or raise 422 naming the bad field."""
     try:
         return method_options.validate_options(options, calibration)
     except CalibrationError as exc:

@@ -19,9 +19,9 @@ from api.deps import (
 from api.errors import Validation
 from api.results_access import get_results, reprocess_running, resolve_version, session_extent
 from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
-from services import queue
-from services.calibration import CalibrationError, parse_calibration
-from services.scan_quality import scan_warnings, summarize_frames
+from services.core.calibration import CalibrationError, parse_calibration
+from services.core.scan_quality import scan_warnings, summarize_frames
+from services.jobs import queue
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 log = logging.getLogger("veinmosaic.api")

@@ -14,7 +14,7 @@ from api_helpers import INGEST, KEYS, calibration_doc
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from api.settings import Settings
+from services.settings import Settings
 
 
 def _clear_env(monkeypatch: pytest.MonkeyPatch) -> None:

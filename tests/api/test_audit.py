@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 from live_server import live_api
 
 from api.auth import fingerprint
-from services.audit import AuditLog
+from services.store.audit import AuditLog
 
 ADMIN = auth("admin-key")
 

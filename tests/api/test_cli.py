@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from api.cli import main
-from services.pipeline import PATH_COLUMNS
+from services.core.pipeline import PATH_COLUMNS
 from tests.tolerances import TOL
 
 pytestmark = pytest.mark.slow
@@ -64,7 +64,7 @@ def test_reconstruct_writes_the_mosaic(outputs: Path) -> None:
 
 def test_reconstruct_writes_the_report(outputs: Path) -> None:
     report = json.loads((outputs / "report.json").read_text())
-    # same band as tests/services/test_pipeline.py (measured 0.016 mm): the folder round trip (PNG frames,
+    # same band as tests/services/core/test_pipeline.py (measured 0.016 mm): the folder round trip (PNG frames,
     # CSV forces written with repr) must not cost accuracy
     assert TOL.best_short_rmse_mm[0] <= report["rmse_mm"] <= TOL.best_short_rmse_mm[1]
     assert report["registered_fraction"] == 1.0
@@ -169,7 +169,7 @@ def test_export_writes_dicom_that_reads_back(outputs: Path, tmp_path: Path, caps
     from pydicom import dcmread
     from pydicom.pixels import apply_rescale
 
-    from services.results_io import read_results_mosaic
+    from services.store.results_io import read_results_mosaic
 
     out = tmp_path / "dicom"
     args = ["export", str(outputs), "--out", str(out), "--acquired", "2025-03-04T10:20:30", "--study-key", "s1"]

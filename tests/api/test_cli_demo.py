@@ -15,8 +15,8 @@ import pytest
 
 import api.cli as cli
 import api.client
-import services.scan_folder
-import services.simulation.scenarios
+import services.core.simulation.scenarios
+import services.store.scan_folder
 
 SID = "0123456789abcdef0123456789abcdef"
 VIEWER = f"/viewer/{SID}?token=tok"
@@ -93,9 +93,9 @@ def demo(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Any]:
     log: dict[str, Any] = {}
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(cli, "_service", lambda args, extra_env=None: FakeService(args, log))
-    monkeypatch.setattr(services.simulation.scenarios, "simulate", lambda name, seed: FakeScan())
+    monkeypatch.setattr(services.core.simulation.scenarios, "simulate", lambda name, seed: FakeScan())
     monkeypatch.setattr(
-        services.scan_folder,
+        services.store.scan_folder,
         "write_scan_folder",
         lambda s, d: (Path(d).mkdir(parents=True), (Path(d) / "reference.csv").write_text("seq,x_mm,y_mm\n")),
     )

@@ -11,7 +11,7 @@ from api_helpers import INGEST, auth, calibration_doc
 from fastapi.testclient import TestClient
 
 from api.routes import events as events_module
-from services import queue
+from services.jobs import queue
 
 
 def parse_sse(text: str) -> tuple[list[dict[str, Any]], list[str]]:

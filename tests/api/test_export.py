@@ -22,10 +22,10 @@ from pydicom import dcmread
 from pydicom.pixels import apply_rescale
 
 from api.auth import make_viewer_token
-from services.dicom_export import MF_GRAY_BYTE_SC, MF_GRAY_WORD_SC, study_uid
-from services.mosaic import MosaicImage
-from services.results_store import ResultsStore
-from services.session_reconstruction import PathRow
+from services.core.dicom_export import MF_GRAY_BYTE_SC, MF_GRAY_WORD_SC, study_uid
+from services.core.mosaic import MosaicImage
+from services.core.session_reconstruction import PathRow
+from services.store.results_store import ResultsStore
 
 PX_PER_MM = 8.0
 H, W = 120, 200  # px: 15 x 25 mm

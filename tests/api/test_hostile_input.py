@@ -297,8 +297,8 @@ def test_invalid_calibration_is_422_without_echoing_values(client: TestClient) -
 
 
 def test_worker_option_parser_never_echoes_keys_or_values() -> None:
-    from services.calibration import default_calibration
-    from workers.options import validate_options
+    from services.core.calibration import default_calibration
+    from services.core.method_options import validate_options
 
     for doc in (
         {CANARY: 1},
@@ -325,9 +325,9 @@ def test_worker_sets_decoder_limits_and_refuses_an_oversize_frame_from_its_heade
     from PIL import Image
 
     import workers.main as worker_main
-    from services.calibration import default_calibration
-    from services.image_header import BadImageError
-    from services.storage import SessionStore
+    from services.core.calibration import default_calibration
+    from services.core.image_header import BadImageError
+    from services.store.storage import SessionStore
 
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", Image.MAX_IMAGE_PIXELS)  # restored afterwards
     data_dir = tmp_path / "data"
@@ -370,8 +370,8 @@ def test_reprocess_not_recorded_durably_is_503_and_not_queued(
     client: TestClient, session_id: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A job is answered 202 only once its ledger record is on disk; a full disk takes it off Redis again."""
-    from services import queue
-    from services.storage import JobLedger
+    from services.jobs import queue
+    from services.store.storage import JobLedger
 
     assert upload(client, session_id, 0, frame_bytes(0)).status_code == 202
     assert client.post(f"/v1/sessions/{session_id}/finish", headers=INGEST).status_code == 202

@@ -9,7 +9,7 @@ import pytest
 from api_helpers import INGEST, calibration_doc, frame_bytes, meta_json, upload
 from fastapi.testclient import TestClient
 
-from services import queue
+from services.jobs import queue
 
 
 def _jobs(client: TestClient) -> list[dict[bytes, bytes]]:

@@ -9,7 +9,7 @@ import redis
 from api_helpers import INGEST, frame_bytes, upload
 from fastapi.testclient import TestClient
 
-from services import queue
+from services.jobs import queue
 
 SAMPLE = re.compile(
     r"^([a-zA-Z_:][a-zA-Z0-9_:]*)(\{[a-zA-Z_][a-zA-Z0-9_]*=\"[^\"]*\"(,[a-zA-Z_][a-zA-Z0-9_]*=\"[^\"]*\")*\})? (\S+)$"

@@ -9,7 +9,7 @@ import pytest
 from api_helpers import INGEST, auth, calibration_doc, frame_bytes, upload
 from fastapi.testclient import TestClient
 
-from services import queue
+from services.jobs import queue
 
 
 def _error(resp: Any) -> dict[str, Any]:

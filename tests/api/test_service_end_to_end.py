@@ -18,9 +18,9 @@ import pytest
 
 from api.client import VeinmosaicClient
 from api.launcher import Service
-from services.redis_backend import connect, read_embedded_url
-from services.scan import Scan
-from services.scan_folder import frame_name, read_scan_folder, write_scan_folder
+from services.core.scan import Scan
+from services.jobs.redis_backend import connect, read_embedded_url
+from services.store.scan_folder import frame_name, read_scan_folder, write_scan_folder
 from tests.sim_cache import live_short, offline_best, simulated
 from workers.config import debug_order_key
 

@@ -11,8 +11,8 @@ import pytest
 from api_helpers import INGEST, calibration_doc, frame_bytes, upload
 from fastapi.testclient import TestClient
 
-from api.log_format import make_log_handler
-from services import queue
+from services.jobs import queue
+from services.log_format import make_log_handler
 
 
 def _error(resp) -> dict:  # type: ignore[no-untyped-def]

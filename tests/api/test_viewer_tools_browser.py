@@ -22,13 +22,13 @@ from browser_service import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, browser_service
 
 from api.client import VeinmosaicClient
 from api.launcher import Service
-from services.deepzoom import DziGeometry, TilePyramid
-from services.mosaic import FrameLayers, SparseCanvas, blend_weight
-from services.registration import Similarity
-from services.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json
-from services.results_store import ResultsStore
-from services.session_reconstruction import PathRow
-from services.storage import SessionStore
+from services.core.deepzoom import DziGeometry, TilePyramid
+from services.core.mosaic import FrameLayers, SparseCanvas, blend_weight
+from services.core.registration import Similarity
+from services.core.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json
+from services.core.session_reconstruction import PathRow
+from services.store.results_store import ResultsStore
+from services.store.storage import SessionStore
 
 pytestmark = pytest.mark.slow
 

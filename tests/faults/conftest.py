@@ -23,10 +23,10 @@ import numpy as np
 import pytest
 import redis
 
-from services import queue
-from services.results_store import LIVE_VERSION, ResultsStore
-from services.scan import Scan
-from services.storage import SessionStore
+from services.core.scan import Scan
+from services.jobs import queue
+from services.store.results_store import LIVE_VERSION, ResultsStore
+from services.store.storage import SessionStore
 
 REPO = Path(__file__).resolve().parents[2]
 REDIS_SERVER = shutil.which("redis-server") or "/usr/bin/redis-server"

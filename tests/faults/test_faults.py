@@ -25,12 +25,12 @@ import pytest
 import redis
 
 from api.client import VeinmosaicClient
-from services import queue
-from services.redis_backend import read_embedded_url
-from services.results_store import LIVE_VERSION, ResultsStore
-from services.scan import Scan
-from services.simulation.scenarios import simulate
-from services.storage import SessionStore
+from services.core.scan import Scan
+from services.core.simulation.scenarios import simulate
+from services.jobs import queue
+from services.jobs.redis_backend import read_embedded_url
+from services.store.results_store import LIVE_VERSION, ResultsStore
+from services.store.storage import SessionStore
 from tests.faults.conftest import (
     FAST,
     PREFIX,
@@ -382,7 +382,7 @@ def test_serve_restarts_a_dead_embedded_redis(tmp_path: Path) -> None:
 
 def test_restart_backoff_comes_from_the_settings(tmp_path: Path) -> None:
     from api.launcher import Service
-    from api.settings import Settings
+    from services.settings import Settings
 
     settings = Settings(restart_first_s=0.25, restart_max_s=1.0, healthy_after_s=5.0, api_workers=3)
     service = Service(tmp_path / "data", settings=settings)
@@ -401,7 +401,7 @@ def test_reprocess_job_redis_forgot_is_reconciled(
     from fastapi.testclient import TestClient
 
     from api.app import create_app
-    from api.settings import Settings
+    from services.settings import Settings
 
     data = tmp_path / "data"
     store, r = SessionStore(data), client_for(redis_server)

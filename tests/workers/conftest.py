@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 import redis
 
-from services import queue
-from services.redis_backend import close, connect, read_embedded_url
-from services.scan import Scan
-from services.storage import SessionStore
+from services.core.scan import Scan
+from services.jobs import queue
+from services.jobs.redis_backend import close, connect, read_embedded_url
+from services.store.storage import SessionStore
 
 REPO = Path(__file__).resolve().parents[2]
 

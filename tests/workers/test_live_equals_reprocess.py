@@ -1,8 +1,8 @@
 """One owner per contract: a live session and a reprocess of the same scan, run by a real worker process over a
 real Redis, are served the same mosaic.json fields, report fields and session extent by the API.
 
-Both sides build mosaic.json with services.results_docs.mosaic_json, the extent with canvas_extent_mm and the
-report with services.results_report.write_version_report; the live run and the offline pipeline feed the same
+Both sides build mosaic.json with services.core.results_docs.mosaic_json, the extent with canvas_extent_mm and the
+report with services.store.results_report.write_version_report; the live run and the offline pipeline feed the same
 prepared frames to the same deterministic registration, so their values agree to floating-point noise.
 """
 
@@ -20,12 +20,12 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from api.settings import Settings
-from services import queue
-from services.results_store import ResultsStore
-from services.session_report import plot_links
-from services.simulation.scenarios import simulate
-from services.storage import SessionStore
+from services.core.session_report import plot_links
+from services.core.simulation.scenarios import simulate
+from services.jobs import queue
+from services.settings import Settings
+from services.store.results_store import ResultsStore
+from services.store.storage import SessionStore
 from tests.workers.conftest import Backend, store_scan, wait_for
 
 pytestmark = pytest.mark.slow

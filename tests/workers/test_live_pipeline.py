@@ -13,11 +13,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from services import queue
-from services.pipeline import Reconstruction
-from services.results_store import ResultsStore
-from services.scan import Scan
-from services.storage import SessionStore
+from services.core.pipeline import Reconstruction
+from services.core.scan import Scan
+from services.jobs import queue
+from services.store.results_store import ResultsStore
+from services.store.storage import SessionStore
 from tests.sim_cache import live_short, offline_best
 from tests.workers.conftest import Backend, store_scan, wait_for
 from workers.config import debug_order_key

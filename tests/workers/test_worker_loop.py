@@ -9,14 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from services import queue
-from services.calibration import default_calibration
-from services.results_store import ResultsStore
-from services.storage import SessionStore
+from services.core.calibration import default_calibration
+from services.core.method_options import parse_options, validate_options
+from services.jobs import queue
+from services.store.results_store import ResultsStore
+from services.store.storage import SessionStore
 from tests.workers.conftest import Backend
 from workers.config import Context, WorkerConfig
 from workers.main import Worker
-from workers.options import parse_options, validate_options
 
 
 def _worker(backend: Backend, **cfg: object) -> Worker:

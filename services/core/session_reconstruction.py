@@ -1,0 +1,222 @@
+"""One session's reconstruction, frame by frame: the same object serves the offline CLI and the live workers.
+
+Feeding the same prepared frames in the same order gives the same path and mosaic, whether the frames
+come from a scan folder in one process or from a queue across worker processes (a worker that takes a
+session over replays the prepared frames it has not seen; registration is deterministic).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from services.core.calibration import Calibration
+from services.core.compliance import ComplianceFit, fit_compliance
+from services.core.frame_prep import PreparedFrame, load_map_n
+from services.core.methods import MethodOptions
+from services.core.mosaic import FrameLayers, MosaicImage, SparseCanvas, blend_weight
+from services.core.registrar import (
+    REASON_BAD_FRAME,
+    REASON_MISSING,
+    STATUS_LOST,
+    STATUS_OK,
+    STATUS_REJECTED,
+    FrameResult,
+    Registrar,
+)
+from services.core.registration import Similarity
+
+PATH_COLUMNS = (
+    "seq",
+    "t_s",
+    "x_mm",
+    "y_mm",
+    "yaw_deg",
+    "fz_n",
+    "tilt_x_deg",
+    "tilt_y_deg",
+    "stretch",
+    "inliers",
+    "status",
+    "reason",
+)
+
+
+@dataclass(frozen=True)
+class PathRow:
+    """One row of the path (spec §4); x, y, yaw are NaN for frames that were not registered."""
+
+    seq: int
+    t_s: float
+    x_mm: float
+    y_mm: float
+    yaw_deg: float
+    fz_n: float
+    tilt_x_deg: float
+    tilt_y_deg: float
+    stretch: float
+    inliers: int
+    status: str
+    reason: str = ""  # why a frame is lost or rejected (services.core.registrar.REASONS); "" when ok
+
+
+def path_rows_json(rows: Sequence[PathRow]) -> list[dict[str, Any]]:
+    """Return path rows as spec §4 dicts (null where a value is not finite, i.e. the frame was not placed)."""
+    out = []
+    for r in rows:
+        d: dict[str, Any] = {}
+        for c in PATH_COLUMNS:
+            v = getattr(r, c)
+            if isinstance(v, float | np.floating):
+                v = float(v) if math.isfinite(v) else None
+            elif isinstance(v, np.integer):
+                v = int(v)
+            d[c] = v
+        out.append(d)
+    return out
+
+
+@dataclass
+class SessionReconstruction:
+    """Registration state, kept frames and (when live) the canvas of one session."""
+
+    calibration: Calibration
+    options: MethodOptions
+    window_radius_mm: float
+    live: bool = False  # paste as frames arrive and move frames when refinement moves them
+    registrar: Registrar = field(init=False)
+    canvas: SparseCanvas = field(init=False)
+    results: dict[int, FrameResult] = field(default_factory=dict)
+    frames: dict[int, PreparedFrame] = field(default_factory=dict)
+    pasted: dict[int, Similarity] = field(default_factory=dict)
+    compliance: ComplianceFit | None = None
+    gauge: float = 1.0
+    finished: bool = False
+
+    def __post_init__(self) -> None:
+        self.registrar = Registrar(
+            self.options, self.calibration.px_per_mm, self.window_radius_mm, centre_px=self.calibration.principal_point
+        )
+        self.canvas = SparseCanvas(self.calibration.px_per_mm)
+
+    def add(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:
+        """Register a frame (in index order); return its result and the canvas tiles that changed."""
+        result = self.registrar.add(pf)
+        self.results[pf.index] = result
+        self.frames[pf.index] = pf
+        touched: set[tuple[int, int]] = set()
+        if self.live:
+            touched |= self._sync_canvas((pf.index, *result.moved))
+        return result, touched
+
+    def lose(self, index: int) -> None:
+        """Record a frame that never arrived (declared lost by the queue) so path rows stay complete."""
+        self.results[index] = FrameResult(index, STATUS_LOST, None, 0, False, reason=REASON_MISSING)
+
+    def reject(self, index: int, reason: str = REASON_BAD_FRAME) -> None:
+        """Record a frame whose content could not be processed, so path rows stay complete."""
+        self.results[index] = FrameResult(index, STATUS_REJECTED, None, 0, False, reason=reason)
+
+    def final_poses(self) -> dict[int, Similarity]:
+        """Return the placed poses in output units (after the compliance gauge when finished)."""
+        return {i: self._output_pose(p) for i, p in self.registrar.poses.items()}
+
+    def _output_pose(self, pose: Similarity) -> Similarity:
+        """Return a registrar pose in output units: divided by the gauge (1 until finish)."""
+        return Similarity(pose.a / self.gauge, pose.t / self.gauge)
+
+    def finish(self) -> set[tuple[int, int]]:
+        """Run the final refinement and compliance self-calibration; return the canvas tiles that changed."""
+        if self.options.refine:
+            self.registrar.refine()
+        if self.options.self_calibrate:
+            self.compliance = self._fit_compliance()
+            self.gauge = self.compliance.gauge if self.compliance is not None else 1.0
+        self.finished = True
+        return self._restitch() if self.live else set()
+
+    def _fit_compliance(self) -> ComplianceFit | None:
+        placed = [i for i, r in self.results.items() if r.status == STATUS_OK and i in self.registrar.poses]
+        scales = np.array([abs(self.registrar.poses[i].a) for i in placed])
+        loads = np.array([self.frames[i].load.fz_n for i in placed])
+        return fit_compliance(scales, loads, self.calibration.compliance_per_n)
+
+    def _layers(self, pf: PreparedFrame) -> FrameLayers:
+        return FrameLayers(
+            intensity=pf.image.astype(np.float32) / 255.0,
+            weight=blend_weight(pf.mask),
+            force_n=load_map_n(self.calibration, pf.load),
+            centre_px=self.calibration.principal_point,
+            px_per_mm=self.calibration.px_per_mm,
+        )
+
+    def _stitch_pose(self, index: int) -> Similarity | None:
+        result = self.results.get(index)
+        if result is None or result.status != STATUS_OK or result.blurred:
+            return None
+        pose = self.registrar.poses.get(index)
+        if pose is None:
+            return None
+        pose = self._output_pose(pose) if self.finished else pose
+        return pose.rigid() if self.options.rigid_stitch else pose
+
+    def _sync_canvas(self, indices: tuple[int, ...]) -> set[tuple[int, int]]:
+        """Paste frames at their current poses, removing them first from where they were pasted."""
+        touched: set[tuple[int, int]] = set()
+        for i in indices:
+            pose = self._stitch_pose(i)
+            old = self.pasted.get(i)
+            if old is not None and pose is not None and old == pose:
+                continue
+            layers = self._layers(self.frames[i])
+            if old is not None:
+                touched.update(self.canvas.paste(layers, old, sign=-1.0))
+                del self.pasted[i]
+            if pose is not None:
+                touched.update(self.canvas.paste(layers, pose))
+                self.pasted[i] = pose
+        return touched
+
+    def render(self) -> MosaicImage:
+        """Return the mosaic: the live canvas, or (offline) a stitch of every sharp placed frame."""
+        if not self.live:
+            self._restitch()
+        return self.canvas.render()
+
+    def _restitch(self) -> set[tuple[int, int]]:
+        """Paste every frame afresh on an empty canvas; return the tiles of the old and the new canvas."""
+        old = set(self.canvas.tiles)
+        self.canvas = SparseCanvas(self.calibration.px_per_mm)
+        self.pasted = {}
+        return old | self._sync_canvas(tuple(sorted(self.frames)))
+
+    def path_rows(self) -> list[PathRow]:
+        """Return one PathRow per frame seen so far (spec §4), in index order."""
+        poses = self.final_poses() if self.finished else self.registrar.poses
+        rows = []
+        for index in sorted(self.results):
+            r = self.results[index]
+            pf = self.frames.get(index)
+            pose = poses.get(index) if r.status == STATUS_OK else None
+            x, y, yaw = (pose.t.real, pose.t.imag, math.degrees(pose.yaw_rad)) if pose else (math.nan,) * 3
+            rows.append(
+                PathRow(
+                    seq=pf.seq if pf else index,
+                    t_s=pf.t_s if pf else math.nan,
+                    x_mm=x,
+                    y_mm=y,
+                    yaw_deg=yaw,
+                    fz_n=pf.load.fz_n if pf else math.nan,
+                    tilt_x_deg=math.degrees(pf.load.theta_x_rad) if pf else math.nan,
+                    tilt_y_deg=math.degrees(pf.load.theta_y_rad) if pf else math.nan,
+                    stretch=pf.stretch if pf else math.nan,
+                    inliers=r.inliers,
+                    status=r.status,
+                    reason=r.reason,
+                )
+            )
+        return rows

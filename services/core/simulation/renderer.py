@@ -1,0 +1,145 @@
+"""Rendering a simulated frame: the true skin deformation (close to spec §2) and the probe's imaging chain."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from services.core.calibration import Calibration
+from services.core.camera import px_to_mm, undistort_points_px
+from services.core.force_model import LoadState, local_load_n
+from services.core.rectification import pixel_grid
+from services.core.simulation.probe_path import rotation
+from services.core.simulation.vein_texture import World
+
+UNMODELLED_RADIAL = 0.05  # the true stretch grows by this fraction at |p'| = UNMODELLED_RADIUS_MM (not in §2)
+UNMODELLED_RADIUS_MM = 25.0
+WINDOW_SIZE_PX = (624.0, 464.0)  # the window almost fills the 640 x 480 frame (as on the shared scans' mask)
+WINDOW_CORNER_RADIUS_PX = 40.0
+DARK_LEVEL = 1.5 / 255.0  # outside the window: ~1.5 DN (8-bit) plus noise, as on the shared scans
+VIGNETTE_FALLOFF = 0.12  # illumination drops by this fraction at the window's edge (0.88; corners ~0.77)
+FULL_SCALE_DN = 255.0  # noise is given in 8-bit grey levels (DN) whatever the output bit depth
+
+
+@dataclass(frozen=True)
+class FrameGeometry:
+    """Per-scan precomputations: observed mm (H, W, 2) of every raw pixel, window mask, alpha and vignette."""
+
+    observed_mm: np.ndarray  # float64 (H, W, 2): undistorted position of each raw pixel, mm about (cx, cy)
+    radius_sq_mm2: np.ndarray  # float64 (H, W): |observed_mm|^2
+    mask: np.ndarray  # uint8 (H, W) 0/255: inside the window
+    alpha: np.ndarray  # float32 (H, W) in [0, 1]: the window with a one-pixel soft edge
+    vignette: np.ndarray  # float32 (H, W): IR-ring illumination gain
+
+
+@dataclass(frozen=True)
+class Imaging:
+    """Per-frame imaging: sensor noise std in 8-bit grey levels (DN), exposure gain, blur, output dtype."""
+
+    noise_dn: float = 2.0
+    gain: float = 1.0
+    blur_kernel: np.ndarray | None = None
+    dtype: type = np.uint8
+
+
+def window_centre_px(calib: Calibration) -> tuple[float, float]:
+    """Return the window's centre (px): the image centre (the window is part of the probe, not of the lens)."""
+    w, h = calib.image_size
+    return (w - 1) / 2.0, (h - 1) / 2.0
+
+
+def window_signed_distance(calib: Calibration) -> np.ndarray:
+    """Return the signed distance (px, negative inside) of every pixel to the rounded-rectangle window."""
+    w, h = calib.image_size
+    grid = pixel_grid(w, h)
+    cx, cy = window_centre_px(calib)
+    half = np.array(WINDOW_SIZE_PX) / 2.0 - WINDOW_CORNER_RADIUS_PX
+    q = np.abs(grid - (cx, cy)) - half
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
+    inside = np.minimum(np.max(q, axis=-1), 0.0)
+    return outside + inside - WINDOW_CORNER_RADIUS_PX
+
+
+def vignette_gain(calib: Calibration) -> np.ndarray:
+    """Return the IR-ring illumination gain (float32, H x W): 1 at the centre, ~0.88 at the window's edges and
+    ~0.77 in its corners (the profile measured on the shared scans), with a slight left-right imbalance."""
+    w, h = calib.image_size
+    grid = pixel_grid(w, h)
+    d = (grid - window_centre_px(calib)) / (np.array(WINDOW_SIZE_PX) / 2.0)
+    rn2 = np.sum(d * d, axis=-1)  # 0 at the centre, 1 at the middle of the window's edges
+    tilt = 1.0 + 0.02 * d[..., 0] - 0.01 * d[..., 1]  # the LEDs are not perfectly even
+    return ((1.0 - VIGNETTE_FALLOFF * rn2) * tilt).astype(np.float32)
+
+
+def frame_geometry(calib: Calibration) -> FrameGeometry:
+    """Return the FrameGeometry of a calibration (undistortion done once per scan)."""
+    w, h = calib.image_size
+    ideal = undistort_points_px(pixel_grid(w, h).reshape(-1, 2), calib).reshape(h, w, 2)
+    obs = px_to_mm(ideal, calib)
+    sd = window_signed_distance(calib)
+    mask = np.where(sd <= 0.0, 255, 0).astype(np.uint8)
+    alpha = np.clip(0.5 - sd, 0.0, 1.0).astype(np.float32)
+    return FrameGeometry(obs, np.sum(obs * obs, axis=-1), mask, alpha, vignette_gain(calib))
+
+
+def true_undeformed_mm(geometry: FrameGeometry, state: LoadState, true_calib: Calibration) -> np.ndarray:
+    """Return the undeformed position (H, W, 2) mm about the frame centre of every raw pixel.
+
+    p = p' (1 - c F(p') (1 + 0.05 (|p'| / 25 mm)^2)) with c = nu / (E A) and F(p') = max(0, F_Z + kappa Z(p'))
+    from spec §2 evaluated with the TRUE constants; the radial term is deliberately not in spec §2.
+    """
+    load = local_load_n(geometry.observed_mm, state, true_calib)
+    extra = 1.0 + UNMODELLED_RADIAL * geometry.radius_sq_mm2 / UNMODELLED_RADIUS_MM**2
+    factor = 1.0 - true_calib.compliance_per_n * load * extra
+    return geometry.observed_mm * factor[..., None]
+
+
+def world_maps(
+    undeformed_mm: np.ndarray, world: World, centre_mm: np.ndarray, yaw_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return cv2.remap maps (float32 x, y) into the world image for frame points (H, W, 2) mm at a pose."""
+    r = rotation(yaw_deg)
+    world_mm = undeformed_mm @ r.T + np.asarray(centre_mm, dtype=np.float64)
+    px = world.mm_to_px(world_mm)
+    return px[..., 0].astype(np.float32), px[..., 1].astype(np.float32)
+
+
+def render_scene(
+    world: World,
+    geometry: FrameGeometry,
+    centre_mm: np.ndarray,
+    yaw_deg: float,
+    state: LoadState,
+    true_calib: Calibration,
+) -> np.ndarray:
+    """Return the noiseless deformed view (float32 H x W, reflectance 0..1) seen through the lens."""
+    map_x, map_y = world_maps(true_undeformed_mm(geometry, state, true_calib), world, centre_mm, yaw_deg)
+    return cv2.remap(world.image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def motion_blur_kernel(length_px: int, angle_deg: float) -> np.ndarray:
+    """Return a normalised directional blur kernel (float32, odd size) of length_px at angle_deg."""
+    size = int(length_px) | 1
+    k = np.zeros((size * 4, size * 4), np.uint8)
+    c = (size * 4 - 1) / 2.0
+    a = np.deg2rad(angle_deg)
+    half = (length_px - 1) / 2.0 * 4
+    p = (round((c - half * np.cos(a)) * 16), round((c - half * np.sin(a)) * 16))
+    q = (round((c + half * np.cos(a)) * 16), round((c + half * np.sin(a)) * 16))
+    cv2.line(k, p, q, 255, 4, cv2.LINE_AA, 4)
+    kernel = cv2.resize(k.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA)
+    return kernel / kernel.sum()
+
+
+def apply_imaging(scene: np.ndarray, geometry: FrameGeometry, imaging: Imaging, rng: np.random.Generator) -> np.ndarray:
+    """Return the recorded frame (uint8 or uint16, H x W): blur, vignetting, window, noise, quantisation."""
+    img = scene
+    if imaging.blur_kernel is not None:
+        img = cv2.filter2D(img, -1, imaging.blur_kernel, borderType=cv2.BORDER_REFLECT)
+    img = img * geometry.vignette * np.float32(imaging.gain)
+    img = geometry.alpha * img + (1.0 - geometry.alpha) * np.float32(DARK_LEVEL)
+    img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.float32(imaging.noise_dn / FULL_SCALE_DN)
+    top = float(np.iinfo(imaging.dtype).max)
+    return np.clip(np.round(img * top), 0, top).astype(imaging.dtype)

@@ -1,0 +1,194 @@
+"""Simulated scans with known truth: `simulate(scenario, seed)` returns a Scan with frames in memory."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from services.core.calibration import Calibration
+from services.core.force_model import LoadState
+from services.core.scan import Scan, in_memory_loader
+from services.core.simulation.probe_path import (
+    ProbeMotion,
+    calibration_motion,
+    free_hand_motion,
+    path_length_mm,
+    rotation,
+    scenario_motion_spec,
+    smooth_noise,
+)
+from services.core.simulation.renderer import (
+    Imaging,
+    apply_imaging,
+    frame_geometry,
+    motion_blur_kernel,
+    render_scene,
+)
+from services.core.simulation.variants import ImagingVariant, scenario_imaging
+from services.core.simulation.vein_texture import make_world
+
+SCENARIOS = ("raster", "revisit", "hard", "short", "calib")
+
+NOMINAL_E_KPA = 16.1
+NOMINAL_KAPPA_N_PER_MM = 18.0
+FORCE_RATE_HZ = 100.0
+FORCE_NOISE_N = 0.03
+FORCE_OFFSET_N = 0.1  # per-sensor constant offset, uniform in [-0.1, 0.1] N
+IMU_RATE_HZ = 50.0
+IMU_NOISE_DEG = 0.01
+STREAM_MARGIN_S = 0.5  # force and IMU streams start this long before the first frame and end after the last
+WORLD_MARGIN_MM = 60.0  # the world extends this far beyond every frame centre (half-diagonal of the view + slack)
+GAIN_DRIFT_TAU_FRACTION = 0.3  # the slow gain drift's time scale, as a fraction of the scan's frame count
+
+
+def nominal_calibration() -> Calibration:
+    """Return the simulated probe's calibration: its lens model and the NOMINAL force constants of spec §2."""
+    return Calibration(
+        image_size=(640, 480),
+        camera_matrix=((520.0, 0.0, 318.3), (0.0, 520.0, 238.6), (0.0, 0.0, 1.0)),
+        px_per_mm=8.0,
+        dist_coeffs=(-0.03, 0.004, 0.0003, -0.0002, 0.0),
+        young_modulus_kpa=NOMINAL_E_KPA,
+        poisson_ratio=0.5,
+        hooke_n_per_mm=NOMINAL_KAPPA_N_PER_MM,
+        sensor_separation_mm=(53.0, 53.0),
+        scanner_area_m2=0.0048,
+    )
+
+
+def draw_true_constants(rng: np.random.Generator) -> tuple[float, float]:
+    """Return (E_true kPa, kappa_true N/mm): 4-10% off the nominal E, up to 10% off the nominal kappa."""
+    d = rng.uniform(0.04, 0.10) * rng.choice([-1.0, 1.0])
+    d2 = rng.uniform(-0.10, 0.10)
+    return NOMINAL_E_KPA * (1.0 + d), NOMINAL_KAPPA_N_PER_MM * (1.0 + d2)
+
+
+def _stream_times(rng: np.random.Generator, t_first: float, t_last: float, rate_hz: float) -> np.ndarray:
+    """Return jittered, strictly increasing sample times (s) at ~rate_hz covering the frames +-0.5 s."""
+    period = 1.0 / rate_hz
+    n = int(np.floor((t_last - t_first + 2 * STREAM_MARGIN_S) / period)) + 1
+    t = t_first - STREAM_MARGIN_S + period * np.arange(n)
+    jitter = rng.uniform(-0.2 * period, 0.2 * period, n)
+    jitter[0] = jitter[-1] = 0.0
+    return t + jitter
+
+
+def frame_poses(motion: ProbeMotion) -> tuple[np.ndarray, np.ndarray]:
+    """Return (positions (N, 2) mm, yaw (N,) deg) of every frame in frame 0's coordinates (spec §4)."""
+    back = rotation(-float(motion.yaw_deg[0]))
+    xy = (motion.centre_mm - motion.centre_mm[0]) @ back.T
+    return xy, motion.yaw_deg - motion.yaw_deg[0]
+
+
+def frame_gains(rng: np.random.Generator, n: int, imaging: ImagingVariant) -> np.ndarray:
+    """Return n exposure gains (fraction, ~1): a slow drift spanning imaging.gain_drift plus per-frame jitter."""
+    drift = imaging.gain_drift * smooth_noise(rng, n, max(1.0, GAIN_DRIFT_TAU_FRACTION * n), -0.5, 0.5)
+    return 1.0 + drift + rng.uniform(-imaging.gain_jitter, imaging.gain_jitter, n)
+
+
+def motion_angles_deg(motion: ProbeMotion) -> np.ndarray:
+    """Return the direction (deg, image axes) in which the skin moves across each frame (motion blur's axis)."""
+    n = len(motion)
+    if n < 2:
+        return np.zeros(n)
+    velocity = np.gradient(motion.centre_mm, axis=0)
+    angles = np.empty(n)
+    for k in range(n):
+        v = rotation(-float(motion.yaw_deg[k])) @ velocity[k]  # world mm -> frame k's image axes
+        angles[k] = np.rad2deg(np.arctan2(v[1], v[0]))
+    return angles
+
+
+def resolve_imaging(scenario: str, imaging: ImagingVariant | str) -> ImagingVariant:
+    """Return imaging itself, or the scenario's ImagingVariant for a variant name (VARIANTS)."""
+    return scenario_imaging(scenario, imaging) if isinstance(imaging, str) else imaging
+
+
+def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realistic") -> Scan:
+    """Return a simulated Scan (frames in memory) of a scenario in SCENARIOS, deterministic for the seed.
+
+    imaging: a variant name ("realistic", the default that looks like the shared NIR scans; "faint";
+    "textured", the easy fine-grain skin) or an ImagingVariant. The motion, forces and truth poses depend only
+    on (scenario, seed), never on the imaging. truth: young_modulus_kpa, hooke_n_per_mm (the true constants),
+    poses [[x_mm, y_mm, yaw_deg], ...] in frame 0's coordinates, fz_n and tilt_x_deg / tilt_y_deg per frame,
+    blurred frame indices, blur_px per frame (0 = sharp), gains per frame, path_length_mm, force_offsets_n,
+    imaging (the variant as a dict), scenario, seed.
+    """
+    if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(SCENARIOS)}")
+    look = resolve_imaging(scenario, imaging)
+    cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)
+    rng_const, rng_path, rng_world, rng_img, rng_stream = (
+        np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), SCENARIOS.index(scenario)]).spawn(5)
+    )
+    calib = nominal_calibration()
+    e_true, kappa_true = draw_true_constants(rng_const)
+    true_calib = calib.with_overrides(young_modulus_kpa=e_true, hooke_n_per_mm=kappa_true)
+    sep = calib.sensor_separation_mm
+
+    if scenario == "calib":
+        motion = calibration_motion(rng_path, kappa_true, sep)
+    else:
+        motion = free_hand_motion(rng_path, scenario_motion_spec(scenario), kappa_true, sep)
+    n = len(motion)
+
+    lo = motion.centre_mm.min(axis=0) - WORLD_MARGIN_MM
+    hi = motion.centre_mm.max(axis=0) + WORLD_MARGIN_MM
+    bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+    world = make_world(rng_world, bounds, calib.px_per_mm, look.vessel_contrast, look.textured_skin)
+
+    geometry = frame_geometry(calib)
+    fz, tx, ty = motion.load_at(motion.frame_t_s)
+    blurred_flags = rng_img.random(n) < look.blur_fraction
+    blurred_flags[0] = False
+    blur_px = np.where(blurred_flags, rng_img.integers(look.blur_length_px[0], look.blur_length_px[1] + 1, n), 0)
+    blurred_flags &= blur_px > 1  # a 1-px "streak" is no blur
+    angles = motion_angles_deg(motion) + rng_img.normal(0.0, 10.0, n)  # the hand's jitter about the motion
+    gains = frame_gains(rng_img, n, look)
+    frames = []
+    for k in range(n):
+        kernel = motion_blur_kernel(int(blur_px[k]), float(angles[k])) if blur_px[k] > 1 else None
+        frame_imaging = Imaging(noise_dn=look.noise_dn, gain=float(gains[k]), blur_kernel=kernel, dtype=look.dtype)
+        state = LoadState(float(fz[k]), float(tx[k]), float(ty[k]))
+        scene = render_scene(world, geometry, motion.centre_mm[k], float(motion.yaw_deg[k]), state, true_calib)
+        frames.append(apply_imaging(scene, geometry, frame_imaging, rng_img))
+
+    t_first, t_last = float(motion.frame_t_s[0]), float(motion.frame_t_s[-1])
+    force_t = _stream_times(rng_stream, t_first, t_last, FORCE_RATE_HZ)
+    offsets = rng_stream.uniform(-FORCE_OFFSET_N, FORCE_OFFSET_N, 4)
+    true_forces = motion.sensor_forces_at(force_t, kappa_true, sep)
+    forces = true_forces + offsets + rng_stream.normal(0.0, FORCE_NOISE_N, true_forces.shape)
+    imu_t = _stream_times(rng_stream, t_first, t_last, IMU_RATE_HZ)
+    _, itx, ity = motion.load_at(imu_t)
+    imu = np.rad2deg(np.stack([itx, ity], axis=1)) + rng_stream.normal(0.0, IMU_NOISE_DEG, (len(imu_t), 2))
+
+    xy, yaw = frame_poses(motion)
+    truth = {
+        "scenario": scenario,
+        "seed": int(seed),
+        "young_modulus_kpa": float(e_true),
+        "hooke_n_per_mm": float(kappa_true),
+        "poses": [[float(x), float(y), float(a)] for (x, y), a in zip(xy, yaw, strict=True)],
+        "fz_n": [float(v) for v in fz],
+        "tilt_x_deg": [float(v) for v in np.rad2deg(tx)],
+        "tilt_y_deg": [float(v) for v in np.rad2deg(ty)],
+        "blurred": [int(i) for i in np.flatnonzero(blurred_flags)],
+        "blur_px": [int(v) for v in blur_px],
+        "gains": [float(v) for v in gains],
+        "imaging": look.to_dict(),
+        "path_length_mm": path_length_mm(xy),
+        "force_offsets_n": [float(v) for v in offsets],
+    }
+    return Scan(
+        calibration=calib,
+        frame_seq=np.arange(n, dtype=np.int64),
+        frame_t_s=np.asarray(motion.frame_t_s, dtype=np.float64),
+        force_t_s=force_t,
+        forces_n=forces,
+        frame_loader=in_memory_loader(frames),
+        mask=geometry.mask.copy(),
+        imu_t_s=imu_t,
+        imu_tilt_deg=imu,
+        reference_mm=xy.copy(),
+        truth=truth,
+    )

@@ -1,0 +1,81 @@
+"""Writing a reconstruction to an output folder (spec §4).
+
+OUTPUTS: path.csv; mosaic.png (8-bit veins) and mosaic.json; force.png and coverage.png (the layers, pixel-
+aligned with mosaic.png: TURBO over 0..30 N; VIRIDIS over 1..10 frames with alpha 0 where never scanned);
+layers.npz (force in cN, coverage counts: for the DICOM export); force_map.png and coverage_map.png (the
+layers in mm with their colour scales); report.json (frames per status and reason, warnings, accuracy
+with a reference); with a reference paths.png and errors.png; sheet.png and sheet.pdf (the one-page report).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from services.core.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
+from services.core.mosaic import MosaicImage, force_to_color
+from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
+from services.core.plots import plot_coverage_map, plot_force_map
+from services.core.session_report import SessionReport, build_session_report
+
+
+def _cell(value: Any) -> str:
+    if isinstance(value, float):
+        return "" if not math.isfinite(value) else f"{value:.4f}"
+    return str(value)
+
+
+def path_csv(rows: list[PathRow]) -> str:
+    """Return the path as CSV text (spec §4 columns; empty cells where a frame was not registered)."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(PATH_COLUMNS)
+    for r in rows:
+        writer.writerow([_cell(getattr(r, c)) for c in PATH_COLUMNS])
+    return out.getvalue()
+
+
+def write_reconstruction(
+    recon: Reconstruction, out_dir: str | Path, reference_mm: np.ndarray | None, sheet: bool = True
+) -> SessionReport:
+    """Write every output of a reconstruction to out_dir (see OUTPUTS); return its SessionReport."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "path.csv").write_text(path_csv(recon.rows))
+    mosaic = recon.mosaic
+    cv2.imwrite(str(out / "mosaic.png"), mosaic.vein)
+    cv2.imwrite(str(out / "force.png"), force_to_color(mosaic.force_n))
+    cv2.imwrite(str(out / "coverage.png"), coverage_to_color(mosaic.coverage))
+    (out / "layers.npz").write_bytes(layers_to_bytes(mosaic))
+    plot_force_map(out / "force_map.png", mosaic.force_n, mosaic.px_per_mm, mosaic.origin_px)
+    plot_coverage_map(out / "coverage_map.png", mosaic.coverage, mosaic.px_per_mm, mosaic.origin_px)
+    meta = mosaic.meta()
+    meta["method"] = recon.method
+    if recon.compliance is not None:
+        meta["compliance_per_n"] = recon.compliance.compliance_per_n
+        meta["gauge"] = recon.compliance.gauge
+    (out / "mosaic.json").write_text(json.dumps(meta, indent=2))
+    extra = {"method": recon.method, "seconds_per_frame": recon.seconds / max(1, len(recon.rows))}
+    report = build_session_report(
+        recon.rows, reference_mm, mosaic, extra, heading=f"veinmosaic reconstruction ({recon.method})", sheet=sheet
+    )
+    for name, data in report.images.items():
+        (out / name).write_bytes(data)
+    (out / "report.json").write_text(json.dumps(report.doc, indent=2, allow_nan=False))
+    return report
+
+
+def read_results_mosaic(out_dir: str | Path) -> MosaicImage:
+    """Return the mosaic (vein, force in N, coverage, geometry) of a folder written by write_reconstruction."""
+    out = Path(out_dir)
+    vein = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_GRAYSCALE)
+    if vein is None or not (out / "layers.npz").is_file():
+        raise ValueError(f"{out}: not a reconstruction output folder (mosaic.png and layers.npz expected)")
+    return layers_from_bytes((out / "layers.npz").read_bytes(), vein)

@@ -1,0 +1,457 @@
+"""Durable results of a session, per results version, on local disk next to the raw uploads.
+
+Layout under data_dir/sessions/<id>/results/:
+    current                     the version the API serves (text, an int; written atomically)
+    reference.csv               spec §4 reference track, stored once per session (raw text), used by every version
+    <v>/options.json            the options the version was made with ({"method": ..., ...})
+    <v>/setup.npz               window mask (uint8 0/255) and flat field (float32) or none
+    <v>/prepared/<seq>.npz      a PreparedFrame (written once: the first writer wins, later writers are no-ops)
+    <v>/poison/<seq>.json       a frame that could not be prepared (dead-lettered): registered as "rejected"
+    <v>/path.json               spec §4 path rows (null where a frame was not registered)
+    <v>/mosaic.json             spec §4 fields + version, revisions, dzi, extent_mm, frames, status
+    <v>/tiles/<layer>/<level>/<col>_<row>.png   Deep Zoom tiles, layer "vein" or "force"
+    <v>/{mosaic,force,coverage,paths,errors}.png, <v>/report.json, <v>/state.json
+    <v>/layers.npz              raw force (cN) and coverage planes of the finished mosaic (DICOM export, report)
+Version 1 is the live run; reprocess makes 2, 3, ... Every write is atomic (storage.atomic_write_bytes), so
+readers (the API, other workers) see a whole old or a whole new file, never a part.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import math
+import os
+import re
+import uuid
+import zipfile
+from collections import OrderedDict
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from services.core.features import Features
+from services.core.force_model import LoadState
+from services.core.frame_prep import PreparedFrame
+from services.core.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
+from services.core.mosaic import MosaicImage, force_to_color
+from services.core.results_docs import LAYERS
+from services.core.session_reconstruction import PathRow, path_rows_json
+from services.store.storage import atomic_write_bytes, directory_lock, durable_temp_file, fsync_dir
+
+IMAGE_NAMES = ("mosaic.png", "force.png", "coverage.png", "paths.png", "errors.png", "layers.npz")
+LIVE_VERSION = 1
+
+
+def _png(image: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
+_SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
+REFERENCE_HEADER = ("seq", "x_mm", "y_mm")
+
+
+def _json_bytes(doc: Any) -> bytes:
+    return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode()
+
+
+def write_once(path: Path, data: bytes) -> bool:
+    """Create `path` with `data` durably unless it exists; return True if this call created it.
+
+    The bytes go to a fsynced temporary file that is hard-linked into place (link fails if the target
+    exists), so concurrent writers never overwrite each other and readers never see a partial file.
+    """
+    path = Path(path)
+    tmp = durable_temp_file(path, data)
+    try:
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            return False
+        fsync_dir(path.parent)
+        return True
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+
+
+def replace_bytes(path: Path, data: bytes) -> None:
+    """Write `path` atomically (temp file + rename) without fsync: readers see the old or the new file."""
+    path = Path(path)
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
+    try:
+        with open(tmp, "xb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+SETUP_CACHE = 8  # decoded setup.npz kept per store (sessions processed at once by one worker)
+NPZ_COMPRESS_LEVEL = 1  # deflate level of prepared frames: level 6 (numpy's) cost 33 ms a frame, 1 costs 8 (+7 %)
+
+
+def _npz_bytes(**arrays: np.ndarray) -> bytes:
+    """Return arrays as .npz bytes (np.load reads them), deflated at NPZ_COMPRESS_LEVEL."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=NPZ_COMPRESS_LEVEL) as archive:
+        for name, value in arrays.items():
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as entry:
+                np.lib.format.write_array(entry, np.asanyarray(value), allow_pickle=False)
+    return buf.getvalue()
+
+
+def prepared_to_bytes(pf: PreparedFrame) -> bytes:
+    """Return a PreparedFrame as .npz bytes (lossless; descriptors as uint8 when they are whole 0..255)."""
+    desc = np.asarray(pf.features.descriptors)
+    if desc.size == 0 or (
+        np.all(np.isfinite(desc)) and desc.min() >= 0 and desc.max() <= 255 and np.array_equal(desc, np.round(desc))
+    ):
+        desc_stored = desc.astype(np.uint8)
+    else:
+        desc_stored = desc.astype(np.float32)
+    return _npz_bytes(
+        meta=np.array([pf.index, pf.seq], np.int64),
+        scalars=np.array(
+            [pf.t_s, pf.load.fz_n, pf.load.theta_x_rad, pf.load.theta_y_rad, pf.stretch, pf.sharpness], np.float64
+        ),
+        desc_float=np.array([desc.dtype == np.float32], bool),
+        forces_n=np.asarray(pf.forces_n, np.float64),
+        image=pf.image,
+        mask=pf.mask,
+        vein=pf.vein,
+        vein_mask=pf.vein_mask,
+        points=np.asarray(pf.features.points, np.float64),
+        descriptors=desc_stored,
+        desc_width=np.array([desc.shape[1] if desc.ndim == 2 else 128], np.int64),
+        sizes_px=np.asarray(pf.features.sizes_px, np.float64),
+    )
+
+
+def prepared_from_bytes(data: bytes) -> PreparedFrame:
+    """Return the PreparedFrame stored by `prepared_to_bytes`."""
+    z = np.load(io.BytesIO(data), allow_pickle=False)
+    index, seq = (int(v) for v in z["meta"])
+    t_s, fz, tx, ty, stretch, sharpness = (float(v) for v in z["scalars"])
+    desc = z["descriptors"]
+    desc = desc.astype(np.float32).reshape(-1, int(z["desc_width"][0]))
+    features = Features(z["points"].reshape(-1, 2), desc, z["sizes_px"])
+    return PreparedFrame(
+        index=index,
+        seq=seq,
+        t_s=t_s,
+        forces_n=z["forces_n"],
+        load=LoadState(fz, tx, ty),
+        stretch=stretch,
+        image=z["image"],
+        mask=z["mask"],
+        features=features,
+        vein=z["vein"],
+        vein_mask=z["vein_mask"],
+        sharpness=sharpness,
+    )
+
+
+def parse_reference_csv(text: str, seqs: Sequence[int]) -> np.ndarray:
+    """Return the reference track (len(seqs), 2) in mm aligned to `seqs`, NaN rows where it has no row.
+
+    Raises ValueError naming the line for a wrong header, a non-number, a seq that is not a frame or a repeat.
+    """
+    index = {int(s): i for i, s in enumerate(seqs)}
+    out = np.full((len(index), 2), np.nan)
+    lines = text.lstrip("\ufeff").splitlines()
+    if not lines or tuple(c.strip() for c in lines[0].split(",")) != REFERENCE_HEADER:
+        raise ValueError(f"reference.csv line 1: expected the header {','.join(REFERENCE_HEADER)}")
+    seen: set[int] = set()
+    for lineno, cells in enumerate(csv.reader(lines[1:]), start=2):
+        if not cells or not "".join(cells).strip():
+            continue
+        if len(cells) != 3:
+            raise ValueError(f"reference.csv line {lineno}: expected 3 values (seq,x_mm,y_mm), got {len(cells)}")
+        try:
+            seq = int(cells[0].strip())
+            x, y = float(cells[1]), float(cells[2])
+        except ValueError:
+            raise ValueError(f"reference.csv line {lineno}: seq must be an integer and x_mm, y_mm numbers") from None
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ValueError(f"reference.csv line {lineno}: x_mm and y_mm must be finite")
+        if seq not in index:
+            raise ValueError(f"reference.csv line {lineno}: seq {seq} is not a frame of this session")
+        if seq in seen:
+            raise ValueError(f"reference.csv line {lineno}: seq {seq} repeats")
+        seen.add(seq)
+        out[index[seq]] = (x, y)
+    return out
+
+
+class ResultsStore:
+    """Results of sessions under data_dir/sessions/<id>/results (layout in the module docstring)."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.data_dir = Path(data_dir)
+        self.root = self.data_dir / "sessions"
+        # setup.npz never changes once written: the last few are kept decoded (a worker reads it every frame)
+        self._setups: OrderedDict[tuple[str, int], tuple[np.ndarray, np.ndarray | None]] = OrderedDict()
+
+    # ----- versions -----------------------------------------------------------------------------------------
+    def results_dir(self, sid: str) -> Path:
+        """Return <session>/results (created if missing); ValueError for a malformed session id."""
+        if not isinstance(sid, str) or not _SESSION_ID.match(sid):
+            raise ValueError("malformed session id")
+        path = self.root / sid / "results"
+        if not path.is_dir():
+            if not (self.root / sid).is_dir():
+                raise FileNotFoundError("no such session")
+            path.mkdir(exist_ok=True)
+        return path
+
+    def version_dir(self, sid: str, v: int) -> Path:
+        """Return the directory of results version v (not created here)."""
+        if isinstance(v, bool) or not isinstance(v, int | np.integer) or int(v) < 1:
+            raise ValueError(f"version must be a positive integer, got {v!r}")
+        return self.results_dir(sid) / str(int(v))
+
+    @contextlib.contextmanager
+    def _locked(self, sid: str) -> Iterator[Path]:
+        rdir = self.results_dir(sid)
+        with directory_lock(rdir):
+            yield rdir
+
+    def current_version(self, sid: str) -> int | None:
+        """Return the version the API serves, or None before any version exists."""
+        try:
+            return int((self.results_dir(sid) / "current").read_text().strip())
+        except (FileNotFoundError, ValueError):
+            return None
+
+    def list_versions(self, sid: str) -> list[int]:
+        """Return the existing versions, ascending."""
+        return sorted(int(p.name) for p in self.results_dir(sid).iterdir() if p.name.isdigit() and p.is_dir())
+
+    def _make_version(self, rdir: Path, v: int, options: dict[str, Any]) -> None:
+        vdir = rdir / str(v)
+        for sub in ("prepared", "poison", "tiles"):
+            (vdir / sub).mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(vdir / "options.json", _json_bytes(options))
+        fsync_dir(rdir)
+
+    def create_version(self, sid: str, options: dict[str, Any], make_current: bool = True) -> int:
+        """Create the next free version (2, 3, ...; 1 is the live run's) and, by default, make it current.
+
+        Reprocessing passes make_current=False and calls set_current when the version is complete, so the
+        API keeps serving the previous complete version meanwhile.
+        """
+        with self._locked(sid) as rdir:
+            existing = [int(p.name) for p in rdir.iterdir() if p.name.isdigit()]
+            v = max([LIVE_VERSION, *existing]) + 1
+            (rdir / str(v)).mkdir()
+            self._make_version(rdir, v, options)
+            if make_current:
+                atomic_write_bytes(rdir / "current", str(v).encode())
+            return v
+
+    def set_current(self, sid: str, v: int) -> None:
+        """Make version v the one the API serves."""
+        if not (self.version_dir(sid, v) / "options.json").exists():
+            raise ValueError(f"version {v} does not exist")
+        with self._locked(sid) as rdir:
+            atomic_write_bytes(rdir / "current", str(int(v)).encode())
+
+    def ensure_version(self, sid: str, v: int, options: dict[str, Any]) -> bool:
+        """Create version v if missing (current when no version is current yet); return True if created now."""
+        with self._locked(sid) as rdir:
+            vdir = rdir / str(int(v))
+            if (vdir / "options.json").exists():
+                return False
+            vdir.mkdir(exist_ok=True)
+            self._make_version(rdir, int(v), options)
+            if self.current_version(sid) is None:
+                atomic_write_bytes(rdir / "current", str(int(v)).encode())
+            return True
+
+    def read_options(self, sid: str, v: int) -> dict[str, Any] | None:
+        """Return the options.json of version v, or None."""
+        return self._read_json(self.version_dir(sid, v) / "options.json")
+
+    # ----- setup and prepared frames ---------------------------------------------------------------------------
+    def write_setup(self, sid: str, v: int, mask: np.ndarray, flat: np.ndarray | None) -> None:
+        """Write (replace) the window mask and flat field of version v."""
+        self._setups.pop((sid, v), None)
+        atomic_write_bytes(self.version_dir(sid, v) / "setup.npz", self._setup_bytes(mask, flat))
+
+    def write_setup_once(
+        self, sid: str, v: int, mask: np.ndarray, flat: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Write the setup unless one exists; return the stored one (the first writer's), so all agree."""
+        write_once(self.version_dir(sid, v) / "setup.npz", self._setup_bytes(mask, flat))
+        got = self.read_setup(sid, v)
+        assert got is not None
+        return got
+
+    @staticmethod
+    def _setup_bytes(mask: np.ndarray, flat: np.ndarray | None) -> bytes:
+        arrays = {"mask": np.asarray(mask, np.uint8)}
+        if flat is not None:
+            arrays["flat"] = np.asarray(flat, np.float32)
+        return _npz_bytes(**arrays)
+
+    def read_setup(self, sid: str, v: int) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """Return (mask uint8, flat float32 or None) of version v, or None if not computed yet."""
+        cached = self._setups.get((sid, v))
+        if cached is not None:
+            self._setups.move_to_end((sid, v))
+            return cached
+        try:
+            data = (self.version_dir(sid, v) / "setup.npz").read_bytes()
+        except FileNotFoundError:
+            return None
+        z = np.load(io.BytesIO(data), allow_pickle=False)
+        setup = (z["mask"], (z["flat"] if "flat" in z.files else None))
+        for array in setup:
+            if array is not None:
+                array.setflags(write=False)  # shared by every later caller
+        self._setups[(sid, v)] = setup
+        while len(self._setups) > SETUP_CACHE:
+            self._setups.popitem(last=False)
+        return setup
+
+    def prepared_path(self, sid: str, v: int, seq: int) -> Path:
+        """Return the file of a prepared frame."""
+        return self.version_dir(sid, v) / "prepared" / f"{int(seq):06d}.npz"
+
+    def write_prepared(self, sid: str, v: int, pf: PreparedFrame) -> bool:
+        """Store a prepared frame unless it is stored already (first writer wins); return True if written now."""
+        return write_once(self.prepared_path(sid, v, pf.seq), prepared_to_bytes(pf))
+
+    def has_prepared(self, sid: str, v: int, seq: int) -> bool:
+        """Return True if frame seq is prepared."""
+        return self.prepared_path(sid, v, seq).exists()
+
+    def read_prepared(self, sid: str, v: int, seq: int) -> PreparedFrame | None:
+        """Return the prepared frame seq, or None if it is not prepared (yet)."""
+        try:
+            data = self.prepared_path(sid, v, seq).read_bytes()
+        except FileNotFoundError:
+            return None
+        return prepared_from_bytes(data)
+
+    def mark_poison(self, sid: str, v: int, seq: int, reason: str = "") -> None:
+        """Record that frame seq cannot be prepared (it is registered as rejected)."""
+        path = self.version_dir(sid, v) / "poison" / f"{int(seq):06d}.json"
+        atomic_write_bytes(path, _json_bytes({"seq": int(seq), "reason": reason[:200]}))
+
+    def is_poison(self, sid: str, v: int, seq: int) -> bool:
+        """Return True if frame seq was marked poison."""
+        return (self.version_dir(sid, v) / "poison" / f"{int(seq):06d}.json").exists()
+
+    # ----- path, state, mosaic meta, report -------------------------------------------------------------------
+    def _read_json(self, path: Path) -> Any | None:
+        try:
+            return json.loads(path.read_bytes())
+        except FileNotFoundError:
+            return None
+
+    def write_path(self, sid: str, v: int, rows: Sequence[PathRow]) -> None:
+        """Write path.json (spec §4 rows)."""
+        atomic_write_bytes(self.version_dir(sid, v) / "path.json", _json_bytes(path_rows_json(rows)))
+
+    def read_path(self, sid: str, v: int) -> list[dict[str, Any]] | None:
+        """Return the path rows of version v (dicts with the spec §4 columns), or None before any."""
+        return self._read_json(self.version_dir(sid, v) / "path.json")
+
+    def write_state(self, sid: str, v: int, doc: dict[str, Any]) -> None:
+        """Write state.json (registration cursor, fence token, finished, lost/rejected seqs)."""
+        atomic_write_bytes(self.version_dir(sid, v) / "state.json", _json_bytes(doc))
+
+    def read_state(self, sid: str, v: int) -> dict[str, Any] | None:
+        """Return state.json of version v, or None."""
+        return self._read_json(self.version_dir(sid, v) / "state.json")
+
+    def write_mosaic_meta(self, sid: str, v: int, doc: dict[str, Any]) -> None:
+        """Write mosaic.json of version v."""
+        atomic_write_bytes(self.version_dir(sid, v) / "mosaic.json", _json_bytes(doc))
+
+    def read_mosaic_meta(self, sid: str, v: int) -> dict[str, Any] | None:
+        """Return mosaic.json of version v, or None before the first flush."""
+        return self._read_json(self.version_dir(sid, v) / "mosaic.json")
+
+    def write_report(self, sid: str, v: int, doc: dict[str, Any]) -> None:
+        """Write report.json (accuracy report, spec §4) of version v."""
+        atomic_write_bytes(self.version_dir(sid, v) / "report.json", _json_bytes(doc))
+
+    def read_report(self, sid: str, v: int) -> dict[str, Any] | None:
+        """Return report.json of version v, or None."""
+        return self._read_json(self.version_dir(sid, v) / "report.json")
+
+    def write_reference(self, sid: str, csv_text: str) -> None:
+        """Store the session's reference.csv (raw text; one per session, used by every version)."""
+        atomic_write_bytes(self.results_dir(sid) / "reference.csv", csv_text.encode())
+
+    def read_reference(self, sid: str) -> str | None:
+        """Return the stored reference.csv text, or None."""
+        try:
+            return (self.results_dir(sid) / "reference.csv").read_text()
+        except FileNotFoundError:
+            return None
+
+    # ----- images and tiles -------------------------------------------------------------------------------------
+    def image_path(self, sid: str, v: int, name: str) -> Path:
+        """Return the path of a whole image (mosaic.png, force.png, paths.png, errors.png) of version v."""
+        if name not in IMAGE_NAMES:
+            raise ValueError(f"image name must be one of {IMAGE_NAMES}")
+        return self.version_dir(sid, v) / name
+
+    def write_image(self, sid: str, v: int, name: str, png: bytes) -> None:
+        """Write a whole image of version v."""
+        atomic_write_bytes(self.image_path(sid, v, name), png)
+
+    def write_mosaic_images(self, sid: str, v: int, mosaic: MosaicImage, raw_layers: bool = True) -> None:
+        """Write mosaic.png, force.png, coverage.png and (raw_layers) layers.npz of a rendered mosaic."""
+        self.write_image(sid, v, "mosaic.png", _png(mosaic.vein))
+        self.write_image(sid, v, "force.png", _png(force_to_color(mosaic.force_n)))
+        self.write_image(sid, v, "coverage.png", _png(coverage_to_color(mosaic.coverage)))
+        if raw_layers:
+            self.write_image(sid, v, "layers.npz", layers_to_bytes(mosaic))
+
+    def read_mosaic_layers(self, sid: str, v: int) -> MosaicImage | None:
+        """Return the finished mosaic of version v with force in N and coverage, or None when not written."""
+        try:
+            raw = self.image_path(sid, v, "layers.npz").read_bytes()
+            png = self.image_path(sid, v, "mosaic.png").read_bytes()
+        except FileNotFoundError:
+            return None
+        vein = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+        return layers_from_bytes(raw, vein)
+
+    def tile_path(self, sid: str, v: int, layer: str, level: int, col: int, row: int) -> Path:
+        """Return the file of a Deep Zoom tile (it exists only where the tile has data)."""
+        if layer not in LAYERS:
+            raise ValueError(f"layer must be one of {LAYERS}")
+        return self.version_dir(sid, v) / "tiles" / layer / str(int(level)) / f"{int(col)}_{int(row)}.png"
+
+    def write_tile(
+        self, sid: str, v: int, layer: str, level: int, col: int, row: int, png: bytes, durable: bool = True
+    ) -> None:
+        """Write a Deep Zoom tile atomically; durable=False skips the fsyncs (live tiles are rewritten often
+        and can be re-rendered; the final flush of a version writes every tile durably)."""
+        path = self.tile_path(sid, v, layer, level, col, row)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if durable:
+            atomic_write_bytes(path, png)
+        else:
+            replace_bytes(path, png)
+
+    def delete_tile(self, sid: str, v: int, layer: str, level: int, col: int, row: int) -> None:
+        """Remove a tile that no longer has data (the API then serves a blank tile)."""
+        with contextlib.suppress(FileNotFoundError):
+            self.tile_path(sid, v, layer, level, col, row).unlink()

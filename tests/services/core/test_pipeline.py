@@ -1,0 +1,112 @@
+"""End-to-end reconstruction of the simulator's short scan: accuracy bands, method ordering, determinism."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.core.evaluation import AccuracyReport, evaluate_path
+from services.core.methods import method_options
+from services.core.pipeline import PATH_COLUMNS, Reconstruction, reconstruct
+from services.core.scan import Scan
+from tests.sim_cache import simulated
+from tests.tolerances import TOL
+
+pytestmark = pytest.mark.slow
+
+# Measured on simulate("short", 1) (40 frames, 106 mm path) at commit 63e1382: best 0.016 mm (0.0125 one
+# revision earlier; the lead measured 0.034 mm), best without refinement 0.020 mm, sift-chain 1.77 mm
+# (lead: 1.556), paper 0.218 (lead: 0.171; 44 s, too slow for this suite). The bands are two-sided so a
+# simulator or pipeline change that makes the task too easy shows as well as one that breaks it:
+# - best: TOL.best_short_rmse_mm (its reasons are in tests/tolerances.py).
+# - sift-chain: in [0.5, 5] mm: unrectified, frame-to-frame chaining must drift by around a millimetre
+#   or more; below 0.5 mm the simulated deformation would no longer be a challenge.
+BEST_RMSE_MM = TOL.best_short_rmse_mm
+SIFT_CHAIN_RMSE_MM = (0.5, 5.0)
+
+
+@pytest.fixture(scope="module")
+def scan() -> Scan:
+    return simulated("short", 1)
+
+
+@pytest.fixture(scope="module")
+def best(scan: Scan) -> Reconstruction:
+    return reconstruct(scan, method_options("best"))
+
+
+def _report(scan: Scan, recon: Reconstruction) -> AccuracyReport:
+    return evaluate_path(recon.estimate_mm, recon.registered, scan.reference_mm)
+
+
+def test_best_rmse_in_band_and_everything_registered(scan: Scan, best: Reconstruction) -> None:
+    report = _report(scan, best)
+    assert BEST_RMSE_MM[0] <= report.rmse_mm <= BEST_RMSE_MM[1], report.rmse_mm
+    assert report.registered_fraction == 1.0
+    assert best.registered.all()
+    assert best.seconds < 30.0
+
+
+def test_best_beats_sift_chain(scan: Scan, best: Reconstruction) -> None:
+    chain = _report(scan, reconstruct(scan, method_options("sift-chain")))
+    assert SIFT_CHAIN_RMSE_MM[0] <= chain.rmse_mm <= SIFT_CHAIN_RMSE_MM[1], chain.rmse_mm
+    assert _report(scan, best).rmse_mm * 5 < chain.rmse_mm  # measured 7.8x better (0.24 against 1.86 mm)
+
+
+def test_refinement_does_no_harm(scan: Scan, best: Reconstruction) -> None:
+    unrefined = reconstruct(scan, method_options("best").with_overrides({"refine": False}))
+    with_refine, without = _report(scan, best), _report(scan, unrefined)
+    assert without.registered_fraction == with_refine.registered_fraction == 1.0
+    # measured 0.016 (refined) vs 0.020 mm: refinement may help or be neutral, never cost more than 10%
+    assert with_refine.rmse_mm <= 1.1 * without.rmse_mm
+    assert with_refine.final_drift_mm <= 1.1 * without.final_drift_mm + 0.01
+
+
+def test_two_runs_are_identical(scan: Scan, best: Reconstruction) -> None:
+    again = reconstruct(scan, method_options("best"))
+    np.testing.assert_array_equal(again.estimate_mm, best.estimate_mm)
+    np.testing.assert_array_equal(again.mosaic.vein, best.mosaic.vein)
+    assert [r.inliers for r in again.rows] == [r.inliers for r in best.rows]
+
+
+def test_path_rows_follow_the_spec(scan: Scan, best: Reconstruction) -> None:
+    assert len(best.rows) == len(scan) == 40
+    row0 = best.rows[0]
+    assert (row0.seq, row0.x_mm, row0.y_mm, row0.yaw_deg) == (0, 0.0, 0.0, 0.0)  # frame 0 is the origin
+    assert [r.seq for r in best.rows] == list(range(40))
+    assert tuple(vars(row0)) == PATH_COLUMNS
+    truth_fz = np.array(scan.truth["fz_n"])
+    fz = np.array([r.fz_n for r in best.rows])
+    # interpolated sensor forces: 4 sensors x (0.03 N noise + up to 0.1 N offset) -> within 0.5 N
+    np.testing.assert_allclose(fz, truth_fz, atol=0.5)
+    truth_yaw = np.array([p[2] for p in scan.truth["poses"]])
+    # 0.15 deg: measured worst 0.106 deg on the realistic short scan (vein-map keypoints are less precise
+    # than on textured skin); 0.15 deg over a 40 mm half-window is 0.1 mm at the frame's edge
+    np.testing.assert_allclose([r.yaw_deg for r in best.rows], truth_yaw, atol=0.15)
+    for r in best.rows:
+        assert r.stretch == pytest.approx(scan.calibration.compliance_per_n * r.fz_n, rel=1e-9)
+        assert r.inliers >= method_options("best").min_inliers or r.seq == 0
+
+
+def test_self_calibration_moves_e_toward_the_truth(scan: Scan, best: Reconstruction) -> None:
+    assert best.compliance is not None
+    calib = scan.calibration
+    fitted = best.compliance.young_modulus_kpa(calib.poisson_ratio, calib.scanner_area_m2)
+    true_e = scan.truth["young_modulus_kpa"]
+    assert abs(fitted - true_e) < abs(calib.young_modulus_kpa - true_e)
+    assert math.isfinite(best.compliance.gauge) and abs(best.compliance.gauge - 1) < 0.02
+
+
+def test_mosaic_geometry(best: Reconstruction) -> None:
+    m = best.mosaic
+    assert m.vein.dtype == np.uint8 and m.vein.ndim == 2
+    h, w = m.vein.shape
+    ox, oy = m.origin_px
+    assert 0 <= ox < w and 0 <= oy < h  # frame 0's centre lies on the mosaic
+    # the mosaic spans the path (~106 mm long) plus a window: far larger than one 400 x 320 frame
+    assert w * h > 3 * 400 * 320
+    covered = np.isfinite(m.force_n)
+    assert covered.mean() > 0.3
+    assert np.nanmax(m.force_n) < 40.0 and np.nanmin(m.force_n) >= 0.0

@@ -1,0 +1,123 @@
+"""Writing a reconstruction (spec §4): path CSV/JSON with blanks for unregistered frames, mosaic, report."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from services.core.mosaic import MosaicImage
+from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
+from services.core.registration import IDENTITY, Similarity
+from services.core.session_reconstruction import path_rows_json
+from services.store.results_io import path_csv, read_results_mosaic, write_reconstruction
+
+NAN = math.nan
+
+
+def _rows() -> list[PathRow]:
+    return [
+        PathRow(0, 0.0, 0.0, 0.0, 0.0, 3.25, 0.1, -0.2, 0.021, 300, "ok"),
+        PathRow(1, 0.05, NAN, NAN, NAN, 4.0, 0.0, 0.0, 0.026, 0, "lost", "few_inliers"),
+        PathRow(2, 0.1, 1.23456, -2.5, 1.5, 5.0, 0.0, 0.0, 0.032, 250, "ok"),
+    ]
+
+
+def _recon() -> Reconstruction:
+    vein = np.zeros((60, 80), np.uint8)
+    vein[10:50, 10:70] = 200
+    force = np.full((60, 80), np.nan, np.float32)
+    force[10:50, 10:70] = 12.0
+    mosaic = MosaicImage(vein, force, (vein > 0).astype(np.float32), 8.0, (20.0, 30.0))
+    poses = {0: IDENTITY, 2: Similarity(1 + 0j, 1.23456 - 2.5j)}
+    return Reconstruction("best", _rows(), poses, mosaic, None, 1.5)
+
+
+def test_path_csv_columns_and_blank_cells() -> None:
+    text = path_csv(_rows())
+    table = list(csv.reader(io.StringIO(text)))
+    assert tuple(table[0]) == PATH_COLUMNS
+    assert PATH_COLUMNS == (
+        "seq",
+        "t_s",
+        "x_mm",
+        "y_mm",
+        "yaw_deg",
+        "fz_n",
+        "tilt_x_deg",
+        "tilt_y_deg",
+        "stretch",
+        "inliers",
+        "status",
+        "reason",
+    )  # spec §4, in order, then why a frame was not placed (issue 6: never fail silently)
+    assert len(table) == 4
+    assert table[2][2:5] == ["", "", ""]  # the lost frame has no position
+    assert table[2][-2:] == ["lost", "few_inliers"] and table[2][0] == "1"
+    assert table[3][2] == "1.2346"  # 4 decimals: 0.1 um, far below any accuracy the probe reaches
+
+
+def test_path_json_uses_null_for_unregistered() -> None:
+    doc = path_rows_json(_rows())
+    assert list(doc[0]) == list(PATH_COLUMNS)
+    assert doc[1]["x_mm"] is None and doc[1]["status"] == "lost"
+    assert doc[2]["x_mm"] == pytest.approx(1.23456)
+    json.dumps(doc, allow_nan=False)  # strict JSON: no NaN leaks
+
+
+def test_write_reconstruction_without_reference(tmp_path: Path) -> None:
+    report = write_reconstruction(_recon(), tmp_path / "out", None)
+    assert report.accuracy is None
+    out = tmp_path / "out"
+    assert {p.name for p in out.iterdir()} == {
+        "path.csv", "mosaic.png", "force.png", "coverage.png", "layers.npz", "mosaic.json", "force_map.png",
+        "coverage_map.png", "report.json", "sheet.png", "sheet.pdf",
+    }  # fmt: skip
+    png = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+    assert png.dtype == np.uint8 and png.shape == (60, 80)
+    meta = json.loads((out / "mosaic.json").read_text())
+    assert meta["px_per_mm"] == 8.0 and meta["origin_px"] == [20.0, 30.0]
+    assert (meta["width"], meta["height"]) == (80, 60)
+    assert meta["method"] == "best"
+    force = cv2.imread(str(out / "force.png"), cv2.IMREAD_UNCHANGED)
+    assert force.shape == (60, 80, 3)  # the layer, pixel-aligned with mosaic.png
+    assert force[0, 0].tolist() == [0, 0, 0] and force[30, 40].sum() > 0
+    coverage = cv2.imread(str(out / "coverage.png"), cv2.IMREAD_UNCHANGED)
+    assert coverage.shape == (60, 80, 4)  # BGRA: transparent where never scanned
+    assert coverage[0, 0, 3] == 0 and coverage[30, 40, 3] == 255
+    # the raw layers read back in N and frames
+    back = read_results_mosaic(out)
+    assert np.nanmax(back.force_n) == pytest.approx(12.0, abs=0.005) and np.isnan(back.force_n[0, 0])
+    assert back.coverage[30, 40] == 1 and back.coverage[0, 0] == 0
+    # report.json without a reference: the frames and the warning, no accuracy figures
+    doc = json.loads((out / "report.json").read_text())
+    assert "rmse_mm" not in doc
+    assert doc["frames"] == {
+        "total": 3, "ok": 2, "lost": 1, "rejected": 0, "registered_fraction": pytest.approx(2 / 3),
+        "lost_reasons": {"few_inliers": 1}, "rejected_reasons": {},
+    }  # fmt: skip
+    assert [w["code"] for w in doc["warnings"]] == ["frames_lost"]  # 1 of 3 > 5 %
+    assert (out / "sheet.pdf").read_bytes().startswith(b"%PDF")
+    for name in ("force_map.png", "coverage_map.png", "sheet.png"):
+        assert cv2.imread(str(out / name)) is not None
+
+
+def test_write_reconstruction_with_reference(tmp_path: Path) -> None:
+    reference = np.array([[0.0, 0.0], [0.5, -1.0], [1.23456 + 0.3, -2.5 - 0.4]])  # frame 2 off by 0.5 mm
+    report = write_reconstruction(_recon(), tmp_path, reference, sheet=False)
+    assert report.accuracy is not None
+    doc = json.loads((tmp_path / "report.json").read_text())
+    # errors 0 and 0.5 mm over the two registered frames: RMSE sqrt(0.25 / 2)
+    assert doc["rmse_mm"] == pytest.approx(math.sqrt(0.125), rel=1e-9)
+    assert doc["registered_fraction"] == pytest.approx(2 / 3)
+    assert doc["method"] == "best" and doc["seconds_per_frame"] == pytest.approx(0.5)
+    assert doc["plots"] == {"paths": "paths.png", "errors": "errors.png"}
+    assert "2/3 frames registered" in doc["accuracy_summary"]
+    for name in ("paths.png", "errors.png"):
+        assert cv2.imread(str(tmp_path / name)) is not None

@@ -1,0 +1,159 @@
+"""SessionStore: durable atomic writes, frame idempotency and conflicts, force merging, closed sessions."""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.core.calibration import default_calibration
+from services.store import storage
+from services.store.storage import (
+    ConflictError,
+    SessionClosedError,
+    SessionNotFoundError,
+    SessionStore,
+    atomic_write_bytes,
+)
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> SessionStore:
+    return SessionStore(tmp_path)
+
+
+@pytest.fixture
+def sid(store: SessionStore) -> str:
+    return store.create_session("f" * 64, "label", default_calibration(64, 48)).id
+
+
+def _fail_replace(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    raise OSError("simulated crash between write and rename")
+
+
+def test_atomic_write_crash_keeps_old_content_and_no_partial_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    target = tmp_path / "x.json"
+    atomic_write_bytes(target, b"old")
+    monkeypatch.setattr(storage.os, "replace", _fail_replace)
+    with pytest.raises(OSError, match="simulated crash"):
+        atomic_write_bytes(target, b"new content")
+    assert target.read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.json"]  # the temp file was removed too
+    with pytest.raises(OSError):
+        atomic_write_bytes(tmp_path / "fresh.bin", b"data")
+    assert not (tmp_path / "fresh.bin").exists()
+
+
+def test_crash_before_commit_record_leaves_no_frame_and_retry_succeeds(
+    store: SessionStore, sid: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real_replace = os.replace
+
+    def replace_image_only(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+        if str(dst).endswith(".json"):
+            raise OSError("simulated crash before the commit record")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(storage.os, "replace", replace_image_only)
+    with pytest.raises(OSError):
+        store.put_frame(sid, 0, 0.0, b"first bytes", "png")
+    monkeypatch.setattr(storage.os, "replace", real_replace)
+    assert store.get_frame(sid, 0) is None and store.count_frames(sid) == 0
+    # never acknowledged, so a retry with other bytes is a fresh upload, not a conflict
+    assert store.put_frame(sid, 0, 0.0, b"second bytes", "png") == "created"
+    assert store.read_frame_bytes(sid, 0) == b"second bytes"
+
+
+def test_put_frame_idempotent_and_conflicts(store: SessionStore, sid: str) -> None:
+    assert store.put_frame(sid, 3, 0.5, b"abc", "png") == "created"
+    assert store.put_frame(sid, 3, 0.5, b"abc", "png") == "duplicate"
+    with pytest.raises(ConflictError):
+        store.put_frame(sid, 3, 0.5, b"abd", "png")
+    with pytest.raises(ConflictError):
+        store.put_frame(sid, 3, 0.6, b"abc", "png")
+    rec = store.get_frame(sid, 3)
+    assert rec is not None and rec.size == 3 and rec.t_s == 0.5
+    assert store.read_frame_bytes(sid, 3) == b"abc"
+    assert store.count_frames(sid) == 1
+
+
+def test_concurrent_same_seq_creates_once(store: SessionStore, sid: str) -> None:
+    results: list[str] = []
+    threads = [
+        threading.Thread(target=lambda: results.append(store.put_frame(sid, 1, 0.0, b"x" * 1000, "png")))
+        for _ in range(8)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(results) == ["created"] + ["duplicate"] * 7
+
+
+def test_list_frames_sorted_and_ignores_temp_files(store: SessionStore, sid: str) -> None:
+    for seq in (10, 2, 7):
+        store.put_frame(sid, seq, seq / 10.0, bytes([seq]), "png")
+    (store.frames_dir(sid) / ".000099.json.dead.tmp").write_bytes(b"partial")
+    assert [r.seq for r in store.list_frames(sid)] == [2, 7, 10]
+    assert store.count_frames(sid) == 3
+
+
+def test_finish_closes_uploads_but_duplicates_stay_noops(store: SessionStore, sid: str) -> None:
+    store.put_frame(sid, 0, 0.0, b"a", "png")
+    meta = store.finish(sid, now=123.0)
+    assert (meta.status, meta.finished_at, meta.frames_expected) == ("processing", 123.0, 1)
+    assert store.finish(sid, now=999.0).finished_at == 123.0  # idempotent
+    assert store.put_frame(sid, 0, 0.0, b"a", "png") == "duplicate"
+    with pytest.raises(SessionClosedError):
+        store.put_frame(sid, 1, 0.0, b"b", "png")
+    with pytest.raises(SessionClosedError):
+        store.put_forces(sid, [[0, 1, 2, 3, 4]])
+    assert store.set_status(sid, "done").status == "done"
+
+
+def test_merged_forces_sorted_dedup_latest_wins(store: SessionStore, sid: str) -> None:
+    store.put_forces(sid, [[0.2, 1, 1, 1, 1], [0.3, 1, 1, 1, 1]])
+    store.put_forces(sid, [[0.0, 2, 2, 2, 2], [0.2, 9, 9, 9, 9]], imu=[[0.0, 1.0, 2.0]])
+    store.put_forces(sid, [[0.0, 2, 2, 2, 2], [0.2, 9, 9, 9, 9]])  # exact re-send: stored once
+    t, f = store.merged_forces(sid)
+    np.testing.assert_array_equal(t, [0.0, 0.2, 0.3])
+    np.testing.assert_array_equal(f[:, 0], [2, 9, 1])  # at t = 0.2 the later batch wins
+    assert len(list((store.session_dir(sid) / "raw" / "forces").iterdir())) == 2
+    ti, tilt = store.merged_imu(sid)
+    np.testing.assert_array_equal(ti, [0.0])
+    np.testing.assert_array_equal(tilt, [[1.0, 2.0]])
+    batch = next((store.session_dir(sid) / "raw" / "forces").iterdir())
+    assert set(json.loads(batch.read_bytes())) == {"samples"}  # stored as received
+
+
+def test_bad_force_rows_rejected(store: SessionStore, sid: str) -> None:
+    with pytest.raises(ValueError, match="finite"):
+        store.put_forces(sid, [[0.0, 1, 2, 3, float("nan")]])
+    with pytest.raises(ValueError, match="5 numbers"):
+        store.put_forces(sid, [[0.0, 1, 2, 3]])
+    assert len(store.merged_forces(sid)[0]) == 0
+
+
+def test_session_ids_are_validated(store: SessionStore, sid: str) -> None:
+    for bad in ("../" + sid, sid.upper(), "", "0" * 32):
+        with pytest.raises(SessionNotFoundError):
+            store.get_meta(bad)
+    meta = store.get_meta(sid)
+    assert meta.owner == "f" * 64 and meta.calibration["image_size"] == [64, 48]
+    assert store.calibration(sid) == default_calibration(64, 48)
+    assert store.list_sessions() == [sid]
+    assert store.writable()
+
+
+def test_load_frame_decodes(store: SessionStore, sid: str) -> None:
+    import cv2
+
+    img = (np.arange(48 * 64) % 251).astype(np.uint8).reshape(48, 64)
+    store.put_frame(sid, 0, 0.0, cv2.imencode(".png", img)[1].tobytes(), "png")
+    np.testing.assert_array_equal(store.load_frame(sid, 0), img)  # PNG is lossless: exact
