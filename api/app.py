@@ -29,8 +29,9 @@ from services.core.image_header import set_decoder_limits
 from services.jobs import queue
 from services.jobs.redis_backend import close, connect
 from services.log_format import configure_json_logging, request_id_var
-from services.settings import Settings, get_settings, token_secret_bytes
+from services.settings import Settings, get_settings
 from services.store.audit import AuditLog
+from services.store.secrets import token_secret_bytes
 from services.store.storage import SessionStore
 
 API_VERSION = "1.0.0"

@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import os
-import time
-import uuid
 from pathlib import Path
 from typing import Literal
 
@@ -15,7 +11,6 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from services.core.image_header import DEFAULT_MAX_FRAME_SIDE
 
 Scope = Literal["ingest", "view", "admin"]
-SECRET_BYTES = 32
 
 
 class Settings(BaseSettings):
@@ -64,33 +59,3 @@ class Settings(BaseSettings):
 def get_settings() -> Settings:
     """Return the settings read from the environment (call once, at start-up)."""
     return Settings()
-
-
-def token_secret_bytes(settings: Settings) -> bytes:
-    """Return the HMAC key for viewer tokens: VEINMOSAIC_TOKEN_SECRET, else data_dir/secret (made once).
-
-    The file is created atomically (written to a temp file, then hard-linked into place, which fails if
-    another process won the race), so every process of one deployment reads the same 32 random bytes.
-    """
-    if settings.token_secret is not None:
-        return settings.token_secret.get_secret_value().encode()
-    path = Path(settings.data_dir) / "secret"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not path.exists():
-        tmp = path.parent / f".secret.{uuid.uuid4().hex}.tmp"
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(os.urandom(SECRET_BYTES))
-                fh.flush()
-                os.fsync(fh.fileno())
-            with contextlib.suppress(FileExistsError):
-                os.link(tmp, path)
-        finally:
-            os.unlink(tmp)
-    for _ in range(50):
-        data = path.read_bytes()
-        if len(data) >= SECRET_BYTES:
-            return data
-        time.sleep(0.01)  # pragma: no cover - only a hand-made short file gets here
-    raise RuntimeError(f"{path} holds fewer than {SECRET_BYTES} bytes; delete it to make a new one")

@@ -9,10 +9,7 @@ from __future__ import annotations
 
 import io
 import math
-import tempfile
 from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import Any
 
 import matplotlib
 import numpy as np
@@ -38,10 +35,10 @@ def _new_figure(width_in: float, height_in: float) -> tuple[Figure, Axes]:
     return fig, fig.add_subplot(1, 1, 1)
 
 
-def _save(fig: Figure, path_png: str | Path) -> None:
-    path = Path(path_png)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png", dpi=DPI)
+def _png(fig: Figure) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    return buf.getvalue()
 
 
 def _check_path(name: str, value: np.ndarray, n: int | None = None) -> np.ndarray:
@@ -151,15 +148,14 @@ def _draw_paths(
 
 
 def plot_paths_over_mosaic(
-    path_png: str | Path,
     estimate_mm: np.ndarray,
     registered: np.ndarray,
     reference_mm: np.ndarray | None,
     mosaic: np.ndarray | None,
     px_per_mm: float,
     origin_px: tuple[float, float],
-) -> None:
-    """Write a PNG of the estimated (and reference) path in mm over the mosaic; returns nothing.
+) -> bytes:
+    """Return the PNG of the estimated (and reference) path in mm over the mosaic.
 
     origin_px is the mosaic pixel (x, y) where frame 0's centre, (0, 0) mm, lies (spec §4 mosaic.json).
     """
@@ -178,7 +174,7 @@ def plot_paths_over_mosaic(
         title += f", RMSE {rmse:.3f} mm"
     ax.set_title(title)
     fig.tight_layout()
-    _save(fig, path_png)
+    return _png(fig)
 
 
 def _draw_layer(
@@ -227,24 +223,22 @@ def _draw_coverage(ax: Axes, coverage: np.ndarray, px_per_mm: float, origin_px: 
     )  # fmt: skip
 
 
-def plot_force_map(path_png: str | Path, force_n: np.ndarray, px_per_mm: float, origin_px: tuple[float, float]) -> None:
-    """Write a PNG of the force layer in mm with its colour scale in N (grey where not scanned)."""
+def plot_force_map(force_n: np.ndarray, px_per_mm: float, origin_px: tuple[float, float]) -> bytes:
+    """Return the PNG of the force layer in mm with its colour scale in N (grey where not scanned)."""
     _check_scale(px_per_mm)
     fig, ax = _new_figure(8.0, 6.5)
     _draw_force(ax, force_n, px_per_mm, origin_px)
     fig.tight_layout()
-    _save(fig, path_png)
+    return _png(fig)
 
 
-def plot_coverage_map(
-    path_png: str | Path, coverage: np.ndarray, px_per_mm: float, origin_px: tuple[float, float]
-) -> None:
-    """Write a PNG of the coverage (frames per point) in mm with its colour scale (grey: never scanned)."""
+def plot_coverage_map(coverage: np.ndarray, px_per_mm: float, origin_px: tuple[float, float]) -> bytes:
+    """Return the PNG of the coverage (frames per point) in mm with its colour scale (grey: never scanned)."""
     _check_scale(px_per_mm)
     fig, ax = _new_figure(8.0, 6.5)
     _draw_coverage(ax, coverage, px_per_mm, origin_px)
     fig.tight_layout()
-    _save(fig, path_png)
+    return _png(fig)
 
 
 def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
@@ -254,12 +248,12 @@ def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
-def plot_error_along_scan(path_png: str | Path, report: AccuracyReport) -> None:
-    """Write a PNG of the per-frame error (mm) against frame index with the RMSE line; returns nothing."""
+def plot_error_along_scan(report: AccuracyReport) -> bytes:
+    """Return the PNG of the per-frame error (mm) against frame index with the RMSE line."""
     fig, ax = _new_figure(9.0, 4.0)
     _draw_errors(ax, report)
     fig.tight_layout()
-    _save(fig, path_png)
+    return _png(fig)
 
 
 def _fmt(v: float) -> str:
@@ -286,11 +280,10 @@ def _draw_errors(ax: Axes, report: AccuracyReport) -> None:
 
 
 def plot_method_comparison(
-    path_png: str | Path,
     results: Mapping[str, tuple[np.ndarray, np.ndarray]],
     reference_mm: np.ndarray | None,
-) -> None:
-    """Write a PNG of several methods' paths (mm) against the reference, RMSE in the legend; returns None."""
+) -> bytes:
+    """Return the PNG of several methods' paths (mm) against the reference, RMSE in the legend."""
     if not results:
         raise ValueError("results: no method to plot")
     ref = None if reference_mm is None else _check_path("reference_mm", reference_mm)
@@ -320,7 +313,7 @@ def plot_method_comparison(
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize="small")
     fig.tight_layout()
-    _save(fig, path_png)
+    return _png(fig)
 
 
 def session_sheet(
@@ -374,11 +367,3 @@ def session_sheet(
     fig.savefig(png, format="png", dpi=DPI)
     fig.savefig(pdf, format="pdf")
     return png.getvalue(), pdf.getvalue()
-
-
-def figure_bytes(draw: Any, *args: Any) -> bytes:
-    """Return the PNG bytes a plot_* function writes (it is called with a temporary file path first)."""
-    with tempfile.TemporaryDirectory() as tmp:
-        target = Path(tmp) / "plot.png"
-        draw(target, *args)
-        return target.read_bytes()

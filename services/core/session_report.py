@@ -23,7 +23,7 @@ import numpy as np
 
 from services.core.evaluation import AccuracyReport, evaluate_path
 from services.core.mosaic import MosaicImage
-from services.core.plots import figure_bytes, plot_error_along_scan, plot_paths_over_mosaic, session_sheet
+from services.core.plots import plot_error_along_scan, plot_paths_over_mosaic, session_sheet
 from services.core.scan_quality import FrameSummary, scan_warnings, summarize_frames
 from services.core.session_reconstruction import PathRow
 
@@ -88,8 +88,8 @@ def build_session_report(
             vein, px, origin = mosaic.vein, mosaic.px_per_mm, mosaic.origin_px
         else:
             vein, px, origin = backdrop if backdrop is not None else (None, 1.0, (0.0, 0.0))
-        images["paths.png"] = figure_bytes(plot_paths_over_mosaic, estimate, registered, reference_mm, vein, px, origin)
-        images["errors.png"] = figure_bytes(plot_error_along_scan, accuracy)
+        images["paths.png"] = plot_paths_over_mosaic(estimate, registered, reference_mm, vein, px, origin)
+        images["errors.png"] = plot_error_along_scan(accuracy)
         plots.update({"paths": "paths.png", "errors": "errors.png"})
     if mosaic is not None and sheet:
         png, pdf = session_sheet(mosaic, estimate, registered, reference_mm, accuracy, frames, doc["warnings"], heading)

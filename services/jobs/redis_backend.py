@@ -21,7 +21,7 @@ import redis
 from redis.backoff import ExponentialBackoff
 from redis.retry import Retry
 
-from services.store.storage import atomic_write_bytes
+from services.store.durable import atomic_write_bytes
 
 _EMBEDDED_CONFIG = {"appendonly": "yes", "appendfsync": "everysec"}
 

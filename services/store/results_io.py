@@ -54,8 +54,8 @@ def write_reconstruction(
     cv2.imwrite(str(out / "force.png"), force_to_color(mosaic.force_n))
     cv2.imwrite(str(out / "coverage.png"), coverage_to_color(mosaic.coverage))
     (out / "layers.npz").write_bytes(layers_to_bytes(mosaic))
-    plot_force_map(out / "force_map.png", mosaic.force_n, mosaic.px_per_mm, mosaic.origin_px)
-    plot_coverage_map(out / "coverage_map.png", mosaic.coverage, mosaic.px_per_mm, mosaic.origin_px)
+    (out / "force_map.png").write_bytes(plot_force_map(mosaic.force_n, mosaic.px_per_mm, mosaic.origin_px))
+    (out / "coverage_map.png").write_bytes(plot_coverage_map(mosaic.coverage, mosaic.px_per_mm, mosaic.origin_px))
     meta = mosaic.meta()
     meta["method"] = recon.method
     if recon.compliance is not None:

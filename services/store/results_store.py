@@ -12,7 +12,7 @@ Layout under data_dir/sessions/<id>/results/:
     <v>/tiles/<layer>/<level>/<col>_<row>.png   Deep Zoom tiles, layer "vein" or "force"
     <v>/{mosaic,force,coverage,paths,errors}.png, <v>/report.json, <v>/state.json
     <v>/layers.npz              raw force (cN) and coverage planes of the finished mosaic (DICOM export, report)
-Version 1 is the live run; reprocess makes 2, 3, ... Every write is atomic (storage.atomic_write_bytes), so
+Version 1 is the live run; reprocess makes 2, 3, ... Every write is atomic (durable.atomic_write_bytes), so
 readers (the API, other workers) see a whole old or a whole new file, never a part.
 """
 
@@ -23,9 +23,7 @@ import csv
 import io
 import json
 import math
-import os
 import re
-import uuid
 import zipfile
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
@@ -42,7 +40,7 @@ from services.core.layer_images import coverage_to_color, layers_from_bytes, lay
 from services.core.mosaic import MosaicImage, force_to_color
 from services.core.results_docs import LAYERS
 from services.core.session_reconstruction import PathRow, path_rows_json
-from services.store.storage import atomic_write_bytes, directory_lock, durable_temp_file, fsync_dir
+from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, replace_bytes, write_once
 
 IMAGE_NAMES = ("mosaic.png", "force.png", "coverage.png", "paths.png", "errors.png", "layers.npz")
 LIVE_VERSION = 1
@@ -61,40 +59,6 @@ REFERENCE_HEADER = ("seq", "x_mm", "y_mm")
 
 def _json_bytes(doc: Any) -> bytes:
     return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode()
-
-
-def write_once(path: Path, data: bytes) -> bool:
-    """Create `path` with `data` durably unless it exists; return True if this call created it.
-
-    The bytes go to a fsynced temporary file that is hard-linked into place (link fails if the target
-    exists), so concurrent writers never overwrite each other and readers never see a partial file.
-    """
-    path = Path(path)
-    tmp = durable_temp_file(path, data)
-    try:
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            return False
-        fsync_dir(path.parent)
-        return True
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-
-
-def replace_bytes(path: Path, data: bytes) -> None:
-    """Write `path` atomically (temp file + rename) without fsync: readers see the old or the new file."""
-    path = Path(path)
-    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
-    try:
-        with open(tmp, "xb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 SETUP_CACHE = 8  # decoded setup.npz kept per store (sessions processed at once by one worker)

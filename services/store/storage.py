@@ -15,7 +15,6 @@ processes on one host). Batch names sort in arrival order: <time_ns:019d>-<sha25
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import json
 import math
@@ -33,6 +32,7 @@ import numpy as np
 
 from services.core.calibration import Calibration, parse_calibration
 from services.core.image_header import check_header, read_header
+from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir
 
 SessionStatus = Literal["receiving", "processing", "done", "failed"]
 STATUSES: tuple[str, ...] = ("receiving", "processing", "done", "failed")
@@ -92,59 +92,6 @@ class FrameRecord:
     sha256: str
     size: int
     received_at: float
-
-
-def fsync_dir(path: Path) -> None:
-    """Fsync a directory so a rename or creation inside it survives a power cut."""
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-@contextlib.contextmanager
-def directory_lock(path: Path) -> Iterator[None]:
-    """Hold an exclusive advisory lock on path/.lock (across processes) for the duration of the block."""
-    with open(path / ".lock", "a+b") as fh:
-        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
-
-
-def durable_temp_file(path: Path, data: bytes) -> Path:
-    """Return a hidden temporary file beside `path` holding `data`, written and fsynced (the caller moves it)."""
-    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o640)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    return tmp
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write `data` to `path` durably: temp file in the same directory, fsync, rename, fsync the directory.
-
-    After a crash at any point `path` holds either its old content (or does not exist) or all of `data`,
-    never a part; an interrupted write leaves at most a hidden `.<name>.*.tmp` file, which readers ignore.
-    """
-    path = Path(path)
-    tmp = durable_temp_file(path, data)
-    try:
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    fsync_dir(path.parent)
 
 
 def _json_bytes(doc: Any) -> bytes:

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from services.settings import Settings, token_secret_bytes
+from services.settings import Settings
+from services.store.secrets import token_secret_bytes
 
 
 def test_healthz_and_readyz_ok(client: TestClient) -> None:

@@ -1,4 +1,4 @@
-"""The accuracy plots write real PNGs that actually show the paths."""
+"""The accuracy plots render real PNGs (bytes) that actually show the paths."""
 
 from __future__ import annotations
 
@@ -53,7 +53,9 @@ def test_paths_over_mosaic_draws_both_paths(tmp_path: Path) -> None:
     estimate, registered, reference = _paths()
     mosaic = np.random.default_rng(0).integers(0, 60, size=(200, 420), dtype=np.uint8)  # dark, no red/blue
     out = tmp_path / "paths.png"
-    plot_paths_over_mosaic(out, estimate, registered, reference, mosaic, px_per_mm=8.0, origin_px=(40.0, 100.0))
+    out.write_bytes(
+        plot_paths_over_mosaic(estimate, registered, reference, mosaic, px_per_mm=8.0, origin_px=(40.0, 100.0))
+    )
     img = _read(out)
     assert img.shape[0] >= 300 and img.shape[1] >= 300
     # Each path is a long line of several hundred pixels of its own colour.
@@ -67,7 +69,7 @@ def test_path_goes_right_and_y_axis_points_down(tmp_path: Path) -> None:
     n = 30
     est = np.stack([np.linspace(0, 30, n), np.linspace(0, 30, n)], axis=1)
     out = tmp_path / "diag.png"
-    plot_paths_over_mosaic(out, est, np.ones(n, bool), None, None, px_per_mm=8.0, origin_px=(0.0, 0.0))
+    out.write_bytes(plot_paths_over_mosaic(est, np.ones(n, bool), None, None, px_per_mm=8.0, origin_px=(0.0, 0.0)))
     red = _colour_mask(_read(out), ESTIMATE_COLOR).astype(np.uint8)
     # The path is the largest red component (the legend holds a short red sample too).
     _, labels, stats, _ = cv2.connectedComponentsWithStats(red, connectivity=8)
@@ -83,7 +85,7 @@ def test_mosaic_is_placed_in_mm_extent(tmp_path: Path) -> None:
     mosaic[40:60, 40:60] = 255
     out = tmp_path / "mosaic_only.png"
     est = np.array([[0.0, 0.0]])
-    plot_paths_over_mosaic(out, est, np.array([True]), None, mosaic, px_per_mm=10.0, origin_px=(50.0, 50.0))
+    out.write_bytes(plot_paths_over_mosaic(est, np.array([True]), None, mosaic, px_per_mm=10.0, origin_px=(50.0, 50.0)))
     img = _read(out)
     white = np.all(img >= 250, axis=2)
     black = np.all(img <= 5, axis=2)
@@ -95,7 +97,7 @@ def test_error_along_scan(tmp_path: Path) -> None:
     estimate, registered, reference = _paths()
     report = evaluate_path(estimate, registered, reference)
     out = tmp_path / "err.png"
-    plot_error_along_scan(out, report)
+    out.write_bytes(plot_error_along_scan(report))
     img = _read(out)
     assert img.shape[1] > img.shape[0]  # wide figure
     assert _colour_mask(img, ESTIMATE_COLOR).sum() > 100  # error curve
@@ -107,7 +109,7 @@ def test_method_comparison(tmp_path: Path) -> None:
     worse = reference + 3.0
     results = {"ours": (estimate, registered), "sfm": (worse, np.ones(len(reference), bool))}
     out = tmp_path / "cmp.png"
-    plot_method_comparison(out, results, reference)
+    out.write_bytes(plot_method_comparison(results, reference))
     img = _read(out)
     assert _colour_mask(img, METHOD_COLORS[0]).sum() > 200
     assert _colour_mask(img, METHOD_COLORS[1]).sum() > 200
@@ -115,16 +117,18 @@ def test_method_comparison(tmp_path: Path) -> None:
 
 def test_bad_input_is_rejected(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="registered"):
-        plot_paths_over_mosaic(tmp_path / "x.png", np.zeros((3, 2)), np.ones(2, bool), None, None, 8.0, (0, 0))
+        plot_paths_over_mosaic(np.zeros((3, 2)), np.ones(2, bool), None, None, 8.0, (0, 0))
     with pytest.raises(ValueError, match="no method"):
-        plot_method_comparison(tmp_path / "y.png", {}, None)
+        plot_method_comparison({}, None)
 
 
 def test_reference_stays_visible_on_a_perfect_estimate(tmp_path: Path) -> None:
     # estimate == reference: before, the estimate was drawn over the reference and hid it entirely
     reference = _paths()[2]
     out = tmp_path / "paths.png"
-    plot_paths_over_mosaic(out, reference.copy(), np.ones(len(reference), bool), reference, None, 8.0, (0.0, 0.0))
+    out.write_bytes(
+        plot_paths_over_mosaic(reference.copy(), np.ones(len(reference), bool), reference, None, 8.0, (0.0, 0.0))
+    )
     img = _read(out)
     assert _colour_mask(img, REFERENCE_COLOR).sum() > 150
     assert _colour_mask(img, ESTIMATE_COLOR).sum() > 150
@@ -134,8 +138,8 @@ def test_force_and_coverage_maps_have_colour_scales(tmp_path: Path) -> None:
     force = np.full((80, 120), np.nan, np.float32)
     force[10:70, 10:110] = np.linspace(0, 30, 100, dtype=np.float32)
     coverage = np.where(np.isfinite(force), 3.0, 0.0).astype(np.float32)
-    plot_force_map(tmp_path / "force_map.png", force, 8.0, (60.0, 40.0))
-    plot_coverage_map(tmp_path / "coverage_map.png", coverage, 8.0, (60.0, 40.0))
+    (tmp_path / "force_map.png").write_bytes(plot_force_map(force, 8.0, (60.0, 40.0)))
+    (tmp_path / "coverage_map.png").write_bytes(plot_coverage_map(coverage, 8.0, (60.0, 40.0)))
     for name in ("force_map.png", "coverage_map.png"):
         img = _read(tmp_path / name)
         # a colour bar: a tall, narrow, strongly coloured column right of the image

@@ -13,13 +13,13 @@ from services.core.features import Features
 from services.core.force_model import LoadState
 from services.core.frame_prep import PreparedFrame
 from services.core.session_reconstruction import PathRow
+from services.store.durable import write_once
 from services.store.results_store import (
     LIVE_VERSION,
     ResultsStore,
     parse_reference_csv,
     prepared_from_bytes,
     prepared_to_bytes,
-    write_once,
 )
 from services.store.storage import SessionStore
 

@@ -12,12 +12,12 @@ import pytest
 
 from services.core.calibration import default_calibration
 from services.store import storage
+from services.store.durable import atomic_write_bytes
 from services.store.storage import (
     ConflictError,
     SessionClosedError,
     SessionNotFoundError,
     SessionStore,
-    atomic_write_bytes,
 )
 
 

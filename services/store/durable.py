@@ -1,0 +1,103 @@
+"""The one durable-write helper of everything under data_dir (uploads, results, the job ledger, the token
+secret, the embedded Redis's URL file).
+
+Every write goes to a hidden temporary file beside its target (`.<name>.<uuid>.tmp`, which readers ignore),
+and is then moved into place in one of three ways:
+- `atomic_write_bytes`: fsync the file, rename it over the target, fsync the directory (replace, durable);
+- `write_once`: fsync the file, hard-link it to the target (fails if the target exists), fsync the directory
+  (create once: concurrent writers never overwrite each other);
+- `replace_bytes`: rename without any fsync (live tiles, rewritten often and made again after a crash).
+After a crash at any point a target holds its old content (or does not exist) or all of the new bytes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+
+def fsync_dir(path: Path) -> None:
+    """Fsync a directory so a rename or creation inside it survives a power cut."""
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def directory_lock(path: Path) -> Iterator[None]:
+    """Hold an exclusive advisory lock on path/.lock (across processes) for the duration of the block."""
+    with open(path / ".lock", "a+b") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+
+def temp_file(path: Path, data: bytes, fsync: bool = True, mode: int = 0o640) -> Path:
+    """Return a new hidden temporary file beside `path` holding `data` (fsynced unless fsync=False)."""
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            if fsync:
+                fh.flush()
+                os.fsync(fh.fileno())
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    return tmp
+
+
+def _move_over(tmp: Path, path: Path) -> None:
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write `data` to `path` durably: temp file in the same directory, fsync, rename, fsync the directory.
+
+    After a crash at any point `path` holds either its old content (or does not exist) or all of `data`,
+    never a part; an interrupted write leaves at most a hidden `.<name>.*.tmp` file, which readers ignore.
+    """
+    path = Path(path)
+    _move_over(temp_file(path, data), path)
+    fsync_dir(path.parent)
+
+
+def write_once(path: Path, data: bytes, mode: int = 0o640) -> bool:
+    """Create `path` with `data` durably unless it exists; return True if this call created it.
+
+    The bytes go to a fsynced temporary file that is hard-linked into place (link fails if the target
+    exists), so concurrent writers never overwrite each other and readers never see a partial file.
+    """
+    path = Path(path)
+    tmp = temp_file(path, data, mode=mode)
+    try:
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            return False
+        fsync_dir(path.parent)
+        return True
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+
+
+def replace_bytes(path: Path, data: bytes) -> None:
+    """Write `path` atomically (temp file + rename) without fsync: readers see the old or the new file."""
+    path = Path(path)
+    _move_over(temp_file(path, data, fsync=False), path)
