@@ -62,8 +62,3 @@ class Context:
     def prefix(self) -> str:
         """Return the Redis key prefix."""
         return self.config.prefix
-
-
-def debug_order_key(prefix: str, session_id: str, version: int) -> str:
-    """Return the Redis list where debug_order logs "<token>:<seq>:<kind>" per frame handed to registration."""
-    return f"{prefix}debug:order:{session_id}:{int(version)}"

@@ -40,16 +40,6 @@ return 0
 """
 
 
-def lock_key(prefix: str) -> str:
-    """Return the key of the reconciler's mutex."""
-    return f"{prefix}reconcile:lock"
-
-
-def last_run_key(prefix: str) -> str:
-    """Return the key that spaces periodic runs (set with a TTL of reconcile_every_s by the run's leader)."""
-    return f"{prefix}reconcile:last"
-
-
 def _text(v: Any) -> str:
     return v.decode() if isinstance(v, bytes) else str(v)
 
@@ -195,16 +185,16 @@ class Reconciler:
         if not self.urgent:
             if cfg.reconcile_every_s <= 0:
                 return None
-            if not ctx.r.set(last_run_key(ctx.prefix), cfg.consumer, nx=True, px=period_ms):
+            if not ctx.r.set(queue.reconcile_last_key(ctx.prefix), cfg.consumer, nx=True, px=period_ms):
                 return None
         elif cfg.reconcile_every_s > 0:
-            ctx.r.set(last_run_key(ctx.prefix), cfg.consumer, px=period_ms)
-        if not ctx.r.set(lock_key(ctx.prefix), cfg.consumer, nx=True, px=LOCK_TTL_MS):
+            ctx.r.set(queue.reconcile_last_key(ctx.prefix), cfg.consumer, px=period_ms)
+        if not ctx.r.set(queue.reconcile_lock_key(ctx.prefix), cfg.consumer, nx=True, px=LOCK_TTL_MS):
             self.urgent = False  # another worker is reconciling right now
             return None
         try:
             stats = reconcile(ctx)
         finally:
-            ctx.r.eval(_RELEASE, 1, lock_key(ctx.prefix), cfg.consumer)
+            ctx.r.eval(_RELEASE, 1, queue.reconcile_lock_key(ctx.prefix), cfg.consumer)
         self.urgent = False
         return stats

@@ -49,7 +49,7 @@ from services.jobs import queue
 from services.jobs.leases import Lease, acquire
 from services.store.results_store import LIVE_VERSION
 from services.store.storage import SessionNotFoundError
-from workers.config import Context, debug_order_key
+from workers.config import Context
 from workers.faults import describe, is_transient
 from workers.prepare_stage import stored_seqs
 
@@ -336,7 +336,7 @@ class RegisterStage:
 
     def _log_order(self, held: HeldSession, seq: int, kind: str) -> None:
         if self.ctx.config.debug_order:
-            key = debug_order_key(self.ctx.prefix, held.sid, held.version)
+            key = queue.debug_order_key(held.sid, held.version, self.ctx.prefix)
             self.ctx.r.rpush(key, f"{held.lease.token}:{seq}:{kind}")
 
     def _add(self, held: HeldSession, pf: Any, replay: bool = False) -> None:
@@ -371,7 +371,7 @@ class RegisterStage:
         """Count a registration failure of `seq`; after max_deliveries mark it poison; retry via a delayed kick."""
         ctx = self.ctx
         log.error("registration failed: %s", type(exc).__name__, exc_info=exc, extra={"session": held.sid, "seq": seq})
-        fails = int(ctx.r.hincrby(f"{ctx.prefix}regfail:{held.sid}:{held.version}", str(seq), 1))
+        fails = int(ctx.r.hincrby(queue.regfail_key(held.sid, held.version, ctx.prefix), str(seq), 1))
         if fails >= ctx.config.max_deliveries:
             ctx.results.mark_poison(held.sid, held.version, seq, f"registration failed: {type(exc).__name__}")
             ctx.r.xadd(

@@ -280,6 +280,26 @@ def kick_key(session_id: str, version: int, prefix: str = DEFAULT_PREFIX) -> str
     return f"{prefix}kick:{session_id}:{int(version)}"
 
 
+def regfail_key(session_id: str, version: int, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the hash counting registration failures per frame seq of (session, version)."""
+    return f"{prefix}regfail:{session_id}:{int(version)}"
+
+
+def debug_order_key(session_id: str, version: int, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the Redis list where debug_order logs "<token>:<seq>:<kind>" per frame handed to registration."""
+    return f"{prefix}debug:order:{session_id}:{int(version)}"
+
+
+def reconcile_lock_key(prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the key of the reconciler's mutex."""
+    return f"{prefix}reconcile:lock"
+
+
+def reconcile_last_key(prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the key that spaces periodic reconciler runs (set with a TTL of reconcile_every_s by the leader)."""
+    return f"{prefix}reconcile:last"
+
+
 def worker_streams(prefix: str = DEFAULT_PREFIX) -> tuple[str, str, str]:
     """Return the streams workers read with the consumer group: frames, register, jobs."""
     return frames_stream(prefix), register_stream(prefix), jobs_stream(prefix)

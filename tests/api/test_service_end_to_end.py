@@ -19,10 +19,10 @@ import pytest
 from api.client import VeinmosaicClient
 from api.launcher import Service
 from services.core.scan import Scan
+from services.jobs import queue
 from services.jobs.redis_backend import connect, read_embedded_url
 from services.store.scan_folder import frame_name, read_scan_folder, write_scan_folder
 from tests.sim_cache import live_short, offline_best, simulated
-from workers.config import debug_order_key
 
 # Live and offline feed identical prepared frames in identical order to the same deterministic code, so the
 # paths agree to rounding; 1e-6 mm is far below anything that matters yet catches any change of input or order.
@@ -92,7 +92,8 @@ def test_two_sessions_two_workers_out_of_order_equal_offline(tmp_path: Path) -> 
         paths = [client.request("GET", f"/v1/sessions/{sid}/path").json() for sid in sids]
         r = connect(redis_url or read_embedded_url(service.data_dir), service.data_dir)
         orders = [
-            [int(x.decode().split(":")[1]) for x in r.lrange(debug_order_key(prefix, sid, 1), 0, -1)] for sid in sids
+            [int(x.decode().split(":")[1]) for x in r.lrange(queue.debug_order_key(sid, 1, prefix), 0, -1)]
+            for sid in sids
         ]
         if redis_url:
             for k in r.scan_iter(f"{prefix}*"):

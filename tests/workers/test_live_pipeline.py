@@ -20,7 +20,6 @@ from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
 from tests.sim_cache import live_short, offline_best
 from tests.workers.conftest import Backend, store_scan, wait_for
-from workers.config import debug_order_key
 
 pytestmark = pytest.mark.slow
 
@@ -63,7 +62,7 @@ def assert_matches_offline(rows: list[dict[str, Any]], seed: int) -> None:
 
 def order_log(backend: Backend, sid: str) -> list[tuple[int, int, str]]:
     """Return the (token, seq, kind) of every frame handed to registration, in order."""
-    raw = backend.r.lrange(debug_order_key(backend.prefix, sid, 1), 0, -1)
+    raw = backend.r.lrange(queue.debug_order_key(sid, 1, backend.prefix), 0, -1)
     out = []
     for item in raw:
         token, seq, kind = item.decode().split(":")
