@@ -306,6 +306,14 @@ class SessionStore:
         with os.scandir(self.frames_dir(session_id)) as it:
             return sum(1 for e in it if e.name.endswith(".json") and not e.name.startswith("."))
 
+    def reprocess_refusal(self, meta: SessionMeta) -> tuple[str, str] | None:
+        """Return (code, message) of why a session cannot be reprocessed yet (still receiving, no frames), else None."""
+        if meta.finished_at is None:
+            return "not_finished", "the session is still receiving uploads: finish it before reprocessing"
+        if self.count_frames(meta.id) == 0:
+            return "no_frames", "the session has no frames to reprocess"
+        return None
+
     def list_frames(self, session_id: str) -> list[FrameRecord]:
         """Return all committed frames sorted by seq (the frames.csv of spec §3)."""
         fdir = self.frames_dir(session_id)

@@ -1,0 +1,173 @@
+"""Reprocess jobs in Redis (spec §5): enqueue, read back, progress; the one owner of the job and batch records.
+
+A job is a Redis hash <prefix>job:<id> {id, state: queued|running|done|failed, done, total, session, version,
+error, owner, created, options, batch} plus an entry {"kind": "reprocess", "job", "session", "options"} on the
+stream <prefix>jobs, written in one MULTI so a worker never sees an entry without its hash. A batch is a hash
+<prefix>batch:<id> {jobs: json list, owner, created, sessions}. Both expire JOB_TTL_S after they were created.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import time
+import uuid
+from typing import Any, Protocol
+
+import redis
+
+from services.jobs import queue
+
+JOB_TTL_S = queue.JOB_TTL_S
+
+
+class Ledger(Protocol):
+    """The durable record of accepted jobs (services.store.storage.JobLedger)."""
+
+    def record(self, job_id: str, fields: dict[str, str]) -> None: ...
+
+    def discard(self, job_id: str) -> None: ...
+
+
+def new_id() -> str:
+    """Return a fresh job or batch id (32 hex digits)."""
+    return uuid.uuid4().hex
+
+
+def _job_fields(job_id: str, sid: str, owner: str, encoded: str, now: float, batch: str) -> dict[str, str]:
+    return {
+        "id": job_id,
+        "state": "queued",
+        "done": "0",
+        "total": "0",
+        "session": sid,
+        "version": "",
+        "error": "",
+        "owner": owner,
+        "created": repr(float(now)),
+        "options": encoded,
+        "batch": batch,
+    }
+
+
+def queue_full(r: redis.Redis, prefix: str, adding: int, max_depth: int) -> bool:
+    """Return True when `adding` more jobs would take the job stream beyond max_depth entries."""
+    return int(r.xlen(queue.jobs_stream(prefix))) + adding > max_depth
+
+
+def enqueue_reprocess(
+    r: redis.Redis,
+    prefix: str,
+    owner: str,
+    sessions: list[str],
+    options: dict[str, Any],
+    batch: str = "",
+    ledger: Ledger | None = None,
+) -> list[str]:
+    """Write one job hash per session and its stream entry (one MULTI), then record each job durably in the
+    ledger (the 202's promise: the reconciler re-enqueues a recorded job Redis lost); return the job ids.
+
+    If the durable record fails (a full disk), the jobs are taken off Redis again and the OSError is raised.
+    """
+    now = time.time()
+    ids = [new_id() for _ in sessions]
+    pipe = r.pipeline(transaction=True)
+    if batch:
+        pipe.hset(
+            queue.batch_key(batch, prefix),
+            mapping={"jobs": json.dumps(ids), "owner": owner, "created": repr(now), "sessions": json.dumps(sessions)},
+        )
+        pipe.expire(queue.batch_key(batch, prefix), JOB_TTL_S)
+    encoded = json.dumps(options, separators=(",", ":"))
+    records = {
+        job_id: _job_fields(job_id, sid, owner, encoded, now, batch) for job_id, sid in zip(ids, sessions, strict=True)
+    }
+    for job_id, sid in zip(ids, sessions, strict=True):
+        pipe.hset(queue.job_key(job_id, prefix), mapping=records[job_id])
+        pipe.expire(queue.job_key(job_id, prefix), JOB_TTL_S)
+        pipe.xadd(queue.jobs_stream(prefix), queue.job_entry(job_id, sid, encoded))
+    replies = pipe.execute()
+    if ledger is not None:
+        try:
+            for job_id in ids:
+                fields = records[job_id]
+                ledger.record(job_id, {k: fields[k] for k in ("session", "owner", "created", "options", "batch")})
+        except OSError:
+            entries = replies[2 if batch else 0 :][2::3]  # the XADD replies: the entry ids
+            with contextlib.suppress(redis.RedisError, OSError):
+                undo = r.pipeline(transaction=True)
+                if entries:
+                    undo.xdel(queue.jobs_stream(prefix), *entries)
+                undo.delete(*(queue.job_key(job_id, prefix) for job_id in ids))
+                undo.execute()
+            for job_id in ids:
+                with contextlib.suppress(OSError):
+                    ledger.discard(job_id)
+            raise
+    return ids
+
+
+def _decode(raw: dict[Any, Any]) -> dict[str, str]:
+    return {
+        (k.decode() if isinstance(k, bytes) else k): (v.decode() if isinstance(v, bytes) else v) for k, v in raw.items()
+    }
+
+
+def read_job(r: redis.Redis, prefix: str, job_id: str) -> dict[str, str]:
+    """Return a job's hash (decoded), {} when there is none."""
+    return _decode(r.hgetall(queue.job_key(job_id, prefix)))
+
+
+def read_batch(r: redis.Redis, prefix: str, batch_id: str) -> tuple[dict[str, str], list[tuple[str, dict[str, str]]]]:
+    """Return a batch's hash ({} when there is none) and (job id, job hash) of each of its jobs still stored."""
+    raw = _decode(r.hgetall(queue.batch_key(batch_id, prefix)))
+    if not raw:
+        return {}, []
+    ids = json.loads(raw.get("jobs") or "[]")
+    pipe = r.pipeline(transaction=False)
+    for job_id in ids:
+        pipe.hgetall(queue.job_key(job_id, prefix))
+    return raw, [(job_id, _decode(h)) for job_id, h in zip(ids, pipe.execute(), strict=True) if h]
+
+
+def job_view(raw: dict[str, str], job_id: str) -> dict[str, Any]:
+    """Return the public state of a job from its hash: id, state, session, version, done, total, progress,
+    error, created, batch, options (a damaged field reads as its empty value)."""
+
+    def as_int(name: str) -> int:
+        try:
+            return int(float(raw.get(name) or 0))
+        except ValueError:
+            return 0
+
+    done, total = as_int("done"), as_int("total")
+    try:
+        options = json.loads(raw.get("options") or "{}")
+    except ValueError:
+        options = {}
+    created = raw.get("created")
+    return {
+        "id": job_id,
+        "state": raw.get("state") or "queued",
+        "session": raw.get("session", ""),
+        "version": as_int("version") or None,
+        "done": done,
+        "total": total,
+        "progress": (min(1.0, done / total) if total > 0 else (1.0 if raw.get("state") == "done" else None)),
+        "error": raw.get("error") or None,
+        "created": float(created) if created else None,
+        "batch": raw.get("batch") or None,
+        "options": options if isinstance(options, dict) else {},
+    }
+
+
+def batch_state(states: set[str]) -> str:
+    """Return a batch's overall state from its jobs' states: done when all are done, failed when all ended and
+    one failed, queued when none started, else running."""
+    if states <= {"done"}:
+        return "done"
+    if states <= {"done", "failed"}:
+        return "failed"
+    if states <= {"queued"}:
+        return "queued"
+    return "running"
