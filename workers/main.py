@@ -38,10 +38,10 @@ from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.storage import SessionNotFoundError, SessionStore
 from workers.config import Context, WorkerConfig
 from workers.faults import Backoff, describe, is_transient
-from workers.prepare_stage import Retry, handle_frame, live_options
 from workers.reconciler import Reconciler
-from workers.register_stage import RegisterStage
-from workers.reprocess_stage import JobInterruptedError, handle_job
+from workers.stages.prepare import Retry, handle_frame, live_options
+from workers.stages.register import RegisterStage
+from workers.stages.reprocess import JobInterruptedError, handle_job
 
 log = logging.getLogger("veinmosaic.worker")
 

@@ -28,7 +28,7 @@ from services.jobs import queue
 from services.store.results_store import LIVE_VERSION
 from services.store.storage import SessionNotFoundError
 from workers.config import Context
-from workers.prepare_stage import stored_seqs
+from workers.stages.prepare import stored_seqs
 
 log = logging.getLogger("veinmosaic.worker")
 

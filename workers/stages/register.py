@@ -17,15 +17,12 @@ replays from the last durable state.json, so nothing half-written is ever publis
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-import cv2
-import numpy as np
 import redis
 
 from services.core.calibration import Calibration
@@ -34,16 +31,7 @@ from services.core.method_options import apply_calibration, parse_options
 from services.core.methods import MethodOptions
 from services.core.pipeline import window_radius_mm
 from services.core.registrar import STATUS_OK
-from services.core.results_docs import (
-    LAYERS,
-    canvas_extent_mm,
-    empty_image_meta,
-    empty_revisions,
-    image_meta,
-    mosaic_json,
-    path_tail,
-    rejected_row,
-)
+from services.core.results_docs import canvas_extent_mm, empty_image_meta, empty_revisions, image_meta, rejected_row
 from services.core.session_reconstruction import PathRow, SessionReconstruction
 from services.jobs import queue
 from services.jobs.leases import Lease, acquire
@@ -51,31 +39,14 @@ from services.store.results_store import LIVE_VERSION
 from services.store.storage import SessionNotFoundError
 from workers.config import Context
 from workers.faults import describe, is_transient
-from workers.prepare_stage import stored_seqs
+from workers.publisher import Publisher
+from workers.stages.prepare import stored_seqs
 
 log = logging.getLogger("veinmosaic.worker")
 
 
 class LeaseLostError(Exception):
     """Another worker holds (or took) the session: stop without writing."""
-
-
-def encode_png(image: np.ndarray) -> bytes:
-    """Return PNG bytes of an 8-bit image (OpenCV, fast compression)."""
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buf.tobytes()
-
-
-def publish_event(ctx: Context, sid: str, kind: str, data: dict[str, Any]) -> None:
-    """XADD an event {"type", "data": json} to the session's event stream (capped near EVENTS_MAXLEN)."""
-    ctx.r.xadd(
-        queue.events_stream(sid, ctx.prefix),
-        {"type": kind, "data": json.dumps(data, separators=(",", ":"), allow_nan=False)},
-        maxlen=queue.EVENTS_MAXLEN,
-        approximate=True,
-    )
 
 
 @dataclass
@@ -112,6 +83,7 @@ class RegisterStage:
 
     def __init__(self, ctx: Context) -> None:
         self.ctx = ctx
+        self.publisher = Publisher(ctx)
         self.held: dict[tuple[str, int], HeldSession] = {}
         self.faulted = False  # a held session met an infrastructure fault during the current step
 
@@ -402,13 +374,13 @@ class RegisterStage:
 
     def _flush(self, held: HeldSession, final: bool) -> None:
         """Write path, changed tiles, images when due, mosaic.json and state; count frames; publish an event."""
-        ctx, cfg = self.ctx, self.ctx.config
+        ctx, cfg, pub = self.ctx, self.ctx.config, self.publisher
         sid, v = held.sid, held.version
         self._renew_if_due(held, force=True)
         self._check_fence(held)
         now = time.monotonic()
         rows = self._rows(held)
-        ctx.results.write_path(sid, v, rows)
+        pub.write_path(sid, v, rows)
         doc = ctx.results.read_mosaic_meta(sid, v) or {}
         version = int(doc.get("version", 0)) + 1
         revisions: dict[str, dict[str, int]] = doc.get("revisions") or empty_revisions()
@@ -420,31 +392,18 @@ class RegisterStage:
         whole = {k for k in held.deferred if held.geometry.tiles_at(k[0]) == (1, 1)} if small else set()
         changed = held.deferred if images_due else held.deferred - whole
         held.deferred = set() if images_due else whole
-        tiles_event: dict[str, dict[str, int]] = {layer: {} for layer in LAYERS}
-        for level, col, row in sorted(changed):
-            name = f"{level}/{col}_{row}"
-            for layer in LAYERS:
-                png = held.pyramid.render_png(level, col, row, layer)
-                if png is None:
-                    ctx.results.delete_tile(sid, v, layer, level, col, row)
-                else:
-                    ctx.results.write_tile(sid, v, layer, level, col, row, png, durable=final)
-                revisions.setdefault(layer, {})[name] = version
-                tiles_event[layer][name] = version
-        if changed:
-            queue.incr_metric(ctx.r, "tile_renders_total", 2 * len(changed), prefix=ctx.prefix)
+        tiles_event = pub.write_tiles(sid, v, held.pyramid, changed, version, revisions, durable=final)
         image = image_meta(doc, held.calib.px_per_mm)
         if images_due:
-            mosaic = held.recon.canvas.render()
-            ctx.results.write_mosaic_images(sid, v, mosaic, raw_layers=final)  # + coverage.png, layers.npz
-            image = mosaic.meta()
+            image = pub.write_images(sid, v, held.recon.canvas.render(), raw_layers=final)  # + coverage, layers
             held.last_image = now
         finished = ctx.store.get_meta(sid).finished_at is not None
         status = "done" if final else ("processing" if finished else "receiving")
-        doc = mosaic_json(
+        doc = pub.write_mosaic_json(
+            sid,
+            v,
             image,
             version=version,
-            results_version=v,
             revisions=revisions,
             geometry=held.geometry,
             extent_mm=canvas_extent_mm(held.recon.canvas),
@@ -453,54 +412,22 @@ class RegisterStage:
             method=held.options.name,
             compliance=held.recon.compliance if final else None,
         )
-        ctx.results.write_mosaic_meta(sid, v, doc)
-        ctx.results.write_state(
-            sid,
-            v,
-            {
-                "cursor": held.cursor,
-                "fence": held.lease.token,
-                "finished": bool(final),
-                "lost": held.lost,
-                "rejected": held.rejected,
-            },
+        pub.write_state(
+            sid, v, cursor=held.cursor, fence=held.lease.token, finished=final, lost=held.lost, rejected=held.rejected
         )
-        if v == LIVE_VERSION:
-            self._record_counters(held, held.unreported, rows)
-        data = {
-            "version": v,
-            "mosaic_version": version,
-            **doc["frames"],
-            "tiles": tiles_event,
-            "path_tail": path_tail(rows, held.unreported),
-            "path_reset": bool(held.path_reset or final),
-            "extent_mm": doc["extent_mm"],
-            "status": status,
-        }
-        publish_event(ctx, sid, "done" if final else "progress", data)
+        self._record_counters(held, held.unreported)
+        pub.results_event(sid, doc, tiles_event, rows, held.unreported, held.path_reset or final)
         held.unreported = []
         held.path_reset = False
         held.dirty = False
         held.last_flush = time.monotonic()
         held.flush_interval = max(cfg.flush_every_s, 2.0 * (held.last_flush - now))
 
-    def _record_counters(self, held: HeldSession, seqs: list[int], rows: list[PathRow] | None = None) -> None:
-        if not seqs or held.version != LIVE_VERSION:
-            return
+    def _record_counters(self, held: HeldSession, seqs: list[int]) -> None:
+        """Count the frames `seqs` that have a registration result (idempotent per seq)."""
         statuses = {s: r.status for s, r in held.recon.results.items()}
-        counted = 0
-        lost_counted = 0
-        for seq in sorted(set(seqs)):
-            status = statuses.get(seq)
-            if status is None:
-                continue
-            if queue.record_frame_result(self.ctx.r, held.sid, seq, status != STATUS_OK, self.ctx.prefix):
-                counted += 1
-                lost_counted += status != STATUS_OK
-        if counted:
-            queue.incr_metric(self.ctx.r, "frames_processed_total", counted, prefix=self.ctx.prefix)
-        if lost_counted:
-            queue.incr_metric(self.ctx.r, "frames_lost_total", lost_counted, prefix=self.ctx.prefix)
+        outcomes = [(seq, statuses[seq] != STATUS_OK) for seq in sorted(set(seqs)) if seq in statuses]
+        self.publisher.count_frames(held.sid, held.version, outcomes)
 
     def _complete(self, held: HeldSession, session_status: str) -> None:
         """Final refinement and compliance fit, final flush and render, status done."""
@@ -524,11 +451,13 @@ class RegisterStage:
         for seq in rejected:
             rec = ctx.store.get_frame(sid, seq)
             rows.append(rejected_row(seq, rec.t_s if rec is not None else math.nan))
-        ctx.results.write_path(sid, v, rows)
-        doc = mosaic_json(
+        pub = self.publisher
+        pub.write_path(sid, v, rows)
+        doc = pub.write_mosaic_json(
+            sid,
+            v,
             empty_image_meta(calib.px_per_mm),
             version=1,
-            results_version=v,
             revisions=empty_revisions(),
             geometry=geometry,
             extent_mm=None,
@@ -536,18 +465,10 @@ class RegisterStage:
             status="done",
             method=opts.name,
         )
-        ctx.results.write_mosaic_meta(sid, v, doc)
         cursor = rejected[-1] + 1 if rejected else 0
-        state = {"cursor": cursor, "fence": lease.token, "finished": True, "lost": [], "rejected": rejected}
-        ctx.results.write_state(sid, v, state)
-        if v == LIVE_VERSION:
-            done = [queue.record_frame_result(ctx.r, sid, seq, True, ctx.prefix) for seq in rejected]
-            if any(done):
-                queue.incr_metric(ctx.r, "frames_processed_total", sum(done), prefix=ctx.prefix)
-                queue.incr_metric(ctx.r, "frames_lost_total", sum(done), prefix=ctx.prefix)
+        pub.write_state(sid, v, cursor=cursor, fence=lease.token, finished=True, rejected=rejected)
+        pub.count_frames(sid, v, [(seq, True) for seq in rejected])
         if session_status != "failed":
             ctx.store.set_status(sid, "done")
-        tail = path_tail(rows, rejected)
-        data = {"version": v, "mosaic_version": 1, **doc["frames"], "tiles": {}, "path_tail": tail, "path_reset": True}
-        publish_event(ctx, sid, "done", {**data, "extent_mm": None, "status": "done"})
+        pub.results_event(sid, doc, {}, rows, rejected, path_reset=True)
         lease.release(ctx.r, mode="final")

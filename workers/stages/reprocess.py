@@ -27,7 +27,7 @@ from services.core.image_header import BadImageError
 from services.core.method_options import apply_calibration, parse_options
 from services.core.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas
 from services.core.pipeline import reconstruct
-from services.core.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json, rejected_row
+from services.core.results_docs import canvas_extent_mm, empty_revisions, rejected_row
 from services.core.session_reconstruction import PathRow
 from services.jobs import queue
 from services.store.results_report import write_version_report
@@ -35,7 +35,7 @@ from services.store.results_store import LIVE_VERSION
 from services.store.storage import SessionNotFoundError, StorageError
 from workers.config import Context
 from workers.faults import is_transient
-from workers.register_stage import publish_event
+from workers.publisher import Publisher
 from workers.scan_from_store import scan_from_store
 
 log = logging.getLogger("veinmosaic.worker")
@@ -145,13 +145,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
     queue.incr_metric(ctx.r, "jobs_done_total", prefix=ctx.prefix)
     queue.incr_metric(ctx.r, "job_seconds_sum", seconds + 1e-9, prefix=ctx.prefix)
     queue.incr_metric(ctx.r, "job_seconds_count", prefix=ctx.prefix)
-    meta = ctx.results.read_mosaic_meta(sid, v) or {}
-    publish_event(
-        ctx,
-        sid,
-        "version",
-        {"version": v, "mosaic_version": meta.get("version", 1), "status": "done", "job": job_id, **meta["frames"]},
-    )
+    Publisher(ctx).version_event(sid, v, job_id)
 
 
 def _unreadable_frames(ctx: Context, sid: str, image_size: tuple[int, int] | list[int]) -> list[int]:
@@ -195,26 +189,20 @@ def write_version(
     heartbeat is called every 32 tiles: rendering a whole pyramid takes seconds on a loaded machine, longer
     than another worker waits before it claims the job's entry as abandoned (and runs it a second time).
     """
-    ctx.results.write_path(sid, v, rows)
+    pub = Publisher(ctx)
+    pub.write_path(sid, v, rows)
     geometry = DziGeometry.for_mosaic(mosaic.px_per_mm, ctx.config.half_extent_mm)
     pyramid = TilePyramid(geometry)
     canvas = canvas_from_mosaic(mosaic)
     changed = pyramid.update(canvas, set(canvas.tiles))
     revisions = empty_revisions()
-    for i, (level, col, row) in enumerate(sorted(changed)):
-        if i % 32 == 31:
-            heartbeat()
-        for layer in LAYERS:
-            png = pyramid.render_png(level, col, row, layer)
-            if png is not None:
-                ctx.results.write_tile(sid, v, layer, level, col, row, png)
-                revisions[layer][f"{level}/{col}_{row}"] = 1
-    queue.incr_metric(ctx.r, "tile_renders_total", 2 * len(changed), prefix=ctx.prefix)
-    ctx.results.write_mosaic_images(sid, v, mosaic)  # mosaic, force, coverage PNGs and the raw layers.npz
-    doc = mosaic_json(
+    pub.write_tiles(sid, v, pyramid, changed, 1, revisions, fresh=True, heartbeat=heartbeat)
+    pub.write_images(sid, v, mosaic)  # mosaic, force, coverage PNGs and the raw layers.npz
+    pub.write_mosaic_json(
+        sid,
+        v,
         mosaic.meta(),
         version=1,
-        results_version=v,
         revisions=revisions,
         geometry=geometry,
         extent_mm=canvas_extent_mm(canvas),
@@ -223,5 +211,4 @@ def write_version(
         method=method,
         compliance=compliance,
     )
-    ctx.results.write_mosaic_meta(sid, v, doc)
-    ctx.results.write_state(sid, v, {"cursor": len(rows), "fence": 0, "finished": True, "lost": [], "rejected": []})
+    pub.write_state(sid, v, cursor=len(rows), fence=0, finished=True)

@@ -1,0 +1,178 @@
+"""The one publisher of results and events: every write of a results version and every session event.
+
+The live register stage and the reprocess stage decide WHAT to publish (which tiles changed, whether the
+images are due, the status); this module is the one place that writes it, in the one order readers rely on:
+path.json, tiles, images, mosaic.json (services.core.results_docs.mosaic_json), state.json; then the frame
+counters and the event on the session's stream. Fencing (the lease check before a write) stays with the
+register stage, which calls the publisher only while it holds the session.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
+
+from services.core.deepzoom import TilePyramid
+from services.core.mosaic import MosaicImage
+from services.core.results_docs import LAYERS, mosaic_json, path_tail
+from services.core.session_reconstruction import PathRow
+from services.jobs import queue
+from services.store.results_store import LIVE_VERSION
+from workers.config import Context
+
+TileKey = tuple[int, int, int]  # (level, col, row)
+Revisions = dict[str, dict[str, int]]  # {layer: {"level/col_row": revision}}
+
+
+class Publisher:
+    """Writes results versions (path, tiles, images, mosaic.json, state), counts frames, publishes events."""
+
+    def __init__(self, ctx: Context) -> None:
+        self.ctx = ctx
+
+    # ----- results files ---------------------------------------------------------------------------------------
+    def write_path(self, sid: str, v: int, rows: Sequence[PathRow]) -> None:
+        """Write path.json of version v."""
+        self.ctx.results.write_path(sid, v, rows)
+
+    def write_tiles(
+        self,
+        sid: str,
+        v: int,
+        pyramid: TilePyramid,
+        tiles: Iterable[TileKey],
+        revision: int,
+        revisions: Revisions,
+        *,
+        durable: bool = True,
+        fresh: bool = False,
+        heartbeat: Callable[[], None] = lambda: None,
+    ) -> Revisions:
+        """Render and write `tiles` of both layers; return {layer: {name: revision}} of what changed.
+
+        A tile with no data any more is deleted (the API serves a blank one) and its revision recorded so that
+        clients re-read it; in a `fresh` version (nothing written before) there is nothing to delete or record.
+        `revisions` (mosaic.json's) is updated in place. heartbeat is called every 32 tiles: rendering a whole
+        pyramid takes seconds on a loaded machine. Counts tile_renders_total.
+        """
+        results = self.ctx.results
+        changed: Revisions = {layer: {} for layer in LAYERS}
+        keys = sorted(tiles)
+        for i, (level, col, row) in enumerate(keys):
+            if i % 32 == 31:
+                heartbeat()
+            name = f"{level}/{col}_{row}"
+            for layer in LAYERS:
+                png = pyramid.render_png(level, col, row, layer)
+                if png is not None:
+                    results.write_tile(sid, v, layer, level, col, row, png, durable=durable)
+                elif fresh:
+                    continue
+                else:
+                    results.delete_tile(sid, v, layer, level, col, row)
+                revisions.setdefault(layer, {})[name] = revision
+                changed[layer][name] = revision
+        if keys:
+            queue.incr_metric(self.ctx.r, "tile_renders_total", 2 * len(keys), prefix=self.ctx.prefix)
+        return changed
+
+    def write_images(self, sid: str, v: int, mosaic: MosaicImage, raw_layers: bool = True) -> dict[str, Any]:
+        """Write mosaic.png, force.png, coverage.png (and raw_layers: layers.npz); return the image meta."""
+        self.ctx.results.write_mosaic_images(sid, v, mosaic, raw_layers=raw_layers)
+        return mosaic.meta()
+
+    def write_mosaic_json(self, sid: str, v: int, image: Mapping[str, Any], **fields: Any) -> dict[str, Any]:
+        """Write mosaic.json of version v and return it: results_docs.mosaic_json(image, results_version=v,
+        **fields), the one shape every producer writes (version, revisions, geometry, extent_mm, rows, status,
+        method, compliance)."""
+        doc = mosaic_json(image, results_version=v, **fields)
+        self.ctx.results.write_mosaic_meta(sid, v, doc)
+        return doc
+
+    def write_state(
+        self,
+        sid: str,
+        v: int,
+        *,
+        cursor: int,
+        fence: int,
+        finished: bool,
+        lost: Sequence[int] = (),
+        rejected: Sequence[int] = (),
+    ) -> None:
+        """Write state.json: the registration cursor, the fence token, finished, the lost and rejected seqs."""
+        state = {
+            "cursor": cursor,
+            "fence": fence,
+            "finished": bool(finished),
+            "lost": list(lost),
+            "rejected": list(rejected),
+        }
+        self.ctx.results.write_state(sid, v, state)
+
+    # ----- counters and events ---------------------------------------------------------------------------------
+    def count_frames(self, sid: str, v: int, outcomes: Iterable[tuple[int, bool]]) -> None:
+        """Count each (seq, lost) of the live version once: session counters, frames_processed/lost_total."""
+        if v != LIVE_VERSION:
+            return
+        ctx = self.ctx
+        counted = 0
+        lost_counted = 0
+        for seq, lost in outcomes:
+            if queue.record_frame_result(ctx.r, sid, seq, lost, ctx.prefix):
+                counted += 1
+                lost_counted += bool(lost)
+        if counted:
+            queue.incr_metric(ctx.r, "frames_processed_total", counted, prefix=ctx.prefix)
+        if lost_counted:
+            queue.incr_metric(ctx.r, "frames_lost_total", lost_counted, prefix=ctx.prefix)
+
+    def event(self, sid: str, kind: str, data: dict[str, Any]) -> None:
+        """XADD an event {"type", "data": json} to the session's event stream (capped near EVENTS_MAXLEN)."""
+        ctx = self.ctx
+        ctx.r.xadd(
+            queue.events_stream(sid, ctx.prefix),
+            {"type": kind, "data": json.dumps(data, separators=(",", ":"), allow_nan=False)},
+            maxlen=queue.EVENTS_MAXLEN,
+            approximate=True,
+        )
+
+    def results_event(
+        self,
+        sid: str,
+        doc: Mapping[str, Any],
+        tiles: Revisions,
+        rows: Sequence[PathRow],
+        reported: Sequence[int],
+        path_reset: bool,
+    ) -> None:
+        """Publish a `progress` (or, status done, `done`) event for the mosaic.json `doc` just written.
+
+        tiles: the changed tiles' revisions; reported: the seqs handled since the last event (the path tail);
+        path_reset: an earlier frame moved, clients re-read the whole path.
+        """
+        status = doc["status"]
+        data = {
+            "version": doc["results_version"],
+            "mosaic_version": doc["version"],
+            **doc["frames"],
+            "tiles": tiles,
+            "path_tail": path_tail(rows, reported),
+            "path_reset": bool(path_reset),
+            "extent_mm": doc["extent_mm"],
+            "status": status,
+        }
+        self.event(sid, "done" if status == "done" else "progress", data)
+
+    def version_event(self, sid: str, v: int, job_id: str) -> None:
+        """Publish a `version` event: reprocess job `job_id` made version v (complete, now current)."""
+        meta = self.ctx.results.read_mosaic_meta(sid, v) or {}
+        data = {
+            "version": v,
+            "mosaic_version": meta.get("version", 1),
+            "status": "done",
+            "job": job_id,
+            **meta["frames"],
+        }
+        self.event(sid, "version", data)
