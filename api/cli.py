@@ -75,27 +75,19 @@ def _print_warnings(warnings: list[dict[str, str]]) -> None:
 
 
 def _parse_options(pairs: list[str]) -> dict[str, object]:
-    """Return method overrides from KEY=VALUE strings, each value typed like the option's default."""
-    from dataclasses import fields
+    """Return method overrides from KEY=VALUE strings, validated (and converted) by the one options model."""
+    from services.core.method_options import check_overrides
 
-    from services.core.methods import MethodOptions
-
-    types = {f.name: f.type for f in fields(MethodOptions)}
     out: dict[str, object] = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
-        if not sep or key not in types:
-            raise ValueError(f"--option {pair!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(types))}")
-        kind = types[key]
-        if kind == "bool":
-            out[key] = value.lower() in ("1", "true", "yes", "on")
-        elif kind == "int":
-            out[key] = int(value)
-        elif kind == "float":
-            out[key] = float(value)
-        else:
-            out[key] = value
-    return out
+        if not sep or not key:
+            raise ValueError(f"--option {pair!r}: expected KEY=VALUE")
+        out[key] = value
+    try:
+        return check_overrides(out, lax=True)
+    except ValueError as exc:
+        raise ValueError(f"--option: {exc}") from None
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import fields as dataclass_fields
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, StrictInt, create_model
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt
 
-from services.core.features import FEATURE_KINDS
-from services.core.methods import METHOD_NAMES, REGISTRATION_KINDS, MethodOptions
+from services.core.method_options import MethodOverrides
+from services.core.methods import METHOD_NAMES
 from services.store.storage import MAX_SEQ
 
 # A JSON number that is finite: NaN/Infinity literals (which Python's json accepts) are rejected, and so are
@@ -151,33 +150,9 @@ class Health(Strict):
 # ----- results, reprocess and jobs (issue 3) ---------------------------------------------------------------------
 
 
-NonNegative = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0)]
-Count = Annotated[int, Field(strict=True, ge=0, le=1_000_000)]
-
-
-def _method_options_model() -> type[BaseModel]:
-    """Return the model of "method_options", made from services.core.methods.MethodOptions' fields and defaults.
-
-    Booleans stay booleans, counts are whole numbers >= 0, thresholds finite numbers >= 0, and the two
-    choices (features, registration) their known kinds, as api.routes.reprocess.validate_options requires.
-    """
-    specs: dict[str, Any] = {}
-    for f in dataclass_fields(MethodOptions):
-        default = f.default
-        if f.name == "features":
-            specs[f.name] = (Literal[FEATURE_KINDS] | None, None)  # type: ignore[valid-type]
-        elif f.name == "registration":
-            specs[f.name] = (Literal[REGISTRATION_KINDS] | None, None)  # type: ignore[valid-type]
-        elif isinstance(default, bool):
-            specs[f.name] = (StrictBool | None, None)
-        elif isinstance(default, int):
-            specs[f.name] = (Count | None, None)
-        elif isinstance(default, float):
-            specs[f.name] = (NonNegative | None, None)
-    return create_model("MethodOptionsDoc", __config__=ConfigDict(extra="forbid"), **specs)
-
-
-MethodOptionsDoc = _method_options_model()
+# "method_options" is services.core.method_options.MethodOverrides: the one validator of method options (the
+# workers and the CLI use it too): strict types, ranges, unknown options refused
+MethodOptionsDoc = MethodOverrides
 
 
 class CalibrationOverrides(Strict):

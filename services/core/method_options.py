@@ -6,10 +6,11 @@ could carry patient data): they reach 422 answers, job records and logs.
 
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import fields
-from typing import Any
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationError, create_model
 
 from services.core.calibration import Calibration, CalibrationError
 from services.core.features import FEATURE_KINDS
@@ -18,25 +19,103 @@ from services.core.methods import METHOD_NAMES, REGISTRATION_KINDS, MethodOption
 USER_KEYS = ("method", "method_options", "calibration")
 SYSTEM_KEYS = ("source", "job")  # written by the workers into options.json
 
+MAX_COUNT = 1_000_000
+# ranges beyond "a finite number >= 0" (floats) and "a whole number 0..MAX_COUNT" (ints)
+_BOUNDS: dict[str, dict[str, float]] = {
+    "vein_scale": {"gt": 0, "le": 1},  # a fraction of full resolution
+    "ratio": {"ge": 0, "le": 1},  # Lowe ratio
+    "min_correlation": {"ge": 0, "le": 1},  # ECC correlation
+}
 
-def _check_override_types(base: MethodOptions, overrides: dict[str, Any]) -> None:
-    known = {f.name: getattr(base, f.name) for f in fields(base)}
-    for name, value in overrides.items():
-        if name == "name":
-            raise ValueError("method_options: 'name' cannot be overridden; use 'method'")
-        if name not in known:
-            raise ValueError(f"method_options: unknown option; expected some of {', '.join(sorted(known))}")
-        default = known[name]
-        if isinstance(default, bool):
-            ok = isinstance(value, bool)
+
+def _overrides_model() -> type[BaseModel]:
+    """Return the model of "method_options": every MethodOptions field but its name, optional, typed and bounded.
+
+    Strict types (a bool is never a number, a number never a string), finite floats, unknown keys refused.
+    """
+    specs: dict[str, Any] = {}
+    for f in fields(MethodOptions):
+        default = f.default
+        if f.name == "name":
+            continue
+        if f.name == "features":
+            kind: Any = Literal[FEATURE_KINDS]  # type: ignore[valid-type]
+        elif f.name == "registration":
+            kind = Literal[REGISTRATION_KINDS]  # type: ignore[valid-type]
+        elif isinstance(default, bool):
+            kind = StrictBool
         elif isinstance(default, int):
-            ok = isinstance(value, int) and not isinstance(value, bool)
+            kind = Annotated[int, Field(strict=True, ge=0, le=MAX_COUNT)]
         elif isinstance(default, float):
-            ok = isinstance(value, int | float) and not isinstance(value, bool)
-        else:
-            ok = isinstance(value, type(default))
-        if not ok:
-            raise ValueError(f"method_options: {name} must be a {type(default).__name__}")
+            bounds = _BOUNDS.get(f.name, {"ge": 0})
+            kind = Annotated[float, Field(strict=True, allow_inf_nan=False, **bounds)]
+        else:  # pragma: no cover - a new kind of option needs its type here
+            raise TypeError(f"MethodOptions.{f.name}: no validation rule for {type(default).__name__}")
+        specs[f.name] = (kind | None, None)
+    return create_model(
+        "MethodOverrides",
+        __config__=ConfigDict(extra="forbid", frozen=True),
+        __doc__="Overrides of a method's options (services.core.methods.MethodOptions), each optional.",
+        **specs,
+    )
+
+
+# The one validator of method options: the API's request schema, the workers' options.json and the CLI's
+# --option KEY=VALUE (lax mode: strings converted) all go through it.
+MethodOverrides = _overrides_model()
+
+_KINDS = {
+    "bool_type": "a boolean",
+    "int_type": "a whole number",
+    "int_from_float": "a whole number",
+    "int_parsing": "a whole number",
+    "float_type": "a number",
+    "float_parsing": "a number",
+    "finite_number": "a finite number",
+    "bool_parsing": "a boolean",
+}
+_BOUND_ERRORS = {
+    "greater_than": ("gt", ">"),
+    "greater_than_equal": ("ge", ">="),
+    "less_than": ("lt", "<"),
+    "less_than_equal": ("le", "<="),
+}
+
+
+def _constraint(error: dict[str, Any]) -> str:
+    """Return the constraint a pydantic error broke, without the submitted value."""
+    kind, ctx = error["type"], error.get("ctx") or {}
+    if kind in _KINDS:
+        return f"must be {_KINDS[kind]}"
+    if kind == "literal_error":
+        return f"must be one of {ctx.get('expected', '')}".rstrip()
+    for bound, (name, word) in _BOUND_ERRORS.items():
+        if kind == bound:
+            return f"must be {word} {ctx.get(name)}"
+    return "is invalid"
+
+
+def check_overrides(overrides: Any, lax: bool = False) -> dict[str, Any]:
+    """Return the method option overrides validated by MethodOverrides (only the fields given, floats as floats).
+
+    lax=True converts strings (the CLI's KEY=VALUE). ValueError names the option and the constraint only.
+    """
+    if overrides is None:
+        return {}
+    if not isinstance(overrides, dict):
+        raise ValueError("options.method_options must be an object")
+    if "name" in overrides:
+        raise ValueError("method_options: 'name' cannot be overridden; use 'method'")
+    try:
+        model = MethodOverrides.model_validate(overrides, strict=False if lax else None)
+    except ValidationError as exc:
+        error = exc.errors(include_input=False, include_url=False)[0]
+        if error["type"] == "extra_forbidden":
+            known = ", ".join(sorted(MethodOverrides.model_fields))
+            raise ValueError(f"method_options: unknown option; expected some of {known}") from None
+        field = ".".join(str(p) for p in error["loc"]) or "method_options"
+        raise ValueError(f"method_options: {field} {_constraint(error)}") from None
+    return model.model_dump(exclude_unset=True)
 
 
 def parse_options(doc: Any, strict: bool = True) -> tuple[MethodOptions, dict[str, Any]]:
@@ -57,14 +136,7 @@ def parse_options(doc: Any, strict: bool = True) -> tuple[MethodOptions, dict[st
         raise ValueError("options.method must be a string")
     if name not in METHOD_NAMES:
         raise ValueError(f"options.method: unknown method; expected one of {', '.join(METHOD_NAMES)}")
-    opts = method_options(name)
-    overrides = doc.get("method_options") or {}
-    if not isinstance(overrides, dict):
-        raise ValueError("options.method_options must be an object")
-    _check_override_types(opts, overrides)
-    opts = opts.with_overrides(
-        {k: (float(v) if isinstance(getattr(opts, k), float) else v) for k, v in overrides.items()}
-    )
+    opts = method_options(name).with_overrides(check_overrides(doc.get("method_options")))
     calib = doc.get("calibration") or {}
     if not isinstance(calib, dict):
         raise ValueError("options.calibration must be an object of calibration.json fields")
@@ -93,7 +165,6 @@ def apply_calibration(base: Calibration, overrides: dict[str, Any]) -> Calibrati
 
 
 FIXED_CALIBRATION = ("image_size",)  # the stored frames have this size: it cannot be overridden
-NON_NEGATIVE = ("ransac_px", "ratio", "max_jump_mm", "blur_ratio", "min_inliers", "neighbours", "loop_gap")
 
 
 def validate_options(doc: Any, base: Calibration | None = None) -> dict[str, Any]:
@@ -102,25 +173,16 @@ def validate_options(doc: Any, base: Calibration | None = None) -> dict[str, Any
     Raises ValueError naming the field (method, an option, a fixed calibration field), CalibrationError for a
     calibration override that does not apply to `base`; no message quotes a submitted value.
     """
-    opts, calib = parse_options(doc, strict=True)
-    if opts.features not in FEATURE_KINDS:
-        raise ValueError(f"method_options: features must be one of {', '.join(FEATURE_KINDS)}")
-    if opts.registration not in REGISTRATION_KINDS:
-        raise ValueError(f"method_options: registration must be one of {', '.join(REGISTRATION_KINDS)}")
-    for name in NON_NEGATIVE:
-        value = getattr(opts, name)
-        if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"method_options: {name} must be a finite number >= 0")
-    if opts.max_features < 0:
-        raise ValueError("method_options: max_features must be >= 0")
+    opts, calib = parse_options(doc, strict=True)  # method options: MethodOverrides
     for name in FIXED_CALIBRATION:
         if name in calib:
             raise ValueError(f"calibration.{name}: cannot be changed (the stored frames fix it)")
     if base is not None:
         apply_calibration(base, calib)
     out: dict[str, Any] = {"method": opts.name}
-    if (doc or {}).get("method_options"):
-        out["method_options"] = dict(doc["method_options"])
+    overrides = check_overrides((doc or {}).get("method_options"))
+    if overrides:
+        out["method_options"] = overrides
     if calib:
         out["calibration"] = calib
     return out

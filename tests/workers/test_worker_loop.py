@@ -92,8 +92,8 @@ def test_parse_options() -> None:
     for doc, needle in [
         ({"method": "nope"}, "unknown method"),
         ({"colour": 1}, "unknown field"),
-        ({"method_options": {"min_inliers": "x"}}, "min_inliers must be a int"),
-        ({"method_options": {"refine": 1}}, "refine must be a bool"),
+        ({"method_options": {"min_inliers": "x"}}, "min_inliers must be a whole number"),
+        ({"method_options": {"refine": 1}}, "refine must be a boolean"),
         ({"method_options": {"bogus": 1}}, "unknown option"),
         ({"method_options": {"name": "x"}}, "cannot be overridden"),
         ([], "JSON object"),
