@@ -14,12 +14,15 @@ its URL (that counts as one restart, of the Redis). The service stops only on SI
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +35,89 @@ from services.settings import Settings, get_settings
 
 READY_TIMEOUT_S = 60.0
 log = logging.getLogger("veinmosaic.launcher")
+
+
+# ----- starting service processes: used by Service, the tests and the benchmarks ----------------------------------
+def free_port(host: str = "127.0.0.1") -> int:
+    """Return a TCP port free on `host` right now."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def service_env(
+    data_dir: Path,
+    keys: dict[str, list[str]] | None = None,
+    *,
+    redis_url: str | None = None,
+    clean: bool = False,
+    pythonpath: Path | None = None,
+    **settings: str,
+) -> dict[str, str]:
+    """Return the environment of a service process: this one's (without VEINMOSAIC_* variables when `clean`),
+    the data dir, the API keys, REDIS_URL when given, `pythonpath` first on PYTHONPATH, and every other
+    setting as VEINMOSAIC_<NAME>."""
+    env = {k: v for k, v in os.environ.items() if not (clean and k.startswith("VEINMOSAIC_"))}
+    if pythonpath is not None:
+        env["PYTHONPATH"] = str(pythonpath) + os.pathsep + env.get("PYTHONPATH", "")
+    if redis_url:
+        env["REDIS_URL"] = redis_url
+    env["VEINMOSAIC_DATA_DIR"] = str(data_dir)
+    if keys is not None:
+        env["VEINMOSAIC_API_KEYS"] = json.dumps(keys)
+    env.update({f"VEINMOSAIC_{k.upper()}": v for k, v in settings.items()})
+    return env
+
+
+def api_command(host: str, port: int, log_level: str = "warning") -> list[str]:
+    """Return the command running the API alone (uvicorn, the app factory) on host:port."""
+    return [
+        sys.executable, "-m", "uvicorn", "api.app:create_app", "--factory",
+        "--host", host, "--port", str(port), "--no-access-log", "--log-level", log_level,
+    ]  # fmt: skip
+
+
+def serve_command(port: int, workers: int) -> list[str]:
+    """Return the command running `veinmosaic serve` (API, workers, supervision) on 127.0.0.1:port."""
+    return [sys.executable, "-m", "api.cli", "serve", "--port", str(port), "--workers", str(workers)]
+
+
+def start_process(
+    command: list[str], env: dict[str, str], log_path: Path | None = None, cwd: Path | None = None
+) -> subprocess.Popen[bytes]:
+    """Start `command`; its stdout and stderr appended to log_path (discarded without one)."""
+    if log_path is None:
+        return subprocess.Popen(command, cwd=cwd, env=env, stdout=subprocess.DEVNULL)
+    with open(log_path, "ab") as out:  # the child keeps its own descriptor
+        return subprocess.Popen(command, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT)
+
+
+def wait_until_ready(url: str, timeout_s: float, processes: Sequence[subprocess.Popen[bytes]] = ()) -> None:
+    """Block until GET url answers 200; RuntimeError when one of `processes` exits first or time runs out."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        dead = [p for p in processes if p.poll() is not None]
+        if dead:
+            raise RuntimeError(f"a service process exited early (code {dead[0].returncode})")
+        with contextlib.suppress(httpx.HTTPError):
+            if httpx.get(url, timeout=2.0).status_code == 200:
+                return
+        time.sleep(0.2)
+    raise RuntimeError(f"{url} did not answer 200 within {timeout_s:.0f} s")
+
+
+def stop_processes(processes: Sequence[subprocess.Popen[bytes]], timeout_s: float = 10.0) -> None:
+    """SIGTERM every process still running, then SIGKILL those not gone within timeout_s (in all)."""
+    for p in processes:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + timeout_s
+    for p in processes:
+        try:
+            p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
 
 
 @dataclass
@@ -102,10 +188,7 @@ class Service:
         self._env_used = env
         for i in range(self.workers):
             self._spawn(f"worker-{i + 1}", [sys.executable, "-m", "workers.main"])
-        api = [
-            sys.executable, "-m", "uvicorn", "api.app:create_app", "--factory",
-            "--host", self.host, "--port", str(self.port), "--no-access-log", "--log-level", "warning",
-        ]  # fmt: skip
+        api = api_command(self.host, self.port)
         if self.settings.api_workers > 1:  # uvicorn's own supervisor keeps that many API processes alive
             api += ["--workers", str(self.settings.api_workers)]
         self._spawn("api", api)
@@ -252,29 +335,11 @@ class Service:
 
     def wait_ready(self, timeout_s: float = READY_TIMEOUT_S) -> None:
         """Block until GET /readyz is 200; raise RuntimeError if a process died (at start) or time ran out."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            dead = [p for p in self.processes if p.poll() is not None]
-            if dead:
-                raise RuntimeError(f"a service process exited early (code {dead[0].returncode})")
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(f"{self.base_url}/readyz", timeout=2.0).status_code == 200:
-                    return
-            time.sleep(0.2)
-        raise RuntimeError(f"the API did not become ready within {timeout_s:.0f} s")
+        wait_until_ready(f"{self.base_url}/readyz", timeout_s, self.processes)
 
     def stop(self) -> None:
         """Stop the API and workers (SIGTERM, then SIGKILL after 10 s), then the embedded Redis."""
-        for p in self.processes:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + 10.0
-        for p in self.processes:
-            try:
-                p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        stop_processes(self.processes, 10.0)
         self.processes.clear()
         self.children.clear()
         if self._metrics is not None and self._metrics is not self.embedded:

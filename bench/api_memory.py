@@ -35,7 +35,7 @@ import httpx
 import numpy as np
 import psutil
 
-from api.launcher import Service
+from api.launcher import Service, free_port
 
 KEY = f"bench-{uuid.uuid4().hex}"
 W, H = 640, 480
@@ -44,13 +44,6 @@ CALIBRATION = {
     "camera_matrix": [[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]],
     "px_per_mm": 8.0,
 }
-
-
-def free_port() -> int:
-    """Return a free TCP port on 127.0.0.1."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def png_claiming(width: int, height: int, colour_type: int = 0) -> bytes:

@@ -24,7 +24,6 @@ import json
 import os
 import secrets
 import signal
-import socket
 import sys
 import tempfile
 import threading
@@ -40,7 +39,7 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from api.client import ApiError, VeinmosaicClient, upload_scan_folder
-from api.launcher import Service
+from api.launcher import Service, free_port
 from services.core.scan import Scan
 from services.core.simulation.scenarios import SCENARIOS, simulate
 from services.settings import get_settings
@@ -102,13 +101,6 @@ HEADER = [
     "run", "rate set", "frames", "upload f/s", "proc f/s", "proc/upload", "lag p50 s", "lag p95 s", "lag max s",
     "backlog at end", "backlog trend f/s", "drain s", "done s", "registered %", "keeps up",
 ]  # fmt: skip
-
-
-def free_port() -> int:
-    """Return a free TCP port on loopback."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def first_frames(scan: Scan, n: int) -> Scan:

@@ -18,8 +18,6 @@ import json
 import os
 import random
 import shutil
-import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -34,16 +32,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from api.launcher import (  # noqa: E402
+    free_port,
+    serve_command,
+    service_env,
+    start_process,
+    stop_processes,
+    wait_until_ready,
+)
 from services.core.simulation.scenarios import simulate  # noqa: E402
 
 KEY = "load-test-key"
-
-
-def free_port() -> int:
-    """Return a free TCP port on loopback."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass
@@ -90,38 +89,24 @@ class Server:
                 stdout=subprocess.DEVNULL,
             )  # fmt: skip
             self.redis_url = f"redis://127.0.0.1:{rport}/0"
-        env = dict(os.environ)
-        env.update(
-            {
-                "PYTHONPATH": str(ROOT) + os.pathsep + env.get("PYTHONPATH", ""),
-                "REDIS_URL": self.redis_url,
-                "VEINMOSAIC_DATA_DIR": str(self.tmp / "data"),
-                "VEINMOSAIC_API_KEYS": json.dumps({KEY: ["ingest", "view", "admin"]}),
-                "VEINMOSAIC_LOG_LEVEL": "WARNING",
-                "VEINMOSAIC_API_WORKERS": str(api_workers),
-            }
+        env = service_env(
+            self.tmp / "data",
+            {KEY: ["ingest", "view", "admin"]},
+            redis_url=self.redis_url,
+            pythonpath=ROOT,
+            log_level="WARNING",
+            api_workers=str(api_workers),
         )
-        cmd = [sys.executable, "-m", "api.cli", "serve", "--port", str(self.port), "--workers", str(workers)]
-        self.serve = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+        self.serve = start_process(serve_command(self.port, workers), env, cwd=ROOT)
         self.base = f"http://127.0.0.1:{self.port}"
 
     def wait_ready(self, timeout_s: float = 90.0) -> None:
         """Block until /readyz answers 200."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(f"{self.base}/readyz", timeout=1.0).status_code == 200:
-                    return
-            time.sleep(0.2)
-        raise RuntimeError("server not ready")
+        wait_until_ready(f"{self.base}/readyz", timeout_s, [self.serve])
 
     def stop(self) -> None:
         """Stop serve, then Redis; remove the temp dir."""
-        self.serve.send_signal(signal.SIGTERM)
-        try:
-            self.serve.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.serve.kill()
+        stop_processes([self.serve], 30.0)
         if self.redis is not None:
             self.redis.terminate()
             self.redis.wait()

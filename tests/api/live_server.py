@@ -6,29 +6,21 @@ one the app starts in its data directory.
 
 from __future__ import annotations
 
-import json
 import os
-import socket
 import subprocess
-import sys
-import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-import httpx
 import redis
 
+from api.launcher import api_command, free_port, service_env, start_process, stop_processes, wait_until_ready
+
+__all__ = ["LiveAPI", "free_port", "live_api"]
+
 READY_TIMEOUT_S = 30.0
-
-
-def free_port() -> int:
-    """Return a free TCP port on 127.0.0.1."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass
@@ -51,43 +43,18 @@ def live_api(tmp_path: Path, keys: dict[str, list[str]], **settings: str) -> Ite
     port = free_port()
     data_dir = tmp_path / f"data-{port}"
     prefix = f"vmtest:{uuid.uuid4().hex}:"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("VEINMOSAIC_")}
-    env.update(
-        {
-            "VEINMOSAIC_DATA_DIR": str(data_dir),
-            "VEINMOSAIC_API_KEYS": json.dumps(keys),
-            "VEINMOSAIC_REDIS_PREFIX": prefix,
-            "VEINMOSAIC_TOKEN_SECRET": uuid.uuid4().hex,
-            **{f"VEINMOSAIC_{k.upper()}": v for k, v in settings.items()},
-        }
-    )
+    env = service_env(data_dir, keys, clean=True, redis_prefix=prefix, token_secret=uuid.uuid4().hex, **settings)
     log_path = tmp_path / f"api-{port}.log"
-    command = [
-        sys.executable, "-m", "uvicorn", "api.app:create_app", "--factory",
-        "--host", "127.0.0.1", "--port", str(port), "--no-access-log", "--log-level", "info",
-    ]  # fmt: skip
-    with open(log_path, "wb") as log:
-        proc = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+    proc = start_process(api_command("127.0.0.1", port, log_level="info"), env, log_path)
     api = LiveAPI(f"http://127.0.0.1:{port}", proc, data_dir, log_path)
     try:
-        deadline = time.monotonic() + READY_TIMEOUT_S
-        while True:
-            try:
-                if httpx.get(f"{api.base_url}/healthz", timeout=1.0).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError("the API did not start:\n" + "\n".join(api.log_lines()[-20:]))
-            time.sleep(0.1)
+        try:
+            wait_until_ready(f"{api.base_url}/healthz", READY_TIMEOUT_S, [proc])
+        except RuntimeError as exc:
+            raise RuntimeError(f"the API did not start ({exc}):\n" + "\n".join(api.log_lines()[-20:])) from None
         yield api
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_processes([proc], 15.0)
         if os.environ.get("REDIS_URL"):
             r = redis.Redis.from_url(os.environ["REDIS_URL"])
             keys_found = list(r.scan_iter(match=f"{prefix}*"))

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -17,7 +16,7 @@ import numpy as np
 import pytest
 
 from api.client import VeinmosaicClient
-from api.launcher import Service
+from api.launcher import Service, free_port
 from services.core.scan import Scan
 from services.jobs import queue
 from services.jobs.redis_backend import connect, read_embedded_url
@@ -27,12 +26,6 @@ from tests.sim_cache import live_short, offline_best, simulated
 # Live and offline feed identical prepared frames in identical order to the same deterministic code, so the
 # paths agree to rounding; 1e-6 mm is far below anything that matters yet catches any change of input or order.
 PATH_TOL_MM = 1e-6
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def upload_out_of_order(client: VeinmosaicClient, folder: Path, seed: int) -> str:

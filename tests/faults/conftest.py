@@ -8,8 +8,6 @@ import contextlib
 import json
 import os
 import shutil
-import signal
-import socket
 import subprocess
 import sys
 import time
@@ -23,6 +21,7 @@ import numpy as np
 import pytest
 import redis
 
+from api.launcher import free_port, serve_command, service_env, start_process, stop_processes
 from services.core.scan import Scan
 from services.jobs import queue
 from services.store.results_store import LIVE_VERSION, ResultsStore
@@ -43,13 +42,6 @@ FAST: dict[str, Any] = {
     "fault_backoff_max_s": 1.0,
     "reconcile_every_s": 3.0,
 }
-
-
-def free_port() -> int:
-    """Return a TCP port free on loopback right now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass
@@ -92,13 +84,8 @@ class RedisServer:
 
     def stop(self) -> None:
         """Stop the server if it runs."""
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        if self.proc is not None:
+            stop_processes([self.proc], 10.0)
 
 
 @pytest.fixture
@@ -133,8 +120,7 @@ class Workers:
             sys.executable, "-m", "workers.main", "--data-dir", str(self.data_dir), "--redis-url", self.url,
             "--prefix", PREFIX, "--consumer", f"fault-{name}", "--config-json", json.dumps({**FAST, **config}),
         ]  # fmt: skip
-        log = open(self.log_dir / f"worker-{name}.log", "ab")  # noqa: SIM115 (kept open for the process)
-        proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+        proc = start_process(cmd, env, self.log_dir / f"worker-{name}.log", cwd=REPO)
         self.procs[name] = proc
         return proc
 
@@ -157,15 +143,7 @@ class Workers:
 
     def stop(self) -> None:
         """SIGTERM every worker, SIGKILL what does not stop within 15 s."""
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in self.procs.values():
-            try:
-                p.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        stop_processes(list(self.procs.values()), 15.0)
 
 
 @pytest.fixture
@@ -181,6 +159,23 @@ def workers_factory(tmp_path: Path) -> Iterator[Callable[[Path, str], Workers]]:
     yield make
     for w in made:
         w.stop()
+
+
+def start_serve(
+    log_dir: Path, data_dir: Path, key: str, redis_url: str | None, **settings: str
+) -> tuple[subprocess.Popen[bytes], int]:
+    """Start `veinmosaic serve` (2 workers, FAST timings, PREFIX, `key` with every scope) on a free port, its
+    output in log_dir/serve.log; without redis_url, REDIS_URL is unset (serve embeds a Redis). Return it, port."""
+    port = free_port()
+    keys = {key: ["ingest", "view", "admin"]}
+    env = service_env(
+        data_dir, keys, redis_url=redis_url, pythonpath=REPO, redis_prefix=PREFIX, worker_config=json.dumps(FAST),
+        **settings,
+    )  # fmt: skip
+    if not redis_url:
+        env.pop("REDIS_URL", None)
+    env["PYTHONUNBUFFERED"] = "1"  # serve's lines ("serving on", restarts) reach serve.log at once
+    return start_process(serve_command(port, 2), env, log_dir / "serve.log", cwd=REPO), port
 
 
 def png(img: np.ndarray) -> bytes:

@@ -13,7 +13,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -25,6 +24,7 @@ import pytest
 import redis
 
 from api.client import VeinmosaicClient
+from api.launcher import stop_processes, wait_until_ready
 from services.core.scan import Scan
 from services.core.simulation.scenarios import simulate
 from services.jobs import queue
@@ -32,17 +32,15 @@ from services.jobs.redis_backend import read_embedded_url
 from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.storage import SessionStore
 from tests.faults.conftest import (
-    FAST,
     PREFIX,
-    REPO,
     RedisServer,
     Uploader,
     Workers,
     client_for,
     delivery,
-    free_port,
     png,
     report,
+    start_serve,
     wait_done,
 )
 
@@ -241,23 +239,8 @@ def _children(pid: int) -> dict[str, int]:
 
 
 def test_serve_restarts_a_killed_api_and_worker(tmp_path: Path, redis_server: RedisServer) -> None:
-    port = free_port()
     key = "fault-test-key"
-    env = dict(os.environ)
-    env.update(
-        {
-            "PYTHONPATH": str(REPO) + os.pathsep + env.get("PYTHONPATH", ""),
-            "REDIS_URL": redis_server.url,
-            "VEINMOSAIC_DATA_DIR": str(tmp_path / "data"),
-            "VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view", "admin"]}),
-            "VEINMOSAIC_REDIS_PREFIX": PREFIX,
-            "VEINMOSAIC_WORKER_CONFIG": json.dumps(FAST),
-            "PYTHONUNBUFFERED": "1",  # the "serving on" line reaches serve.log at once
-        }
-    )
-    log = open(tmp_path / "serve.log", "wb")  # noqa: SIM115 (kept open for the process)
-    cmd = [sys.executable, "-m", "api.cli", "serve", "--port", str(port), "--workers", "2"]
-    serve = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    serve, port = start_serve(tmp_path, tmp_path / "data", key, redis_server.url)
     client = VeinmosaicClient(f"http://127.0.0.1:{port}", key, timeout_s=10.0, max_retries=12)
     try:
         # ready means supervising: /readyz answers before the launcher's own readiness wait returns, and a
@@ -299,11 +282,7 @@ def test_serve_restarts_a_killed_api_and_worker(tmp_path: Path, redis_server: Re
         report("API + worker SIGKILL under serve", len(short_scan()) + 3, kills, result)
     finally:
         client.close()
-        serve.send_signal(signal.SIGTERM)
-        try:
-            serve.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            serve.kill()
+        stop_processes([serve], 30.0)
     assert "restarting in" in (tmp_path / "serve.log").read_text()
 
 
@@ -316,31 +295,12 @@ def _embedded_redis_pid(data_dir: Path) -> int:
 def test_serve_restarts_a_dead_embedded_redis(tmp_path: Path) -> None:
     """No REDIS_URL: serve's embedded redis-server is SIGKILLed mid-scan; serve starts it again on the same data
     (AOF), restarts the API and workers on its new socket, and every accepted frame is processed once."""
-    port, key, data = free_port(), "fault-test-key", tmp_path / "data"
-    env = dict(os.environ)
-    env.pop("REDIS_URL", None)
-    env.update(
-        {
-            "PYTHONPATH": str(REPO) + os.pathsep + env.get("PYTHONPATH", ""),
-            "VEINMOSAIC_DATA_DIR": str(data),
-            "VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view", "admin"]}),
-            "VEINMOSAIC_REDIS_PREFIX": PREFIX,
-            "VEINMOSAIC_WORKER_CONFIG": json.dumps(FAST),
-            "VEINMOSAIC_RESTART_FIRST_S": "0.3",  # the back-off comes from the settings
-        }
-    )
-    log = open(tmp_path / "serve.log", "wb")  # noqa: SIM115 (kept open for the process)
-    cmd = [sys.executable, "-m", "api.cli", "serve", "--port", str(port), "--workers", "2"]
-    serve = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    key, data = "fault-test-key", tmp_path / "data"
+    serve, port = start_serve(tmp_path, data, key, None, restart_first_s="0.3")  # the back-off from the settings
     client = VeinmosaicClient(f"http://127.0.0.1:{port}", key, timeout_s=10.0, max_retries=14)
     scan = short_scan()
     try:
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1.0).status_code == 200:
-                    break
-            time.sleep(0.2)
+        wait_until_ready(f"http://127.0.0.1:{port}/readyz", 90.0, [serve])
         sid = client.create_session(scan.calibration.to_dict(), "fault-test")["id"]
         client.upload_forces(sid, np.column_stack([scan.force_t_s, scan.forces_n]))
         accepted: set[int] = set()
@@ -372,11 +332,7 @@ def test_serve_restarts_a_dead_embedded_redis(tmp_path: Path) -> None:
         report("embedded Redis SIGKILL under serve", len(scan) + 3, 1, result)
     finally:
         client.close()
-        serve.send_signal(signal.SIGTERM)
-        try:
-            serve.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            serve.kill()
+        stop_processes([serve], 30.0)
     text = (tmp_path / "serve.log").read_text()
     assert "the embedded redis-server died; restarting it in 0.3 s" in text, text[-2000:]
 
