@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 if TYPE_CHECKING:
     from api.launcher import Service
+    from services.settings import Settings
 
 
 def _sized(bar: tqdm) -> Callable[[int, int], None]:
@@ -137,25 +138,34 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def _service(args: argparse.Namespace, extra_env: dict[str, str] | None = None) -> Service:
-    from api.launcher import Service
+def _settings_for(args: argparse.Namespace) -> Settings:
+    """Read the settings (once, for this command) and fill the service options left out from them."""
     from services.settings import get_settings
 
     settings = get_settings()
-    data_dir = args.data_dir or settings.data_dir
+    for name in ("host", "port", "workers", "data_dir"):
+        if getattr(args, name, None) is None:
+            setattr(args, name, getattr(settings, name))
+    return settings
+
+
+def _service(args: argparse.Namespace, settings: Settings, extra_env: dict[str, str] | None = None) -> Service:
+    from api.launcher import Service
+
     return Service(
-        data_dir=data_dir,
+        data_dir=args.data_dir,
         host=args.host,
         port=args.port,
         workers=args.workers,
         redis_url=settings.redis_url,
         extra_env=extra_env or {},
+        settings=settings,
     )
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
     """Run the API and N workers (and an embedded Redis when REDIS_URL is unset) until interrupted."""
-    service = _service(args)
+    service = _service(args, _settings_for(args))
     with service:
         print(f"veinmosaic serving on {service.base_url} with {args.workers} worker(s); data in {service.data_dir}")
         return service.wait()
@@ -190,17 +200,20 @@ def cmd_upload(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Serve, simulate a scan, upload it over HTTP, wait for the result and show it (report, images, viewer)."""
+    data_dir = args.data_dir
+    settings = _settings_for(args)
+    args.data_dir = data_dir  # the demo's own default: a throw-away data dir, not the configured one
     with contextlib.ExitStack() as stack:
         if args.data_dir is None:  # a throw-away data dir: a demo run must not leave its uploads behind
             args.data_dir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="veinmosaic-demo-")))
             kept = "deleted when the demo ends"
         else:
             kept = "kept"
-        return _run_demo(args, kept)
+        return _run_demo(args, settings, kept)
     return 1  # unreachable: for type checkers
 
 
-def _run_demo(args: argparse.Namespace, kept: str) -> int:
+def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
     import os
     import secrets
 
@@ -216,7 +229,7 @@ def _run_demo(args: argparse.Namespace, kept: str) -> int:
     if args.port == 0:
         args.port = _free_port(args.host)
     # the demo's own output is the story; the service logs only warnings (JSON lines on stderr)
-    service = _service(args, {"VEINMOSAIC_API_KEYS": json.dumps(keys), "VEINMOSAIC_LOG_LEVEL": "WARNING"})
+    service = _service(args, settings, {"VEINMOSAIC_API_KEYS": json.dumps(keys), "VEINMOSAIC_LOG_LEVEL": "WARNING"})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with service, tempfile.TemporaryDirectory() as tmp:
@@ -301,10 +314,24 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter):
         return text + " (default: %(default)s)"
 
 
-def _add_service_args(p: argparse.ArgumentParser, port: int, data_dir_help: str) -> None:
-    p.add_argument("--host", default="127.0.0.1", help="interface the API listens on")
-    p.add_argument("--port", type=int, default=port, help="API port" + (" (0: a free port)" if port == 0 else ""))
-    p.add_argument("--workers", type=int, default=2, help="worker processes to start")
+def _add_service_args(p: argparse.ArgumentParser, port: int | None, data_dir_help: str) -> None:
+    """Add --host, --port, --workers, --data-dir; left out, they come from the settings (services.settings)."""
+    from services.settings import Settings
+
+    defaults = Settings.model_fields
+    host, workers = defaults["host"].default, defaults["workers"].default
+    p.add_argument("--host", default=None, help=f"interface the API listens on (default: VEINMOSAIC_HOST, else {host})")
+    if port is None:
+        port_help = f"API port (default: VEINMOSAIC_PORT, else {defaults['port'].default})"
+    else:
+        port_help = "API port (0: a free port)"
+    p.add_argument("--port", type=int, default=port, help=port_help)
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help=f"worker processes to start (default: VEINMOSAIC_WORKERS, else {workers})",
+    )
     p.add_argument("--data-dir", type=Path, default=None, help=data_dir_help)
 
 
@@ -360,7 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_calibrate)
 
     p = command("serve", "run the API and workers (an embedded Redis when REDIS_URL is unset) until Ctrl-C")
-    _add_service_args(p, 8000, "uploads and results (default: VEINMOSAIC_DATA_DIR, else ./data)")
+    _add_service_args(p, None, "uploads and results (default: VEINMOSAIC_DATA_DIR, else ./data)")
     p.set_defaults(func=cmd_serve)
 
     p = command("worker", "run one worker process against REDIS_URL and VEINMOSAIC_DATA_DIR")

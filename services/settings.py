@@ -1,16 +1,53 @@
-"""Service configuration from the environment (prefix VEINMOSAIC_, plus REDIS_URL); read once at start-up."""
+"""Service configuration from the environment (prefix VEINMOSAIC_, plus REDIS_URL); read once at start-up.
+
+One Settings object configures the API, the workers and the command line: each process reads it from its
+environment once (`veinmosaic serve` starts its children with its own environment, so they read the same
+values). A worker's timings are one JSON variable, VEINMOSAIC_WORKER_CONFIG (the `worker_config` field, a
+WorkerSettings), parsed and checked by this model: unknown or mistyped fields stop the worker at start-up.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Literal
 
-from pydantic import AliasChoices, Field, SecretStr
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from services.core.image_header import DEFAULT_MAX_FRAME_SIDE
+from services.core.methods import METHOD_NAMES
 
 Scope = Literal["ingest", "view", "admin"]
+
+
+class WorkerSettings(BaseModel):
+    """Timing and switches of a worker process; times in seconds unless the name says ms.
+
+    Set as one JSON object, VEINMOSAIC_WORKER_CONFIG='{"lost_timeout_s": 5}' (fields left out keep these
+    defaults), or per field on `veinmosaic worker` (--config-json, --lost-timeout-s, --lease-ms, ...).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    method: Literal[METHOD_NAMES] = "best"  # type: ignore[valid-type]  # the live run's method (version 1)
+    lost_timeout_s: float = Field(default=10.0, ge=0)  # a missing frame is lost when a later one arrived this long ago
+    lease_ms: int = Field(default=15_000, gt=0)  # registration lease; renewed while working
+    claim_idle_ms: int = Field(default=30_000, ge=0)  # XAUTOCLAIM entries idle longer than this (a crashed worker's)
+    claim_every_s: float = Field(default=5.0, gt=0)
+    block_ms: int = Field(default=500, ge=0)  # XREADGROUP BLOCK when holding no session
+    held_block_ms: int = Field(default=100, ge=0)  # ... when holding sessions (they are polled between reads)
+    flush_every_s: float = Field(default=0.5, ge=0)  # path/tiles/mosaic.json/event at most this often
+    image_every_s: float = Field(default=2.0, ge=0)  # whole mosaic.png/force.png at most this often (and at the end)
+    max_deliveries: int = Field(default=3, ge=1)  # attempts before an entry goes to the dead-letter stream
+    linger_s: float = Field(default=30.0, ge=0)  # release a session's lease after this long without progress
+    pass_budget_s: float = Field(default=2.0, gt=0)  # registration work per pass before other duties get a turn
+    not_ready_delay_s: float = Field(default=0.25, ge=0)  # re-schedule delay of a frame whose setup/forces are missing
+    half_extent_mm: float = Field(default=200.0, gt=0)  # the Deep Zoom canvas: +-this around frame 0
+    debug_order: bool = False  # log every frame handed to registration in <prefix>debug:order:<sid>:<v>
+    fault_backoff_first_s: float = Field(default=0.1, gt=0)  # infrastructure faults (disk, Redis): first back-off ...
+    fault_backoff_max_s: float = Field(default=5.0, gt=0)  # ... doubling up to this; never dead-lettered for them
+    reconcile_every_s: float = Field(default=60.0, ge=0)  # re-enqueue uploads with no job and no result (0: at start)
+    heartbeat_file: str | None = None  # touched every loop (at most every 2 s): a container health check
 
 
 class Settings(BaseSettings):
@@ -52,6 +89,12 @@ class Settings(BaseSettings):
     # workers lower their CPU priority by this much (os.nice) so uploads and tiles win a busy CPU; processing
     # catches up when the burst is over (0: equal priority)
     worker_nice: int = Field(default=10, ge=0, le=19)
+    # the workers' timings: VEINMOSAIC_WORKER_CONFIG, one JSON object of WorkerSettings fields
+    worker_config: WorkerSettings = Field(default_factory=WorkerSettings)
+    # `veinmosaic serve` (and demo): the API's interface and port, and how many worker processes it starts
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=0, le=65535)
+    workers: int = Field(default=2, ge=0, le=64)
     log_level: str = "INFO"
     viewer_assets_dir: Path | None = None  # OpenSeadragon build folder; default: the wheel's copy, else node_modules
 

@@ -34,6 +34,7 @@ import redis
 from services.core.image_header import DEFAULT_MAX_FRAME_SIDE, set_decoder_limits
 from services.jobs import delayed, queue
 from services.jobs.redis_backend import close, connect
+from services.settings import Settings
 from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.storage import SessionNotFoundError, SessionStore
 from workers.config import Context, WorkerConfig
@@ -315,22 +316,26 @@ def run_worker(
     max_seconds: float | None = None,
     handle_signals: bool = True,
     max_frame_side: int = DEFAULT_MAX_FRAME_SIDE,
+    config: WorkerConfig | None = None,
     **options: Any,
 ) -> int:
     """Run one worker until SIGTERM/SIGINT (or `stop` is set, or max_seconds pass); return the exit code 0.
 
+    config: the worker's configuration made from the settings (WorkerConfig.from_settings, what main() passes);
+    without it one is made from data_dir, redis_url, prefix, consumer and `options`, any other WorkerSettings
+    field (lost_timeout_s, lease_ms, flush_every_s, debug_order, ...; an unknown field is refused).
+
     max_frame_side (the settings' frame size cap) sets Pillow's pixel limit in this process and makes the
     store refuse a larger frame from its header, before any decode (OpenCV's cap is set by `services`).
-
-    options: any other WorkerConfig field (lost_timeout_s, lease_ms, claim_idle_ms, claim_every_s, method,
-    flush_every_s, image_every_s, max_deliveries, linger_s, half_extent_mm, debug_order, ...).
     """
-    cfg_args: dict[str, Any] = {"data_dir": Path(data_dir), "redis_url": redis_url, "prefix": prefix, **options}
-    if consumer:
-        cfg_args["consumer"] = consumer
-    cfg = WorkerConfig(**cfg_args)
+    if config is None:
+        cfg_args: dict[str, Any] = {"data_dir": Path(data_dir), "redis_url": redis_url, "prefix": prefix, **options}
+        if consumer:
+            cfg_args["consumer"] = consumer
+        config = WorkerConfig.model_validate(cfg_args)
+    cfg = config
     set_decoder_limits(max_frame_side)
-    r = connect(redis_url, cfg.data_dir)
+    r = connect(cfg.redis_url, cfg.data_dir)
     store = SessionStore(cfg.data_dir, max_frame_side=max_frame_side)
     ctx = Context(cfg, r, store, ResultsStore(cfg.data_dir), stop or threading.Event())
     if handle_signals and threading.current_thread() is threading.main_thread():
@@ -348,7 +353,7 @@ def run_worker(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Return the worker's argument parser (defaults from services.settings.Settings and VEINMOSAIC_WORKER_*)."""
+    """Return the worker's argument parser; what it leaves out comes from services.settings.Settings."""
     p = argparse.ArgumentParser(prog="veinmosaic worker", description="Run one veinmosaic worker process.")
     p.add_argument("--data-dir", type=Path, default=None, help="default: VEINMOSAIC_DATA_DIR")
     p.add_argument("--redis-url", default=None, help="default: REDIS_URL (else the embedded server)")
@@ -356,21 +361,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--consumer", default=None, help="consumer name; default host:pid")
     p.add_argument(
         "--config-json",
-        default=os.environ.get("VEINMOSAIC_WORKER_CONFIG", ""),
-        help='JSON of WorkerConfig fields, e.g. {"lost_timeout_s": 5}; env VEINMOSAIC_WORKER_CONFIG',
+        default=None,
+        help='JSON of WorkerSettings fields, e.g. {"lost_timeout_s": 5}, over VEINMOSAIC_WORKER_CONFIG\'s',
     )
-    p.add_argument("--lost-timeout-s", type=float, default=None)
-    p.add_argument("--lease-ms", type=int, default=None)
-    p.add_argument("--claim-idle-ms", type=int, default=None)
+    p.add_argument("--lost-timeout-s", type=float, default=None, help="default: from the settings' worker_config")
+    p.add_argument("--lease-ms", type=int, default=None, help="default: from the settings' worker_config")
+    p.add_argument("--claim-idle-ms", type=int, default=None, help="default: from the settings' worker_config")
     p.add_argument("--max-seconds", type=float, default=None, help="exit after this long (tests)")
     p.add_argument("--heartbeat-file", default=None, help="touched every loop (at most every 2 s), for health checks")
     return p
 
 
+def worker_config(args: argparse.Namespace, settings: Settings) -> WorkerConfig:
+    """Return the worker's configuration: the settings, then --config-json's fields, then the single options."""
+    overrides: dict[str, Any] = json.loads(args.config_json) if args.config_json else {}
+    if not isinstance(overrides, dict):
+        raise ValueError("--config-json: expected a JSON object of WorkerSettings fields")
+    for name in ("lost_timeout_s", "lease_ms", "claim_idle_ms", "heartbeat_file"):
+        overrides[name] = getattr(args, name)
+    for name in ("data_dir", "redis_url", "prefix", "consumer"):
+        if getattr(args, name) is not None:
+            overrides[name] = getattr(args, name)
+    return WorkerConfig.from_settings(settings, **overrides)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run a worker configured from the environment (services.settings.Settings) and the command line."""
+    """Run a worker configured by services.settings.Settings (read once, here) and the command line."""
     from services.log_format import configure_json_logging
-    from services.settings import Settings
 
     args = build_parser().parse_args(argv)
     settings = Settings()
@@ -378,19 +395,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if settings.worker_nice:
         with contextlib.suppress(OSError):
             os.nice(settings.worker_nice)  # ingest (API) before processing when the CPU is short
-    options: dict[str, Any] = json.loads(args.config_json) if args.config_json else {}
-    for name in ("lost_timeout_s", "lease_ms", "claim_idle_ms", "heartbeat_file"):
-        value = getattr(args, name)
-        if value is not None:
-            options[name] = value
+    config = worker_config(args, settings)
     return run_worker(
-        args.data_dir or settings.data_dir,
-        args.redis_url or settings.redis_url,
-        prefix=args.prefix or settings.redis_prefix,
-        consumer=args.consumer,
+        config.data_dir,
+        config.redis_url,
         max_seconds=args.max_seconds,
         max_frame_side=settings.max_frame_side,
-        **options,
+        config=config,
     )
 
 

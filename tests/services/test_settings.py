@@ -1,0 +1,68 @@
+"""One Settings object for the API, the workers and the command line (services.settings)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from api.cli import _settings_for
+from api.cli import build_parser as cli_parser
+from services.settings import Settings, WorkerSettings
+from workers.config import WorkerConfig
+from workers.main import build_parser as worker_parser
+from workers.main import worker_config
+
+
+@pytest.fixture(autouse=True)
+def clean_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    for name in list(os.environ):
+        if name.startswith("VEINMOSAIC_") or name == "REDIS_URL":
+            monkeypatch.delenv(name)
+
+
+def test_worker_timings_come_from_one_json_variable(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert Settings().worker_config == WorkerSettings()
+    monkeypatch.setenv("VEINMOSAIC_WORKER_CONFIG", json.dumps({"flush_every_s": 0.3, "debug_order": True}))
+    cfg = Settings().worker_config
+    assert cfg.flush_every_s == 0.3 and cfg.debug_order is True and cfg.lease_ms == WorkerSettings().lease_ms
+
+
+@pytest.mark.parametrize("doc", [{"flush_evry_s": 0.3}, {"lease_ms": "soon"}, {"lease_ms": 0}, {"method": "magic"}])
+def test_a_bad_worker_config_stops_start_up(monkeypatch: pytest.MonkeyPatch, doc: dict) -> None:
+    monkeypatch.setenv("VEINMOSAIC_WORKER_CONFIG", json.dumps(doc))
+    with pytest.raises(ValidationError):
+        Settings()
+
+
+def test_worker_config_is_the_settings_then_the_command_line(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("VEINMOSAIC_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("VEINMOSAIC_REDIS_PREFIX", "t:")
+    monkeypatch.setenv("REDIS_URL", "redis://example:6379/0")
+    monkeypatch.setenv("VEINMOSAIC_WORKER_CONFIG", json.dumps({"lease_ms": 4000, "linger_s": 5.0}))
+    settings = Settings()
+    cfg = worker_config(worker_parser().parse_args([]), settings)
+    assert isinstance(cfg, WorkerConfig)
+    assert (cfg.data_dir, cfg.prefix, cfg.redis_url) == (tmp_path, "t:", "redis://example:6379/0")
+    assert (cfg.lease_ms, cfg.linger_s, cfg.claim_idle_ms) == (4000, 5.0, WorkerSettings().claim_idle_ms)
+    args = ["--config-json", json.dumps({"linger_s": 1.0}), "--lease-ms", "900", "--prefix", "x:", "--consumer", "c"]
+    cfg = worker_config(worker_parser().parse_args(args), settings)
+    assert (cfg.lease_ms, cfg.linger_s, cfg.prefix, cfg.consumer) == (900, 1.0, "x:", "c")
+    with pytest.raises(ValidationError):
+        worker_config(worker_parser().parse_args(["--config-json", '{"bogus": 1}']), settings)
+
+
+def test_serve_defaults_come_from_the_settings(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    args = cli_parser().parse_args(["serve"])
+    assert (args.host, args.port, args.workers, args.data_dir) == (None, None, None, None)
+    monkeypatch.setenv("VEINMOSAIC_WORKERS", "3")
+    monkeypatch.setenv("VEINMOSAIC_DATA_DIR", str(tmp_path))
+    _settings_for(args)
+    assert (args.host, args.port, args.workers, args.data_dir) == ("127.0.0.1", 8000, 3, tmp_path)
+    args = cli_parser().parse_args(["serve", "--workers", "1", "--port", "9001"])
+    _settings_for(args)
+    assert (args.port, args.workers) == (9001, 1)
