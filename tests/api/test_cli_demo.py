@@ -92,7 +92,7 @@ def demo(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Any]:
     """Replace the service, the simulator and the client; run in tmp_path; return the fakes' log."""
     log: dict[str, Any] = {}
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(cli, "_service", lambda args, extra_env=None: FakeService(args, log))
+    monkeypatch.setattr(cli, "_service", lambda args, settings, extra_env=None: FakeService(args, log))
     monkeypatch.setattr(services.core.simulation.scenarios, "simulate", lambda name, seed: FakeScan())
     monkeypatch.setattr(
         services.store.scan_folder,
