@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import sys
 import tempfile
 from collections.abc import Callable, Sequence
@@ -171,11 +172,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return service.wait()
 
 
-def cmd_worker(args: argparse.Namespace) -> int:
-    """Run one worker process against the configured Redis and storage."""
-    from workers.main import main as worker_main
+def worker_argv() -> list[str]:
+    """Return the command line of one worker process (`python -m workers.main`, this interpreter)."""
+    return [sys.executable, "-m", "workers.main"]
 
-    return int(worker_main([]) or 0)
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    """Become one worker process against the configured Redis and storage (exec: api never imports workers)."""
+    argv = worker_argv()
+    os.execv(argv[0], argv)
+    return 0  # not reached
 
 
 def cmd_upload(args: argparse.Namespace) -> int:

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -199,3 +201,26 @@ def test_export_writes_dicom_that_reads_back(outputs: Path, tmp_path: Path, caps
 def test_export_of_a_non_results_folder_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["export", str(tmp_path)]) == 2
     assert "not a reconstruction output folder" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="reads /proc/<pid>/cmdline (Linux)")
+def test_worker_command_becomes_a_worker_process(tmp_path: Path) -> None:
+    # `veinmosaic worker` execs `python -m workers.main` (the api package never imports workers): the same
+    # process turns into a worker, which keeps running against the embedded or configured Redis until stopped
+    env = {k: v for k, v in os.environ.items() if k != "REDIS_URL"}  # its own embedded Redis, in its data dir
+    env["VEINMOSAIC_DATA_DIR"] = str(tmp_path / "data")
+    proc = subprocess.Popen([sys.executable, "-m", "api.cli", "worker"], cwd=tmp_path, env=env)
+    try:
+        deadline = time.monotonic() + 30
+        cmdline = b""
+        while time.monotonic() < deadline and proc.poll() is None:
+            cmdline = Path(f"/proc/{proc.pid}/cmdline").read_bytes()
+            if b"workers.main" in cmdline:
+                break
+            time.sleep(0.1)
+        assert b"workers.main" in cmdline and b"api.cli" not in cmdline
+        time.sleep(1.0)
+        assert proc.poll() is None, "the worker exited instead of serving"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
