@@ -238,6 +238,26 @@ def _children(pid: int) -> dict[str, int]:
     return out
 
 
+def _wait_session_done(client: VeinmosaicClient, sid: str, frames: int, timeout_s: float) -> None:
+    """Poll the session over HTTP until it is done; assert every frame was received and processed."""
+    state: dict = {}
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        state = client.session(sid)
+        if state["status"] == "done":
+            break
+        time.sleep(0.3)
+    assert state["status"] == "done", state
+    assert state["frames_received"] == state["frames_processed"] == frames
+
+
+def _restarts(port: int) -> int:
+    """Return veinmosaic_process_restarts_total from the running service's /metrics (0 when absent)."""
+    metrics = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5).text
+    found = re.search(r"^veinmosaic_process_restarts_total (\d+)", metrics, re.M)
+    return int(found.group(1)) if found else 0
+
+
 def test_serve_restarts_a_killed_api_and_worker(tmp_path: Path, redis_server: RedisServer) -> None:
     key = "fault-test-key"
     serve, port = start_serve(tmp_path, tmp_path / "data", key, redis_server.url)
@@ -264,18 +284,8 @@ def test_serve_restarts_a_killed_api_and_worker(tmp_path: Path, redis_server: Re
             assert status in (200, 202)
             accepted.add(seq)
         client.finish(sid)
-        state: dict = {}
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            state = client.session(sid)
-            if state["status"] == "done":
-                break
-            time.sleep(0.3)
-        assert state["status"] == "done", state
-        assert state["frames_received"] == state["frames_processed"] == len(short_scan())
-        metrics = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5).text
-        restarts = re.search(r"^veinmosaic_process_restarts_total (\d+)", metrics, re.M)
-        assert restarts and int(restarts.group(1)) >= kills, metrics[:400]
+        _wait_session_done(client, sid, len(short_scan()), 120)
+        assert _restarts(port) >= kills
         assert serve.poll() is None, "serve stopped"
         r = client_for(redis_server)
         result = delivery(tmp_path / "data", r, sid, accepted)
@@ -312,20 +322,10 @@ def test_serve_restarts_a_dead_embedded_redis(tmp_path: Path) -> None:
             assert status in (200, 202)
             accepted.add(seq)
         client.finish(sid)
-        state: dict = {}
-        deadline = time.monotonic() + 150
-        while time.monotonic() < deadline:
-            state = client.session(sid)
-            if state["status"] == "done":
-                break
-            time.sleep(0.3)
-        assert state["status"] == "done", state
-        assert state["frames_received"] == state["frames_processed"] == len(scan)
+        _wait_session_done(client, sid, len(scan), 150)
         new_pid = _embedded_redis_pid(data)
         assert new_pid != old_pid and serve.poll() is None, "serve did not restart its Redis (or stopped)"
-        metrics = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5).text
-        restarts = re.search(r"^veinmosaic_process_restarts_total (\d+)", metrics, re.M)
-        assert restarts and int(restarts.group(1)) >= 1, metrics[:400]
+        assert _restarts(port) >= 1
         r = redis.Redis.from_url(read_embedded_url(data) or "", socket_timeout=5.0)
         result = delivery(data, r, sid, accepted)
         r.close()
