@@ -28,7 +28,12 @@ def get_results(request: Request) -> ResultsStore:
     return rs
 
 
-Results = Annotated[ResultsStore, Depends(get_results)]
+async def results_dependency(request: Request) -> ResultsStore:
+    """Return get_results(request) without a thread-pool hop (FastAPI runs a plain `def` dependency in one)."""
+    return get_results(request)
+
+
+Results = Annotated[ResultsStore, Depends(results_dependency)]
 
 
 def resolve_version(rs: ResultsStore, sid: str, requested: int | None) -> int | None:
@@ -69,7 +74,7 @@ def reprocess_running(rs: ResultsStore, sid: str) -> bool:
 def served_mosaic(rs: ResultsStore, sid: str, requested: int | None) -> tuple[int, dict[str, Any]]:
     """Return (version, mosaic.json + "results_version") or raise 404 when no frame has been processed yet."""
     v = resolve_version(rs, sid, requested)
-    doc = rs.read_mosaic_meta(sid, v) if v is not None else None
+    doc = rs.shared_mosaic_meta(sid, v) if v is not None else None
     if v is None or doc is None:
         raise NotFound(NOT_READY, code="not_ready")
     return v, {**doc, "results_version": v}
@@ -78,6 +83,6 @@ def served_mosaic(rs: ResultsStore, sid: str, requested: int | None) -> tuple[in
 def session_extent(rs: ResultsStore, sid: str) -> dict[str, Any] | None:
     """Return GET /v1/sessions/{id}'s extent of the served version ({x,y}_{min,max}_mm, sizes mm) or None."""
     v = resolve_version(rs, sid, None)
-    doc = rs.read_mosaic_meta(sid, v) if v is not None else None
+    doc = rs.shared_mosaic_meta(sid, v) if v is not None else None
     view = extent_view((doc or {}).get("extent_mm"))
     return None if view is None else {**view, "results_version": v}

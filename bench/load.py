@@ -5,8 +5,10 @@ against a real `veinmosaic serve` (API + workers, own redis-server with AOF), wh
 
 Open loop: upload i is started at t0 + i / rate whether or not earlier ones finished (a slow server shows
 as latency, not as a lower offered rate). 640x480 PNG frames of the simulated short scan, spread over
---sessions sessions; each viewer reads mosaic.json of a finished session, then fetches its tiles at
---tile-rate per second. Stops by itself after --seconds and prints one table (throughput, p50/p99, errors).
+--sessions sessions (default: one per 10 frames/s, a probe's rate); each viewer reads mosaic.json of a
+finished session, then fetches its tiles at --tile-rate per second. The client sends pre-built requests over
+keep-alive connections (bench/raw_http.py), so it needs a few % of a core, not the server's share. Stops by
+itself after --seconds and prints one table (throughput, p50/p99, errors).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import math
 import os
 import random
 import shutil
@@ -40,6 +43,7 @@ from api.launcher import (  # noqa: E402
     stop_processes,
     wait_until_ready,
 )
+from bench.raw_http import RawHttp, multipart  # noqa: E402
 from services.core.simulation.scenarios import simulate  # noqa: E402
 
 KEY = "load-test-key"
@@ -125,23 +129,21 @@ async def create_session(http: httpx.AsyncClient, calibration: dict, t_end: floa
     return sid
 
 
-async def upload(http: httpx.AsyncClient, sid: str, seq: int, t_s: float, data: bytes, stats: Stats) -> None:
+async def upload(client: RawHttp, sid: str, seq: int, t_s: float, data: bytes, stats: Stats) -> None:
     """Upload one frame and record its latency."""
+    meta = json.dumps({"seq": seq, "t_s": t_s}).encode()
+    body, ctype = multipart({"image": (f"{seq}.png", "image/png", data), "meta": (None, "application/json", meta)})
     started = time.perf_counter()
     try:
-        resp = await http.post(
-            f"/v1/sessions/{sid}/frames",
-            files={"image": (f"{seq}.png", data, "image/png")},
-            data={"meta": json.dumps({"seq": seq, "t_s": t_s})},
-        )
-        err = None if resp.status_code in (200, 202) else str(resp.status_code)
-    except httpx.HTTPError as exc:
+        answer = await client.request("POST", f"/v1/sessions/{sid}/frames", body, ctype)
+        err = None if answer.status in (200, 202) else str(answer.status)
+    except (OSError, asyncio.IncompleteReadError) as exc:
         err = type(exc).__name__
     stats.add(time.perf_counter() - started, err)
 
 
 async def uploaders(
-    http: httpx.AsyncClient, sids: list[str], frames: list[bytes], rate: float, seconds: float, stats: Stats
+    client: RawHttp, sids: list[str], frames: list[bytes], rate: float, seconds: float, stats: Stats
 ) -> None:
     """Start uploads at `rate` per second for `seconds` (open loop), round-robin over sessions."""
     t0 = time.perf_counter()
@@ -155,15 +157,13 @@ async def uploaders(
         elif delay < -0.05:
             stats.late += 1
         sid, k = sids[i % len(sids)], i // len(sids)
-        tasks.append(asyncio.create_task(upload(http, sid, k, 0.1 * k, frames[k % len(frames)], stats)))
+        tasks.append(asyncio.create_task(upload(client, sid, k, 0.1 * k, frames[k % len(frames)], stats)))
     await asyncio.gather(*tasks)
 
 
-async def viewer(
-    http: httpx.AsyncClient, sid: str, rate: float, seconds: float, stats: Stats, rng: random.Random
-) -> None:
+async def viewer(client: RawHttp, sid: str, rate: float, seconds: float, stats: Stats, rng: random.Random) -> None:
     """Read mosaic.json, then fetch random tiles (with their revision) at `rate` per second for `seconds`."""
-    doc = (await http.get(f"/v1/sessions/{sid}/mosaic.json")).json()
+    doc = json.loads((await client.request("GET", f"/v1/sessions/{sid}/mosaic.json")).body)
     names = list(doc["revisions"]["vein"].items())
     t0 = time.perf_counter()
     i = 0
@@ -174,9 +174,9 @@ async def viewer(
         level, rest = name.split("/")
         started = time.perf_counter()
         try:
-            resp = await http.get(f"/v1/sessions/{sid}/mosaic_files/{level}/{rest}.png", params={"rev": rev, "v": 1})
-            err = None if resp.status_code == 200 else str(resp.status_code)
-        except httpx.HTTPError as exc:
+            answer = await client.request("GET", f"/v1/sessions/{sid}/mosaic_files/{level}/{rest}.png?rev={rev}&v=1")
+            err = None if answer.status == 200 else str(answer.status)
+        except (OSError, asyncio.IncompleteReadError) as exc:
             err = type(exc).__name__
         stats.add(time.perf_counter() - started, err)
         i += 1
@@ -215,7 +215,7 @@ def process_cpu_s(root_pid: int, match: str) -> float:
     return total
 
 
-async def run(args: argparse.Namespace, base: str, serve_pid: int) -> tuple[Stats, Stats, float, dict, float]:
+async def run(args: argparse.Namespace, base: str, serve_pid: int) -> tuple[Stats, Stats, float, dict, float, float]:
     """Prepare a finished session for the viewers, then run uploaders and viewers together."""
     scan = simulate("short", 1)
     frames = [cv2.imencode(".png", scan.frame(i))[1].tobytes() for i in range(len(scan))]
@@ -225,7 +225,8 @@ async def run(args: argparse.Namespace, base: str, serve_pid: int) -> tuple[Stat
     async with httpx.AsyncClient(base_url=base, headers=headers, timeout=30.0, limits=limits) as http:
         view_sid = await create_session(http, calibration, 0.1 * len(frames) + 1)
         warm = Stats()
-        await asyncio.gather(*(upload(http, view_sid, i, 0.1 * i, frames[i], warm) for i in range(len(frames))))
+        client = RawHttp(http.base_url.host, http.base_url.port, headers, args.connections)
+        await asyncio.gather(*(upload(client, view_sid, i, 0.1 * i, frames[i], warm) for i in range(len(frames))))
         await http.post(f"/v1/sessions/{view_sid}/finish")
         deadline = time.monotonic() + 300
         while (await http.get(f"/v1/sessions/{view_sid}")).json()["status"] != "done":
@@ -236,23 +237,34 @@ async def run(args: argparse.Namespace, base: str, serve_pid: int) -> tuple[Stat
         sids = [await create_session(http, calibration, 0.1 * per_session + 1) for _ in range(args.sessions)]
         up, tiles = Stats(), Stats()
         rng = random.Random(0)
-        cpu0 = process_cpu_s(serve_pid, "uvicorn")
+        cpu0, gen0 = process_cpu_s(serve_pid, "uvicorn"), time.process_time()
         t0 = time.perf_counter()
         await asyncio.gather(
-            uploaders(http, sids, frames, args.upload_rate, args.seconds, up),
-            *(viewer(http, view_sid, args.tile_rate, args.seconds, tiles, rng) for _ in range(args.viewers)),
+            uploaders(client, sids, frames, args.upload_rate, args.seconds, up),
+            *(viewer(client, view_sid, args.tile_rate, args.seconds, tiles, rng) for _ in range(args.viewers)),
         )
         wall = time.perf_counter() - t0
         api_cpu = process_cpu_s(serve_pid, "uvicorn") - cpu0
+        gen_cpu = time.process_time() - gen0
+        await client.close()
         state = (await http.get(f"/v1/sessions/{sids[0]}")).json()
-    return up, tiles, wall, state, api_cpu
+    return up, tiles, wall, state, api_cpu, gen_cpu
+
+
+def _loop_factory():
+    """Return uvloop's event loop class when installed (as uvicorn uses it), else None (asyncio's own)."""
+    try:
+        import uvloop
+    except ImportError:
+        return None
+    return uvloop.new_event_loop
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the load test and print the table."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--upload-rate", type=float, default=200.0, help="frame uploads started per second")
-    p.add_argument("--sessions", type=int, default=4, help="upload sessions (the rate is spread over them)")
+    p.add_argument("--sessions", type=int, default=None, help="upload sessions (default: one per 10 frames/s)")
     p.add_argument("--viewers", type=int, default=32)
     p.add_argument("--tile-rate", type=float, default=5.0, help="tile requests per second per viewer")
     p.add_argument("--seconds", type=float, default=10.0)
@@ -261,10 +273,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--connections", type=int, default=256, help="client connection pool size")
     p.add_argument("--redis-url", default=None, help="default: a private redis-server with AOF")
     args = p.parse_args(argv)
+    if args.sessions is None:
+        args.sessions = max(1, math.ceil(args.upload_rate / 10))
     server = Server(args.workers, args.redis_url, args.api_workers)
     try:
         server.wait_ready()
-        up, tiles, wall, state, api_cpu = asyncio.run(run(args, server.base, server.serve.pid))
+        runner = asyncio.Runner(loop_factory=_loop_factory())
+        with runner:
+            up, tiles, wall, state, api_cpu, gen_cpu = runner.run(run(args, server.base, server.serve.pid))
     finally:
         server.stop()
     print(
@@ -282,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
         f"\nAPI process(es) CPU during the run: {api_cpu:.2f} s = {1000 * api_cpu / max(1, requests):.1f} ms per "
         f"request ({requests} answered; with --viewers 0 that is the CPU cost of one upload)"
     )
+    print(f"load generator CPU during the run: {gen_cpu:.2f} s ({100 * gen_cpu / wall:.0f} % of a core)")
     received, processed = state["frames_received"], state["frames_processed"]
     print(f"\nfirst upload session when the load stopped: {received} frames received, {processed} processed")
     return 0

@@ -62,6 +62,7 @@ def _json_bytes(doc: Any) -> bytes:
 
 
 SETUP_CACHE = 8  # decoded setup.npz kept per store (sessions processed at once by one worker)
+MOSAIC_DOC_CACHE = 64  # parsed mosaic.json documents kept per store (sessions viewed at once by one API process)
 NPZ_COMPRESS_LEVEL = 1  # deflate level of prepared frames: level 6 (numpy's) cost 33 ms a frame, 1 costs 8 (+7 %)
 
 
@@ -166,6 +167,8 @@ class ResultsStore:
         self.root = self.data_dir / "sessions"
         # setup.npz never changes once written: the last few are kept decoded (a worker reads it every frame)
         self._setups: OrderedDict[tuple[str, int], tuple[np.ndarray, np.ndarray | None]] = OrderedDict()
+        # mosaic.json bytes and their parse, per file: see shared_mosaic_meta
+        self._mosaic_docs: dict[Path, tuple[bytes, dict[str, Any]]] = {}
 
     # ----- versions -----------------------------------------------------------------------------------------
     def results_dir(self, sid: str) -> Path:
@@ -348,6 +351,23 @@ class ResultsStore:
     def read_mosaic_meta(self, sid: str, v: int) -> dict[str, Any] | None:
         """Return mosaic.json of version v, or None before the first flush."""
         return self._read_json(self.version_dir(sid, v) / "mosaic.json")
+
+    def shared_mosaic_meta(self, sid: str, v: int) -> dict[str, Any] | None:
+        """Return mosaic.json of version v, or None before the first flush: READ-ONLY, one parsed copy shared by
+        every caller while the file's bytes stay the same (every tile request of the viewers reads it)."""
+        path = self.version_dir(sid, v) / "mosaic.json"
+        try:
+            raw = path.read_bytes()
+        except FileNotFoundError:
+            return None
+        hit = self._mosaic_docs.get(path)
+        if hit is not None and hit[0] == raw:  # comparing the bytes costs microseconds; parsing them, milliseconds
+            return hit[1]
+        doc = json.loads(raw)
+        if len(self._mosaic_docs) >= MOSAIC_DOC_CACHE:
+            self._mosaic_docs.clear()
+        self._mosaic_docs[path] = (raw, doc)
+        return doc
 
     def write_report(self, sid: str, v: int, doc: dict[str, Any]) -> None:
         """Write report.json (accuracy report, spec §4) of version v."""

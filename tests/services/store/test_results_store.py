@@ -106,6 +106,18 @@ def test_versions_and_current(stores: tuple[ResultsStore, str]) -> None:
         rs.results_dir("../etc")
 
 
+def test_shared_mosaic_meta_parses_once_per_written_file(stores: tuple[ResultsStore, str]) -> None:
+    rs, sid = stores
+    rs.ensure_version(sid, LIVE_VERSION, {"method": "best"})
+    assert rs.shared_mosaic_meta(sid, 1) is None  # before the first flush
+    rs.write_mosaic_meta(sid, 1, {"version": 1})
+    first = rs.shared_mosaic_meta(sid, 1)
+    assert first == {"version": 1} and rs.shared_mosaic_meta(sid, 1) is first  # parsed once, shared
+    rs.write_mosaic_meta(sid, 1, {"version": 2})  # same size, within the file system's timestamp resolution
+    assert rs.shared_mosaic_meta(sid, 1) == {"version": 2}
+    assert ResultsStore(rs.data_dir).shared_mosaic_meta(sid, 1) == {"version": 2}  # another process's view
+
+
 def test_create_version_without_live_keeps_1_free(stores: tuple[ResultsStore, str]) -> None:
     rs, sid = stores
     assert rs.create_version(sid, {}) == 2

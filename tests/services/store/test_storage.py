@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import threading
@@ -94,6 +95,58 @@ def test_concurrent_same_seq_creates_once(store: SessionStore, sid: str) -> None
     for t in threads:
         t.join()
     assert sorted(results) == ["created"] + ["duplicate"] * 7
+
+
+def _run_threads(targets: list) -> None:
+    threads = [threading.Thread(target=t) for t in targets]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=30)
+
+
+def test_concurrent_same_seq_different_bytes_one_wins_and_image_matches(store: SessionStore, sid: str) -> None:
+    outcomes: list[str] = []
+
+    def upload(k: int) -> None:
+        try:
+            outcomes.append(store.put_frame(sid, 3, 0.0, bytes([k]) * 5000, "png"))
+        except ConflictError:
+            outcomes.append("conflict")
+
+    _run_threads([lambda k=k: upload(k) for k in range(12)])
+    assert sorted(outcomes) == ["conflict"] * 11 + ["created"]
+    record = store.get_frame(sid, 3)
+    assert record is not None
+    stored = store.frame_path(sid, 3).read_bytes()
+    assert hashlib.sha256(stored).hexdigest() == record.sha256  # the image is the committed upload's, not a loser's
+
+
+def test_uploads_racing_finish_are_all_counted_or_refused(store: SessionStore, sid: str) -> None:
+    created: list[int] = []
+    refused: list[int] = []
+
+    def upload(seq: int) -> None:
+        try:
+            store.put_frame(sid, seq, seq / 10, bytes([seq % 256]) * 2000, "png")
+            created.append(seq)
+        except SessionClosedError:
+            refused.append(seq)
+
+    _run_threads([lambda s=s: upload(s) for s in range(40)] + [lambda: store.finish(sid)])
+    meta = store.get_meta(sid)
+    assert len(created) + len(refused) == 40
+    assert meta.frames_expected == len(created) == store.count_frames(sid)  # none committed after finish
+
+
+def test_concurrent_first_uploads_agree_on_one_time_anchor(store: SessionStore, sid: str) -> None:
+    def upload(seq: int) -> None:
+        store.put_frame(sid, seq, 100.0 + seq, b"x" * (seq + 1), "png", max_span_s=3600)
+
+    _run_threads([lambda s=s: upload(s) for s in range(8)])
+    anchor = store.time_anchor(sid)
+    assert anchor is not None and 100.0 <= anchor <= 107.0
+    assert store.count_frames(sid) == 8
 
 
 def test_list_frames_sorted_and_ignores_temp_files(store: SessionStore, sid: str) -> None:
