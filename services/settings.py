@@ -47,6 +47,7 @@ class WorkerSettings(BaseModel):
     fault_backoff_first_s: float = Field(default=0.1, gt=0)  # infrastructure faults (disk, Redis): first back-off ...
     fault_backoff_max_s: float = Field(default=5.0, gt=0)  # ... doubling up to this; never dead-lettered for them
     reconcile_every_s: float = Field(default=60.0, ge=0)  # re-enqueue uploads with no job and no result (0: at start)
+    job_busy_retry_s: float = Field(default=30.0, gt=0)  # a reprocess entry whose job runs in another worker waits
     heartbeat_file: str | None = None  # touched every loop (at most every 2 s): a container health check
 
 

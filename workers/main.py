@@ -247,9 +247,26 @@ class Worker:
             self.register.on_kick(sid, int(fields.get("version", LIVE_VERSION)))
             return None
         if kind == "reprocess":
-            job_id = fields.get("job", "")
-            if ctx.store.jobs.is_finished(job_id):  # a second entry of a finished job (a reconciler race)
-                log.info("entry of a finished reprocess job dropped")
+            return self.run_reprocess(stream, entry_id, fields)
+        log.warning("entry of unknown kind dropped")
+        return None
+
+    def run_reprocess(self, stream: str, entry_id: str, fields: dict[str, str]) -> Retry | None:
+        """Run a reprocess job once: under its run lock, unless it is finished (then the entry is dropped) or
+        running in another worker (then the entry waits job_busy_retry_s and looks again)."""
+        ctx, job_id = self.ctx, fields.get("job", "")
+        if self._job_settled(job_id):  # a second entry of a finished job (a reconciler race)
+            log.info("entry of a finished reprocess job dropped")
+            return None
+        try:
+            lock = ctx.store.jobs.run_lock(job_id)
+        except ValueError:  # not one of our job ids: handle_job fails it without running anything
+            lock = contextlib.nullcontext(True)
+        with lock as held:
+            if not held:
+                log.info("reprocess job already running in another worker; its second entry waits")
+                return Retry(ctx.config.job_busy_retry_s, "running elsewhere")
+            if self._job_settled(job_id):  # finished while this worker waited for the lock
                 return None
 
             def heartbeat() -> None:  # keep the entry from looking abandoned while the job runs
@@ -258,9 +275,17 @@ class Worker:
 
             handle_job(ctx, fields, heartbeat)
             self.finish_job(job_id)
-            return None
-        log.warning("entry of unknown kind dropped")
         return None
+
+    def _job_settled(self, job_id: str) -> bool:
+        """Return True when the job is done or failed (its durable record, else its Redis hash says so)."""
+        if self.ctx.store.jobs.is_finished(job_id):
+            return True
+        raw = self.ctx.r.hget(queue.job_key(job_id, self.ctx.prefix), "state")
+        if (raw.decode() if isinstance(raw, bytes) else raw) in ("done", "failed"):
+            self.finish_job(job_id)  # the record stayed open (a write failed after the job): close it now
+            return True
+        return False
 
     def finish_job(self, job_id: str, state: str | None = None) -> None:
         """Close a reprocess job's durable record (done or failed); if the disk refuses, the reconciler does it.

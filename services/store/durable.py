@@ -40,6 +40,22 @@ def directory_lock(path: Path) -> Iterator[None]:
             fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
 
+@contextlib.contextmanager
+def try_lock(lock_path: Path) -> Iterator[bool]:
+    """Try an exclusive advisory lock on lock_path without waiting: yield True while held, False if another
+    process holds it. The kernel releases it when its holder dies, so a crashed holder never blocks anyone."""
+    with open(lock_path, "a+b") as fh:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+
 def temp_file(path: Path, data: bytes, fsync: bool = True, mode: int = 0o640) -> Path:
     """Return a new hidden temporary file beside `path` holding `data` (fsynced unless fsync=False)."""
     tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"

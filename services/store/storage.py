@@ -32,7 +32,7 @@ import numpy as np
 
 from services.core.calibration import Calibration, parse_calibration
 from services.core.image_header import check_header, read_header
-from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir
+from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, try_lock
 
 SessionStatus = Literal["receiving", "processing", "done", "failed"]
 STATUSES: tuple[str, ...] = ("receiving", "processing", "done", "failed")
@@ -471,6 +471,20 @@ class JobLedger:
             return self._path(job_id, finished=True).exists()
         except ValueError:
             return False
+
+    @contextlib.contextmanager
+    def run_lock(self, job_id: str) -> Iterator[bool]:
+        """Hold job_id's run lock while it runs: yield True if taken, False while another worker runs the job.
+
+        Two entries of one job can exist at once (Redis lost the running job's entry and the reconciler queued
+        it again); the lock lets only one of them run. A dead holder's lock is released by the kernel.
+        """
+        if not isinstance(job_id, str) or not _JOB_ID.match(job_id):
+            raise ValueError("job ids are 32 hex digits")
+        running = self.root / "running"
+        running.mkdir(parents=True, exist_ok=True)
+        with try_lock(running / f"{job_id}.lock") as held:
+            yield held
 
     def open_jobs(self) -> list[dict[str, str]]:
         """Return the records of accepted jobs not yet finished (oldest first)."""

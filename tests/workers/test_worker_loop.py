@@ -1,9 +1,10 @@
 """The worker loop in-process: retries then dead-letter of a failing frame, XAUTOCLAIM of abandoned entries,
-delivery counts, and reprocess options validation."""
+delivery counts, reprocess options validation, and a reprocess job run once under its run lock."""
 
 from __future__ import annotations
 
 import time
+import uuid
 
 import cv2
 import numpy as np
@@ -12,9 +13,10 @@ import pytest
 from services.core.calibration import default_calibration
 from services.core.method_options import parse_options, validate_options
 from services.jobs import queue
-from services.store.results_store import ResultsStore
+from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.storage import SessionStore
-from tests.workers.conftest import Backend
+from tests.sim_cache import simulated
+from tests.workers.conftest import Backend, store_scan
 from workers.config import Context, WorkerConfig
 from workers.main import Worker
 
@@ -122,3 +124,39 @@ def test_finished_session_without_frames_is_done(backend: Backend) -> None:
     assert [e[1][b"type"] for e in events] == [b"done"]
     assert not worker.register.held  # nothing kept in memory, the lease released for good
     assert backend.r.get(queue.lease_key(sid, 1, backend.prefix)) is None
+
+
+def test_a_reprocess_job_runs_once_while_another_worker_holds_it(backend: Backend) -> None:
+    """Two entries of one job (the reconciler re-queued it while it ran): neither runs while another worker holds
+    the job's run lock; afterwards one runs and the other is dropped: one new version, not two."""
+    r, p = backend.r, backend.prefix
+    store = SessionStore(backend.data_dir)
+    sid = store_scan(store, simulated("short", 1))
+    job = uuid.uuid4().hex
+    queue.ensure_groups(r, p)
+    for _ in range(2):
+        queue.enqueue_reprocess(r, job, sid, "{}", time.time(), p)
+    worker = _worker(backend, job_busy_retry_s=0.2)
+    results = ResultsStore(backend.data_dir)
+
+    def reprocessed() -> list[int]:  # versions made by reprocess jobs (1 is the live run's: the reconciler
+        return [v for v in results.list_versions(sid) if v != LIVE_VERSION]  # queues the stored frames for it)
+
+    with store.jobs.run_lock(job) as held:  # another worker is running the job
+        assert held
+        deadline = time.monotonic() + 20
+        while r.xlen(queue.jobs_stream(p)) and time.monotonic() < deadline:
+            worker.step()
+        assert r.xlen(queue.jobs_stream(p)) == 0  # both entries handled ...
+        assert queue.read_job(r, job, p)["state"] == "queued"  # ... neither ran
+        assert reprocessed() == []
+    deadline = time.monotonic() + 120
+    while queue.read_job(r, job, p)["state"] != "done" and time.monotonic() < deadline:
+        worker.step()
+    assert queue.read_job(r, job, p)["state"] == "done"
+    settle = time.monotonic() + 2.0  # the second entry comes back after job_busy_retry_s and is dropped
+    while time.monotonic() < settle:
+        worker.step()
+    assert len(reprocessed()) == 1 and results.current_version(sid) == reprocessed()[0]
+    assert r.xlen(queue.jobs_stream(p)) == 0 and r.zcard(queue.delayed_key(p)) == 0
+    assert store.jobs.is_finished(job)
