@@ -260,7 +260,7 @@ class Worker:
             return None
         try:
             lock = ctx.store.jobs.run_lock(job_id)
-        except ValueError:  # not one of our job ids: handle_job fails it without running anything
+        except ValueError:  # not an id the API makes (uuid4 hex): nothing to lock by, the job runs unlocked
             lock = contextlib.nullcontext(True)
         with lock as held:
             if not held:

@@ -472,9 +472,9 @@ class JobLedger:
         except ValueError:
             return False
 
-    @contextlib.contextmanager
-    def run_lock(self, job_id: str) -> Iterator[bool]:
-        """Hold job_id's run lock while it runs: yield True if taken, False while another worker runs the job.
+    def run_lock(self, job_id: str) -> contextlib.AbstractContextManager[bool]:
+        """Return job_id's run lock, held while the job runs: it yields True if taken, False while another worker
+        runs the job. ValueError (at once) for an id that is not 32 hex digits.
 
         Two entries of one job can exist at once (Redis lost the running job's entry and the reconciler queued
         it again); the lock lets only one of them run. A dead holder's lock is released by the kernel.
@@ -483,8 +483,7 @@ class JobLedger:
             raise ValueError("job ids are 32 hex digits")
         running = self.root / "running"
         running.mkdir(parents=True, exist_ok=True)
-        with try_lock(running / f"{job_id}.lock") as held:
-            yield held
+        return try_lock(running / f"{job_id}.lock")
 
     def open_jobs(self) -> list[dict[str, str]]:
         """Return the records of accepted jobs not yet finished (oldest first)."""
