@@ -266,7 +266,7 @@ class Worker:
             if not held:
                 log.info("reprocess job already running in another worker; its second entry waits")
                 return Retry(ctx.config.job_busy_retry_s, "running elsewhere")
-            if self._job_settled(job_id):  # finished while this worker waited for the lock
+            if self._job_settled(job_id):  # finished between the first look and taking the lock
                 return None
 
             def heartbeat() -> None:  # keep the entry from looking abandoned while the job runs
@@ -275,6 +275,7 @@ class Worker:
 
             handle_job(ctx, fields, heartbeat)
             self.finish_job(job_id)
+            ctx.store.jobs.drop_run_lock(job_id)
         return None
 
     def _job_settled(self, job_id: str) -> bool:

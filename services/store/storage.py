@@ -479,11 +479,20 @@ class JobLedger:
         Two entries of one job can exist at once (Redis lost the running job's entry and the reconciler queued
         it again); the lock lets only one of them run. A dead holder's lock is released by the kernel.
         """
+        path = self._lock_path(job_id)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return try_lock(path)
+
+    def drop_run_lock(self, job_id: str) -> None:
+        """Remove a finished job's lock file (called by its holder: whoever opened the file meanwhile finds the
+        job finished once it gets the lock, and a newcomer makes a new file and finds the same)."""
+        with contextlib.suppress(FileNotFoundError, ValueError):
+            self._lock_path(job_id).unlink()
+
+    def _lock_path(self, job_id: str) -> Path:
         if not isinstance(job_id, str) or not _JOB_ID.match(job_id):
             raise ValueError("job ids are 32 hex digits")
-        running = self.root / "running"
-        running.mkdir(parents=True, exist_ok=True)
-        return try_lock(running / f"{job_id}.lock")
+        return self.root / "running" / f"{job_id}.lock"
 
     def open_jobs(self) -> list[dict[str, str]]:
         """Return the records of accepted jobs not yet finished (oldest first)."""

@@ -160,3 +160,4 @@ def test_a_reprocess_job_runs_once_while_another_worker_holds_it(backend: Backen
     assert len(reprocessed()) == 1 and results.current_version(sid) == reprocessed()[0]
     assert r.xlen(queue.jobs_stream(p)) == 0 and r.zcard(queue.delayed_key(p)) == 0
     assert store.jobs.is_finished(job)
+    assert not list((store.jobs.root / "running").iterdir())  # the finished job's lock file is gone
