@@ -57,7 +57,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     options = method_options(args.method).with_overrides(_parse_options(args.option))
     with _bar(f"reconstruct ({args.method})", len(scan)) as bar:
         recon = reconstruct(scan, options, progress=_sized(bar))
-    report = write_reconstruction(recon, args.out, scan.reference_mm)
+    report = write_reconstruction(recon, args.out, scan.reference_track)
     f = report.frames
     print(
         f"{f.n_ok}/{f.n_frames} frames registered ({100 * f.registered_fraction:.1f} %; {f.n_lost} lost, "
@@ -65,6 +65,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     )
     if report.accuracy is not None:
         print(report.accuracy.summary())
+    if "angles" in report.doc:
+        a = report.doc["angles"]
+        print(
+            ", ".join(
+                f"{k.removesuffix('_rmse_deg')} RMS error {v:.2f} deg" for k, v in a.items() if k.endswith("_rmse_deg")
+            )
+        )
     _print_warnings(report.warnings)
     print(f"one-page report: {Path(args.out) / 'sheet.pdf'}")
     return 0

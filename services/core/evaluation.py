@@ -140,3 +140,28 @@ def evaluate_path(estimate_mm: np.ndarray, registered: np.ndarray, reference_mm:
         n_with_reference=int(has_ref.sum()),
         errors_mm=errors,
     )
+
+
+def evaluate_angles(estimate_deg: np.ndarray, registered: np.ndarray, reference_deg: np.ndarray) -> dict[str, Any]:
+    """Return the RMS and max errors (deg) of yaw and tilts against a tracker's (spec §4), per angle known.
+
+    estimate_deg, reference_deg: (N, 3) yaw, tilt_x, tilt_y in degrees, NaN where unknown. Yaw is compared on
+    registered frames only (it is a pose); the tilts on every frame with both values (they come from the loads).
+    Angles with fewer than MIN_COMPARED frames compared are left out. Yaw differences are wrapped to +-180.
+    """
+    est = np.asarray(estimate_deg, np.float64).reshape(-1, 3)
+    ref = np.asarray(reference_deg, np.float64).reshape(-1, 3)
+    reg = np.asarray(registered, bool).ravel()
+    out: dict[str, Any] = {}
+    for k, name in enumerate(("yaw", "tilt_x", "tilt_y")):
+        diff = est[:, k] - ref[:, k]
+        if name == "yaw":
+            diff = (diff + 180.0) % 360.0 - 180.0
+            diff = np.where(reg, diff, np.nan)
+        valid = diff[np.isfinite(diff)]
+        if len(valid) < MIN_COMPARED:
+            continue
+        out[f"{name}_rmse_deg"] = float(np.sqrt(np.mean(valid**2)))
+        out[f"{name}_max_error_deg"] = float(np.max(np.abs(valid)))
+        out[f"{name}_compared"] = len(valid)
+    return out

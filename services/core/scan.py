@@ -17,7 +17,8 @@ class Scan:
 
     Arrays: frame_seq (N,) int, frame_t_s (N,) s, force_t_s (M,) s, forces_n (M, 4) N as F1..F4,
     imu_t_s (K,) s and imu_tilt_deg (K, 2) as (tilt_x, tilt_y) deg or None, mask (H, W) uint8 0/255 or None,
-    reference_mm (N, 2) in frame 0's coordinates (mm) with NaN rows where unknown, or None.
+    reference_mm (N, 2) in frame 0's coordinates (mm) with NaN rows where unknown, or None;
+    reference_angles_deg (N, 3) yaw, tilt_x, tilt_y (deg, spec §4) where the reference has them, or None.
     """
 
     calibration: Calibration
@@ -30,7 +31,15 @@ class Scan:
     imu_t_s: np.ndarray | None = None
     imu_tilt_deg: np.ndarray | None = None
     reference_mm: np.ndarray | None = None
+    reference_angles_deg: np.ndarray | None = None
     truth: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def reference_track(self) -> np.ndarray | None:
+        """Return the reference track (N, 2) mm, or (N, 5) with yaw and tilts in degrees when known, or None."""
+        if self.reference_mm is None or self.reference_angles_deg is None:
+            return self.reference_mm
+        return np.hstack([self.reference_mm, self.reference_angles_deg])
 
     def __len__(self) -> int:
         return len(self.frame_seq)

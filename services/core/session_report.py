@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from services.core.evaluation import AccuracyReport, evaluate_path
+from services.core.evaluation import AccuracyReport, evaluate_angles, evaluate_path
 from services.core.mosaic import MosaicImage
 from services.core.plots import plot_error_along_scan, plot_paths_over_mosaic, session_sheet
 from services.core.scan_quality import FrameSummary, scan_warnings, summarize_frames
@@ -56,26 +56,38 @@ def path_arrays(rows: Sequence[PathRow]) -> tuple[np.ndarray, np.ndarray]:
     return estimate, registered
 
 
+def path_angles_deg(rows: Sequence[PathRow]) -> np.ndarray:
+    """Return (N, 3) yaw, tilt_x, tilt_y in degrees of path rows in order (NaN where unknown)."""
+    return np.array([[r.yaw_deg, r.tilt_x_deg, r.tilt_y_deg] for r in rows], float).reshape(-1, 3)
+
+
 def build_session_report(
     rows: Sequence[PathRow],
-    reference_mm: np.ndarray | None,
+    reference: np.ndarray | None,
     mosaic: MosaicImage | None,
     extra: Mapping[str, Any] | None = None,
     heading: str = "veinmosaic session report",
     sheet: bool = True,
     backdrop: Backdrop | None = None,
 ) -> SessionReport:
-    """Return the report of a path (rows in seq order) with an optional reference (N, 2) mm and mosaic.
+    """Return the report of a path (rows in seq order) with an optional reference track and mosaic.
 
+    reference: (N, 2) positions in mm, or the (N, 5) track of services.core.reference (positions, yaw and tilts
+    in degrees): with angles, report.json also has "angles" (yaw and tilt errors, evaluate_angles).
     backdrop: the image paths.png is drawn over when there is no mosaic with layers yet (a live version).
     Raises ValueError when a reference is given but no frame can be compared with it.
     """
     frames = summarize_frames(rows)
     estimate, registered = path_arrays(rows)
+    reference_mm = None if reference is None else np.asarray(reference, float)[:, :2]
     accuracy = evaluate_path(estimate, registered, reference_mm) if reference_mm is not None else None
     doc: dict[str, Any] = {}
     if accuracy is not None:
         doc.update(accuracy.to_dict())
+    if reference is not None and np.shape(reference)[1] > 2:
+        angles = evaluate_angles(path_angles_deg(rows), registered, np.asarray(reference, float)[:, 2:5])
+        if angles:
+            doc["angles"] = angles
     doc["registered_fraction"] = frames.registered_fraction
     doc["frames"] = frames.to_dict()
     doc["warnings"] = scan_warnings(frames)
@@ -106,7 +118,7 @@ def plot_links(session_id: str, version: int) -> dict[str, str]:
 
 def version_report(
     rows: Sequence[PathRow],
-    reference_mm: np.ndarray,
+    reference: np.ndarray,
     mosaic: MosaicImage | None,
     *,
     session_id: str,
@@ -117,7 +129,7 @@ def version_report(
 ) -> SessionReport:
     """Return the report of results version `version` (report.json + paths.png, errors.png), see the docstring.
 
-    rows: the version's path in seq order; reference_mm: (N, 2) aligned to rows; mosaic_version: the
+    rows: the version's path in seq order; reference: (N, 2) or (N, 5) aligned to rows; mosaic_version: the
     mosaic.json change counter it was made from (the API rebuilds the report when it changes).
     Raises ValueError when no frame can be compared with the reference.
     """
@@ -128,7 +140,7 @@ def version_report(
         "path_rows": len(rows),
         "method": method,
     }
-    report = build_session_report(rows, reference_mm, mosaic, extra, sheet=False, backdrop=backdrop)
+    report = build_session_report(rows, reference, mosaic, extra, sheet=False, backdrop=backdrop)
     images = {name: data for name, data in report.images.items() if name in ACCURACY_PLOTS}
     doc = {**report.doc, "plots": plot_links(session_id, version)}
     return SessionReport(doc, report.accuracy, report.frames, images)

@@ -43,9 +43,12 @@ def path_csv(rows: list[PathRow]) -> str:
 
 
 def write_reconstruction(
-    recon: Reconstruction, out_dir: str | Path, reference_mm: np.ndarray | None, sheet: bool = True
+    recon: Reconstruction, out_dir: str | Path, reference: np.ndarray | None, sheet: bool = True
 ) -> SessionReport:
-    """Write every output of a reconstruction to out_dir (see OUTPUTS); return its SessionReport."""
+    """Write every output of a reconstruction to out_dir (see OUTPUTS); return its SessionReport.
+
+    reference: the (N, 2) or (N, 5) reference track (services.core.session_report.build_session_report).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "path.csv").write_text(path_csv(recon.rows))
@@ -64,7 +67,7 @@ def write_reconstruction(
     (out / "mosaic.json").write_text(json.dumps(meta, indent=2))
     extra = {"method": recon.method, "seconds_per_frame": recon.seconds / max(1, len(recon.rows))}
     report = build_session_report(
-        recon.rows, reference_mm, mosaic, extra, heading=f"veinmosaic reconstruction ({recon.method})", sheet=sheet
+        recon.rows, reference, mosaic, extra, heading=f"veinmosaic reconstruction ({recon.method})", sheet=sheet
     )
     for name, data in report.images.items():
         (out / name).write_bytes(data)

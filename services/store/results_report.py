@@ -14,10 +14,11 @@ from typing import Any
 import cv2
 import numpy as np
 
+from services.core.reference import parse_reference_csv
 from services.core.results_docs import path_rows_from_json
 from services.core.session_reconstruction import PathRow
 from services.core.session_report import Backdrop, version_report
-from services.store.results_store import ResultsStore, parse_reference_csv
+from services.store.results_store import ResultsStore
 
 
 class BadReferenceError(ValueError):
@@ -33,25 +34,25 @@ class NothingToCompareError(ValueError):
 
 
 def parse_reference(text: str, frame_seqs: Iterable[int]) -> tuple[list[int], np.ndarray]:
-    """Return (every frame seq in order, the reference (N, 2) mm aligned to them); BadReferenceError naming the line."""
+    """Return (every frame seq in order, the reference track (N, 5) aligned to them) or raise BadReferenceError."""
     ordered = sorted({int(s) for s in frame_seqs})
     try:
         reference = parse_reference_csv(text, ordered)
     except ValueError as exc:
         raise BadReferenceError(str(exc)) from None
-    if not np.any(np.all(np.isfinite(reference), axis=1)):
+    if not np.any(np.all(np.isfinite(reference[:, :2]), axis=1)):
         raise BadReferenceError("reference.csv: no data rows (expected seq,x_mm,y_mm lines)")
     return ordered, reference
 
 
 def reference_for_rows(text: str, rows: Sequence[PathRow], frame_seqs: Iterable[int]) -> np.ndarray:
-    """Return the reference (len(rows), 2) mm aligned to path rows (NaN where it has none); BadReferenceError.
+    """Return the reference track (len(rows), 5) aligned to path rows (NaN where it has none); BadReferenceError.
 
     frame_seqs: the session's stored frame seqs; the reference may name any of them or of the rows.
     """
     ordered, reference = parse_reference(text, [*frame_seqs, *(r.seq for r in rows)])
     position = {s: i for i, s in enumerate(ordered)}
-    return reference[[position[r.seq] for r in rows]].reshape(-1, 2)
+    return reference[[position[r.seq] for r in rows]].reshape(-1, reference.shape[1])
 
 
 def _backdrop(rs: ResultsStore, sid: str, v: int, mosaic_doc: dict[str, Any]) -> Backdrop | None:

@@ -19,10 +19,8 @@ readers (the API, other workers) see a whole old or a whole new file, never a pa
 from __future__ import annotations
 
 import contextlib
-import csv
 import io
 import json
-import math
 import re
 import zipfile
 from collections import OrderedDict
@@ -54,7 +52,6 @@ def _png(image: np.ndarray) -> bytes:
 
 
 _SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
-REFERENCE_HEADER = ("seq", "x_mm", "y_mm")
 
 
 def _json_bytes(doc: Any) -> bytes:
@@ -125,38 +122,6 @@ def prepared_from_bytes(data: bytes) -> PreparedFrame:
         vein_mask=z["vein_mask"],
         sharpness=sharpness,
     )
-
-
-def parse_reference_csv(text: str, seqs: Sequence[int]) -> np.ndarray:
-    """Return the reference track (len(seqs), 2) in mm aligned to `seqs`, NaN rows where it has no row.
-
-    Raises ValueError naming the line for a wrong header, a non-number, a seq that is not a frame or a repeat.
-    """
-    index = {int(s): i for i, s in enumerate(seqs)}
-    out = np.full((len(index), 2), np.nan)
-    lines = text.lstrip("\ufeff").splitlines()
-    if not lines or tuple(c.strip() for c in lines[0].split(",")) != REFERENCE_HEADER:
-        raise ValueError(f"reference.csv line 1: expected the header {','.join(REFERENCE_HEADER)}")
-    seen: set[int] = set()
-    for lineno, cells in enumerate(csv.reader(lines[1:]), start=2):
-        if not cells or not "".join(cells).strip():
-            continue
-        if len(cells) != 3:
-            raise ValueError(f"reference.csv line {lineno}: expected 3 values (seq,x_mm,y_mm), got {len(cells)}")
-        try:
-            seq = int(cells[0].strip())
-            x, y = float(cells[1]), float(cells[2])
-        except ValueError:
-            raise ValueError(f"reference.csv line {lineno}: seq must be an integer and x_mm, y_mm numbers") from None
-        if not (math.isfinite(x) and math.isfinite(y)):
-            raise ValueError(f"reference.csv line {lineno}: x_mm and y_mm must be finite")
-        if seq not in index:
-            raise ValueError(f"reference.csv line {lineno}: seq {seq} is not a frame of this session")
-        if seq in seen:
-            raise ValueError(f"reference.csv line {lineno}: seq {seq} repeats")
-        seen.add(seq)
-        out[index[seq]] = (x, y)
-    return out
 
 
 class ResultsStore:

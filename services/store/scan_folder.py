@@ -13,13 +13,13 @@ import cv2
 import numpy as np
 
 from services.core.calibration import Calibration, CalibrationError, parse_calibration
+from services.core.reference import ReferenceFormatError, parse_reference_csv, reference_csv
 from services.core.scan import Scan
 
 FRAME_EXTENSIONS = ("png", "tif", "tiff")
 FRAMES_HEADER = ("seq", "t_s")
 FORCES_HEADER = ("t_s", "f1_n", "f2_n", "f3_n", "f4_n")
 IMU_HEADER = ("t_s", "tilt_x_deg", "tilt_y_deg")
-REFERENCE_HEADER = ("seq", "x_mm", "y_mm")
 SCAN_FILES = (
     "calibration.json",
     "frames.csv",
@@ -172,18 +172,11 @@ def _read_stream(folder: Path, name: str, header: tuple[str, ...], min_rows: int
 
 
 def _read_reference(folder: Path, seq: np.ndarray) -> np.ndarray:
-    rows = _read_csv(folder, "reference.csv", REFERENCE_HEADER, integer_columns=(0,))
-    out = np.full((len(seq), 2), np.nan)
-    index = {int(s): i for i, s in enumerate(seq)}
-    seen: dict[int, int] = {}
-    for lineno, (s, x, y) in rows:
-        if s not in index:
-            raise ScanFormatError("reference.csv", lineno, f"seq {s} is not a frame of this scan")
-        if s in seen:
-            raise ScanFormatError("reference.csv", lineno, f"seq {s} repeats line {seen[s]}")
-        seen[int(s)] = lineno
-        out[index[int(s)]] = (x, y)
-    return out
+    """Return the reference track (N, 5) of the folder's reference.csv (services.core.reference)."""
+    try:
+        return parse_reference_csv(_read_text(folder, "reference.csv"), [int(s) for s in seq])
+    except ReferenceFormatError as e:
+        raise ScanFormatError("reference.csv", e.line, e.message) from None
 
 
 def _check_image(img: np.ndarray | None, name: str, size: tuple[int, int], what: str) -> np.ndarray:
@@ -236,7 +229,7 @@ def read_scan_folder(path: str | os.PathLike[str]) -> Scan:
     if (folder / "imu.csv").exists():
         imu_t, imu = _read_stream(folder, "imu.csv", IMU_HEADER, 2)
     mask = _read_mask(folder, calib.image_size) if (folder / "mask.png").exists() else None
-    reference = _read_reference(folder, seq) if (folder / "reference.csv").exists() else None
+    track = _read_reference(folder, seq) if (folder / "reference.csv").exists() else None
     truth: dict[str, Any] = {}
     if (folder / "truth.json").exists():
         doc = _read_json(folder, "truth.json")
@@ -253,7 +246,8 @@ def read_scan_folder(path: str | os.PathLike[str]) -> Scan:
         mask=mask,
         imu_t_s=imu_t,
         imu_tilt_deg=imu,
-        reference_mm=reference,
+        reference_mm=None if track is None else track[:, :2].copy(),
+        reference_angles_deg=None if track is None or np.isnan(track[:, 2:]).all() else track[:, 2:].copy(),
         truth=truth,
     )
 
@@ -347,8 +341,9 @@ def write_scan_folder(
     if scan.mask is not None:
         cv2.imwrite(str(folder / "mask.png"), np.where(np.asarray(scan.mask) > 0, 255, 0).astype(np.uint8))
     if scan.reference_mm is not None:
-        ref = np.asarray(scan.reference_mm, dtype=np.float64).reshape(len(seqs), 2)
-        rows = [[str(s), _num(x), _num(y)] for s, (x, y) in zip(seqs, ref, strict=True) if np.isfinite([x, y]).all()]
-        _write_csv(folder / "reference.csv", REFERENCE_HEADER, rows)
+        track = np.asarray(scan.reference_mm, dtype=np.float64).reshape(len(seqs), 2)
+        if scan.reference_angles_deg is not None:
+            track = np.hstack([track, np.asarray(scan.reference_angles_deg, dtype=np.float64).reshape(len(seqs), 3)])
+        (folder / "reference.csv").write_text(reference_csv(seqs, track), encoding="utf-8")
     if scan.truth:
         (folder / "truth.json").write_text(json.dumps(_jsonable(scan.truth), indent=1) + "\n", encoding="utf-8")

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from services.core.evaluation import evaluate_path, reference_path_length_mm
+from services.core.evaluation import evaluate_angles, evaluate_path, reference_path_length_mm
 
 NAN = float("nan")
 
@@ -112,3 +112,19 @@ def test_summary_states_the_registered_share() -> None:
     text = evaluate_path(estimate, np.array([True, True, False, True]), reference).summary()
     assert text.startswith("RMSE ") and "3/4 frames registered (75.0 %)" in text
     assert "frames not registered are not in these figures" in text
+
+
+def test_angle_errors_known_answer() -> None:
+    # yaw compared on registered frames only and wrapped (359 vs -1 is 0 off); tilts on every frame with both.
+    est = np.array([[0.0, 1.0, 0.0], [359.0, 2.0, 1.0], [10.0, 3.0, NAN], [5.0, 0.0, 0.0]])
+    ref = np.array([[0.0, 0.0, 0.0], [-1.0, 0.0, 1.0], [0.0, 3.0, 2.0], [3.0, 0.0, 0.0]])
+    out = evaluate_angles(est, np.array([True, True, False, True]), ref)
+    assert out["yaw_rmse_deg"] == pytest.approx(math.sqrt((0 + 0 + 4) / 3), abs=1e-9)
+    assert out["yaw_compared"] == 3 and out["yaw_max_error_deg"] == pytest.approx(2.0, abs=1e-9)
+    assert out["tilt_x_rmse_deg"] == pytest.approx(math.sqrt((1 + 4 + 0 + 0) / 4), abs=1e-9)
+    assert out["tilt_y_compared"] == 3 and out["tilt_y_rmse_deg"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_angle_errors_skip_unknown_angles() -> None:
+    est = np.zeros((3, 3))
+    assert evaluate_angles(est, np.ones(3, bool), np.full((3, 3), NAN)) == {}

@@ -17,7 +17,6 @@ from services.store.durable import write_once
 from services.store.results_store import (
     LIVE_VERSION,
     ResultsStore,
-    parse_reference_csv,
     prepared_from_bytes,
     prepared_to_bytes,
 )
@@ -196,16 +195,3 @@ def test_path_state_meta_report_reference_images_tiles(stores: tuple[ResultsStor
         rs.tile_path(sid, 1, "other", 0, 0, 0)
 
 
-def test_parse_reference_csv() -> None:
-    ref = parse_reference_csv("seq,x_mm,y_mm\n2,1.5,-2\n0,0,0\n\n", [0, 1, 2])
-    assert np.array_equal(ref[0], [0, 0]) and np.all(np.isnan(ref[1])) and np.array_equal(ref[2], [1.5, -2])
-    for text, needle in [
-        ("a,b,c\n", "line 1"),
-        ("seq,x_mm,y_mm\n0,1\n", "line 2"),
-        ("seq,x_mm,y_mm\n0,x,1\n", "line 2"),
-        ("seq,x_mm,y_mm\n7,1,1\n", "seq 7"),
-        ("seq,x_mm,y_mm\n0,1,1\n0,1,1\n", "repeats"),
-        ("seq,x_mm,y_mm\n0,nan,1\n", "finite"),
-    ]:
-        with pytest.raises(ValueError, match=needle):
-            parse_reference_csv(text, [0, 1])

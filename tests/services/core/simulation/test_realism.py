@@ -15,7 +15,7 @@ from services.core.simulation.frame_stats import FrameStats, frame_stats
 from services.core.simulation.scenarios import simulate
 from services.core.simulation.variants import ImagingVariant, scenario_imaging
 
-SHARED_SCANS = Path(__file__).resolve().parents[4] / "shared" / "scans"
+SHARED_SCANS = Path(__file__).resolve().parents[5] / "shared" / "scans"
 
 # Measured with services.core.simulation.frame_stats on every frame of ../shared/scans (short_veins_21: 40 frames,
 # hard_veins_22: 88 frames), per-frame min .. max over both scans (8-bit grey levels unless said):
