@@ -193,5 +193,3 @@ def test_path_state_meta_report_reference_images_tiles(stores: tuple[ResultsStor
     assert not rs.tile_path(sid, 1, "vein", 12, 3, 4).exists()
     with pytest.raises(ValueError):
         rs.tile_path(sid, 1, "other", 0, 0, 0)
-
-
