@@ -28,6 +28,7 @@ class MethodOptions:
     rigid_stitch: bool = False  # stitch with yaw + x/y only (the paper's correction) instead of the similarity
     refine: bool = True  # global pose-graph refinement on loop closures (beyond the paper)
     self_calibrate: bool = True  # fit the tissue compliance from registration scales (beyond the paper)
+    fit_tilt: bool = True  # learn the probe's true tilt (effective kappa) from the matches' affines; undo it
     flat_field: bool = True  # divide out the IR ring's vignetting before blending
     min_inliers: int = 20  # unique RANSAC inliers for an accepted registration
     ransac_px: float = 2.0  # RANSAC reprojection threshold, pixels of the rectified frame
@@ -57,6 +58,7 @@ def method_options(name: str) -> MethodOptions:
             rigid_stitch=True,
             refine=False,
             self_calibrate=False,
+            fit_tilt=False,
             flat_field=False,
         )
     if name == "paper":
@@ -68,6 +70,7 @@ def method_options(name: str) -> MethodOptions:
             rigid_stitch=True,
             refine=False,
             self_calibrate=False,
+            fit_tilt=False,
             flat_field=False,
         )
     if name == "best":

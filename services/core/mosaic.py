@@ -79,14 +79,18 @@ class SparseCanvas:
     px_per_mm: float
     tiles: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
 
-    def frame_to_canvas(self, pose: Similarity, layers: FrameLayers) -> np.ndarray:
-        """Return the 2x3 affine from frame pixels to canvas pixels (canvas (0, 0) = frame 0's centre)."""
+    def frame_to_canvas(self, pose: Similarity | np.ndarray, layers: FrameLayers) -> np.ndarray:
+        """Return the 2x3 affine from frame pixels to canvas pixels (canvas (0, 0) = frame 0's centre).
+
+        pose: frame mm (about its centre) -> mosaic mm, a similarity or a 2x3 affine.
+        """
+        m = pose.matrix() if isinstance(pose, Similarity) else np.asarray(pose, np.float64)
         k = self.px_per_mm / layers.px_per_mm
         cx, cy = layers.centre_px
-        a, t = pose.a * k, pose.t * self.px_per_mm
-        # canvas = a (u - c) + t
-        offset = t - a * complex(cx, cy)
-        return np.array([[a.real, -a.imag, offset.real], [a.imag, a.real, offset.imag]])
+        # canvas = px_per_mm * (L (u - c) / frame px_per_mm + t)
+        linear = m[:, :2] * k
+        offset = m[:, 2] * self.px_per_mm - linear @ np.array([cx, cy])
+        return np.hstack([linear, offset[:, None]])
 
     def footprint_tiles(self, affine: np.ndarray, shape: tuple[int, int]) -> list[tuple[int, int]]:
         """Return the tile keys a frame of shape (H, W) covers under the frame->canvas affine."""
@@ -96,7 +100,7 @@ class SparseCanvas:
         c1, r1 = np.floor(corners.max(axis=0) / TILE_PX).astype(int)
         return [(c, r) for r in range(r0, r1 + 1) for c in range(c0, c1 + 1)]
 
-    def paste(self, layers: FrameLayers, pose: Similarity, sign: float = 1.0) -> list[tuple[int, int]]:
+    def paste(self, layers: FrameLayers, pose: Similarity | np.ndarray, sign: float = 1.0) -> list[tuple[int, int]]:
         """Add (sign=+1) or remove (sign=-1) a frame at a pose; return the tile keys it touched."""
         affine = self.frame_to_canvas(pose, layers)
         w = layers.weight

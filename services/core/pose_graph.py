@@ -8,7 +8,7 @@ T_ij = T_i^-1 T_j, so a_j = a_i a_ij and t_j = t_i + a_i t_ij. Both equations ar
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.sparse import csr_matrix, identity
@@ -24,7 +24,11 @@ PRIOR_T_MM = 50.0  # ... and its t with this one (mm)
 
 @dataclass(frozen=True)
 class Edge:
-    """A relative constraint T_j = T_i T_ij with its translation standard deviation (mm) and kind."""
+    """A relative constraint T_j = T_i T_ij with its translation standard deviation (mm) and kind.
+
+    affine: the match's full affine (2x3, frame j mm -> frame i mm) when it has one, and its non-similarity
+    sigma: the evidence services.core.tissue_model learns the probe's tilt from.
+    """
 
     i: int
     j: int
@@ -32,6 +36,12 @@ class Edge:
     sigma_mm: float
     loop: bool = False
     inliers: int = 0
+    affine: np.ndarray | None = field(default=None, compare=False, repr=False)
+    affine_sigma: float = field(default=float("inf"), compare=False)
+
+    def with_relative(self, relative: Similarity) -> Edge:
+        """Return the same edge measuring another relative similarity (e.g. between undeformed frames)."""
+        return replace(self, relative=relative)
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,8 @@ pose graph; loop closures trigger a robust global re-optimisation).
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,6 +20,7 @@ from services.core.frame_prep import PreparedFrame
 from services.core.methods import MethodOptions
 from services.core.pose_graph import Edge, optimise_poses, place_node
 from services.core.registration import IDENTITY, Similarity, SimilarityFit, estimate_similarity, match_features
+from services.core.tissue_model import AffineEvidence, KappaFit, corrected_relative, fit_kappa, foreshortening
 
 STATUS_OK, STATUS_LOST, STATUS_REJECTED = "ok", "lost", "rejected"
 # Why a frame was not placed (path.csv `reason`, the report, the session state); "" for placed frames.
@@ -50,6 +53,22 @@ def _vein_scale(pf: PreparedFrame) -> float:
 
 
 @dataclass(frozen=True)
+class Match:
+    """A frame registered on a placed one: the relative similarity (frame mm -> placed mm) and its evidence."""
+
+    relative: Similarity
+    inliers: int  # 0 for a direct alignment
+    rms: float  # mm
+    affine: np.ndarray | None = None  # the full affine of a feature match (2x3), see SimilarityFit
+    affine_sigma: float = math.inf
+
+
+def feature_match(fit: SimilarityFit) -> Match:
+    """Return the Match of a feature fit (with its full affine)."""
+    return Match(fit.transform, fit.inliers, fit.rms, fit.affine, fit.affine_sigma)
+
+
+@dataclass(frozen=True)
 class FrameResult:
     """The outcome for one frame: status, pose (frame mm -> mosaic mm) or None, evidence, frames moved."""
 
@@ -70,6 +89,8 @@ class Registrar:
     px_per_mm: float
     window_radius_mm: float
     centre_px: tuple[float, float]  # the principal point (rectified pixels): direct alignment's centre
+    separation_mm: Sequence[float] = (53.0, 53.0)  # the force sensors' S_X, S_Y (spec §2)
+    kappa_prior_n_per_mm: float = 18.0  # the calibration's kappa: the prior of the fitted one
     poses: dict[int, Similarity] = field(default_factory=dict)
     features: dict[int, Features] = field(default_factory=dict)
     times: dict[int, float] = field(default_factory=dict)
@@ -79,7 +100,10 @@ class Registrar:
     order: list[int] = field(default_factory=list)
     loops_since_refine: int = 0
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)  # placed: vein, mask, scale
+    forces: dict[int, np.ndarray] = field(default_factory=dict)  # placed: sensor forces F1..F4 (N)
+    kappa: KappaFit | None = None  # the effective kappa learned from the edges' affines (None: not yet)
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
+    _views: dict[int, np.ndarray] = field(default_factory=dict)  # foreshortening per frame at the current kappa
 
     @property
     def ransac_mm(self) -> float:
@@ -143,9 +167,9 @@ class Registrar:
             dedupe_radius=same_place,
         )
 
-    def _pairwise(self, pf: PreparedFrame, other: int) -> tuple[Similarity, int, float] | None:
+    def _pairwise(self, pf: PreparedFrame, other: int) -> Match | None:
         fit = self._match(pf, self.features[other])
-        return None if fit is None else (fit.transform, fit.inliers, fit.rms)
+        return None if fit is None else feature_match(fit)
 
     def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity, lost_for: int) -> tuple[Similarity, int] | None:
         """Match against the mosaic's features around the prediction (the paper's registration)."""
@@ -177,9 +201,8 @@ class Registrar:
             found = self._pairwise(pf, self.order[-1])
             if found is None:
                 return self._fail(pf, blurred, REASON_FEW_INLIERS)
-            rel, n, _ = found
-            pose = self.poses[self.order[-1]].compose(rel.rigid())
-            return self._accept(pf, pose, [], n, blurred)
+            pose = self.poses[self.order[-1]].compose(found.relative.rigid())
+            return self._accept(pf, pose, [], found.inliers, blurred)
         if kind == "mosaic":
             found_m = self._mosaic_match(pf, predicted, lost_for)
             if found_m is None:
@@ -223,16 +246,16 @@ class Registrar:
         anchor: Similarity | None = None
         found = self._pairwise(pf, latest)
         if found is not None and self.options.direct_refine:
-            refined = self._direct(pf, latest, [found[0]], recentre=False)
+            refined = self._direct(pf, latest, [found.relative], recentre=False)
             if refined is not None:
-                found = (refined.transform, found[1], found[2])
+                found = Match(refined.transform, found.inliers, found.rms)
         if found is None and self.options.direct_fallback:
             found = self._fallback(pf, latest, predicted)
         if found is not None:
-            pose = self.poses[latest].compose(found[0])
+            pose = self.poses[latest].compose(found.relative)
             if abs(pose.t - self.poses[latest].t) < 2 * self.window_radius_mm:  # the frames can overlap
                 anchor = pose
-                edges.append(self._edge(pf, latest, *found))
+                edges.append(self._edge(pf, latest, found))
         centre = anchor if anchor is not None else predicted
         radius = 1.6 * self.window_radius_mm * (1 + (lost_for if anchor is None else 0))
         count = self.options.neighbours + (4 if anchor is None else 0)
@@ -240,15 +263,16 @@ class Registrar:
             found = self._pairwise(pf, other)
             if found is None:
                 continue
-            pose = self.poses[other].compose(found[0])
+            pose = self.poses[other].compose(found.relative)
             if anchor is not None and abs(pose.t - anchor.t) > self.options.max_jump_mm / 5:
                 continue  # disagrees with the direct match to the latest frame: a false loop closure
             if anchor is None and not self._plausible(pose, predicted, lost_for):
                 continue
-            edges.append(self._edge(pf, other, *found))
+            edges.append(self._edge(pf, other, found))
         if not edges:
             return self._fail(pf, blurred, self._why_not(pf))
-        pose = place_node(self.poses, edges, pf.index)
+        self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)
+        pose = place_node(self.poses, self.undeformed(edges), pf.index)
         total = sum(e.inliers for e in edges)
         result = self._accept(pf, pose, edges, total, blurred)
         if any(e.loop for e in edges):
@@ -257,7 +281,7 @@ class Registrar:
             return FrameResult(pf.index, result.status, result.pose, total, blurred, self.refine())
         return result
 
-    def _fallback(self, pf: PreparedFrame, latest: int, predicted: Similarity) -> tuple[Similarity, int, float] | None:
+    def _fallback(self, pf: PreparedFrame, latest: int, predicted: Similarity) -> Match | None:
         """Return the best-correlated placement on the latest frame when features fail the inlier rule, or None.
 
         Candidates: direct alignment of the vein maps from the motion prediction and from "no motion" (a turn),
@@ -277,8 +301,8 @@ class Registrar:
             corr, overlap = correlation(self._alignment(latest), self._alignment(pf.index, pf), weak.transform)
             ok = corr >= self.options.min_correlation and overlap >= MIN_DIRECT_OVERLAP
             if ok and (best is None or corr >= best.correlation):
-                return weak.transform, weak.inliers, weak.rms
-        return None if best is None else (best.transform, 0, self._direct_rms(best))
+                return feature_match(weak)
+        return None if best is None else Match(best.transform, 0, self._direct_rms(best))
 
     def _direct_rms(self, fit: DirectFit) -> float:
         """Return an RMS-equivalent residual (mm) of a direct alignment, for its edge's sigma."""
@@ -290,23 +314,55 @@ class Registrar:
             return REASON_FEW_KEYPOINTS
         return REASON_LOW_CORRELATION if self.options.direct_fallback else REASON_FEW_INLIERS
 
-    def _edge(self, pf: PreparedFrame, other: int, rel: Similarity, inliers: int, rms: float) -> Edge:
+    def _edge(self, pf: PreparedFrame, other: int, match: Match) -> Edge:
         """Return the pose-graph edge of a match, its sigma from the evidence and the loads (heavier = looser).
 
         A feature edge's sigma is its RMS residual over sqrt(inliers); a direct edge (inliers 0) carries an
         RMS-equivalent from its correlation (see _direct_rms), measured against feature edges on the shared scans.
         """
         load = 1.0 + 10.0 * max(pf.stretch, self.stretches[other])
+        rms, inliers = match.rms, match.inliers
         sigma = (0.01 + (rms / np.sqrt(inliers) if inliers > 0 else rms)) * load
         loop = self.order[-1] - other > self.options.loop_gap
-        return Edge(other, pf.index, rel, sigma, loop=loop, inliers=inliers)
+        return Edge(
+            other, pf.index, match.relative, sigma, loop, inliers, affine=match.affine, affine_sigma=match.affine_sigma
+        )
+
+    def view(self, index: int) -> np.ndarray:
+        """Return a frame's foreshortening D (observed mm = D undeformed mm) at the fitted kappa (I before a fit)."""
+        if self.kappa is None or index not in self.forces:
+            return np.eye(2)
+        cached = self._views.get(index)
+        if cached is None:
+            cached = foreshortening(self.forces[index], self.kappa.kappa_n_per_mm, self.separation_mm)
+            self._views[index] = cached
+        return cached
+
+    def undeformed(self, edges: list[Edge]) -> list[Edge]:
+        """Return the edges measuring relative poses between undeformed frames (tilt foreshortening removed)."""
+        if self.kappa is None:
+            return edges
+        return [
+            e.with_relative(corrected_relative(e.relative, e.affine, self.view(e.i), self.view(e.j))) for e in edges
+        ]
+
+    def fit_tilt(self) -> KappaFit | None:
+        """Refit the effective kappa from every edge's affine (services.core.tissue_model); return it."""
+        evidence = [AffineEvidence(e.i, e.j, e.affine, e.affine_sigma) for e in self.edges if e.affine is not None]
+        fit = fit_kappa(evidence, self.forces, self.separation_mm, self.kappa_prior_n_per_mm)
+        if fit is not None:
+            self.kappa = fit
+            self._views = {}
+        return self.kappa
 
     def refine(self) -> tuple[int, ...]:
         """Re-optimise every placed pose on the pose graph; return the frames that moved (> MOVED_MM)."""
         self.loops_since_refine = 0
         if len(self.order) < 3 or not self.edges:
             return ()
-        solution = optimise_poses(self.poses, self.edges, fixed=self.order[0])
+        if self.options.fit_tilt:
+            self.fit_tilt()
+        solution = optimise_poses(self.poses, self.undeformed(self.edges), fixed=self.order[0])
         moved = tuple(i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM and i in self.poses)
         self.poses.update(solution.poses)
         return moved
@@ -321,6 +377,7 @@ class Registrar:
         self.edges.extend(edges)
         self.order.append(pf.index)
         self.veins[pf.index] = (pf.vein, pf.vein_mask, _vein_scale(pf))
+        self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)
         if not blurred:  # only sharp, placed frames set the reference (noise frames would inflate it)
             self.sharpness.append(pf.sharpness)
         return FrameResult(pf.index, STATUS_OK, pose, inliers, blurred)

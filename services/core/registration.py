@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -56,12 +57,28 @@ IDENTITY = Similarity(1.0 + 0j, 0j)
 
 @dataclass(frozen=True)
 class SimilarityFit:
-    """A RANSAC similarity fit: the transform (src -> dst units), unique inliers and their RMS residual."""
+    """A RANSAC similarity fit: the transform (src -> dst units), unique inliers and their RMS residual.
+
+    affine: the full affine (2x3, src -> dst) least-squares fitted on the same inliers: its non-similarity
+    part measures how differently the two frames are stretched (services.core.tissue_model); affine_sigma
+    its standard error (dimensionless: RMS residual / (sqrt(inliers) * RMS spread of the inliers)).
+    """
 
     transform: Similarity
     inliers: int
     rms: float
     inlier_mask: np.ndarray
+    affine: np.ndarray | None = None
+    affine_sigma: float = math.inf
+
+
+def fit_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
+    """Return the least-squares affine (2x3, src -> dst units) of point pairs (N, 2), or None below 4 pairs."""
+    if len(src) < 4:
+        return None
+    design = np.hstack([np.asarray(src, np.float64), np.ones((len(src), 1))])
+    solution, _, rank, _ = np.linalg.lstsq(design, np.asarray(dst, np.float64), rcond=None)
+    return solution.T if rank == 3 else None
 
 
 def nearest_descriptors(
@@ -191,4 +208,6 @@ def estimate_similarity(
     transform = Similarity(complex(M[0, 0], M[1, 0]), complex(M[0, 2], M[1, 2]))
     resid = transform.apply(src[inl]) - dst[inl]
     rms = float(np.sqrt(np.mean(np.sum(resid**2, axis=1))))
-    return SimilarityFit(transform, n, rms, inl)
+    spread = float(np.sqrt(np.mean(np.sum((src[inl] - src[inl].mean(axis=0)) ** 2, axis=1))))
+    affine_sigma = rms / (math.sqrt(n) * spread) if spread > 0 else math.inf
+    return SimilarityFit(transform, n, rms, inl, fit_affine(src[inl], dst[inl]), affine_sigma)

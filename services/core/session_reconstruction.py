@@ -29,6 +29,7 @@ from services.core.registrar import (
     Registrar,
 )
 from services.core.registration import Similarity
+from services.core.tissue_model import tilt_angles_rad
 
 PATH_COLUMNS = (
     "seq",
@@ -92,14 +93,19 @@ class SessionReconstruction:
     canvas: SparseCanvas = field(init=False)
     results: dict[int, FrameResult] = field(default_factory=dict)
     frames: dict[int, PreparedFrame] = field(default_factory=dict)
-    pasted: dict[int, Similarity] = field(default_factory=dict)
+    pasted: dict[int, np.ndarray] = field(default_factory=dict)  # frame -> the 2x3 affine it is pasted with
     compliance: ComplianceFit | None = None
     gauge: float = 1.0
     finished: bool = False
 
     def __post_init__(self) -> None:
         self.registrar = Registrar(
-            self.options, self.calibration.px_per_mm, self.window_radius_mm, centre_px=self.calibration.principal_point
+            self.options,
+            self.calibration.px_per_mm,
+            self.window_radius_mm,
+            centre_px=self.calibration.principal_point,
+            separation_mm=self.calibration.sensor_separation_mm,
+            kappa_prior_n_per_mm=self.calibration.hooke_n_per_mm,
         )
         self.canvas = SparseCanvas(self.calibration.px_per_mm)
 
@@ -154,7 +160,11 @@ class SessionReconstruction:
             px_per_mm=self.calibration.px_per_mm,
         )
 
-    def _stitch_pose(self, index: int) -> Similarity | None:
+    def _stitch_pose(self, index: int) -> np.ndarray | None:
+        """Return the 2x3 affine (rectified frame mm -> mosaic mm) a frame is pasted with, or None (not pasted).
+
+        The pose after the frame's tilt foreshortening is undone (its view D^-1), so the mosaic is undeformed.
+        """
         result = self.results.get(index)
         if result is None or result.status != STATUS_OK or result.blurred:
             return None
@@ -162,7 +172,9 @@ class SessionReconstruction:
         if pose is None:
             return None
         pose = self._output_pose(pose) if self.finished else pose
-        return pose.rigid() if self.options.rigid_stitch else pose
+        pose = pose.rigid() if self.options.rigid_stitch else pose
+        m = pose.matrix()
+        return np.hstack([m[:, :2] @ np.linalg.inv(self.registrar.view(index)), m[:, 2:]])
 
     def _sync_canvas(self, indices: tuple[int, ...]) -> set[tuple[int, int]]:
         """Paste frames at their current poses, removing them first from where they were pasted."""
@@ -170,7 +182,7 @@ class SessionReconstruction:
         for i in indices:
             pose = self._stitch_pose(i)
             old = self.pasted.get(i)
-            if old is not None and pose is not None and old == pose:
+            if old is not None and pose is not None and np.array_equal(old, pose):
                 continue
             layers = self._layers(self.frames[i])
             if old is not None:
@@ -194,6 +206,14 @@ class SessionReconstruction:
         self.pasted = {}
         return old | self._sync_canvas(tuple(sorted(self.frames)))
 
+    def _tilt_deg(self, pf: PreparedFrame) -> tuple[float, float]:
+        """Return a frame's (tilt_x, tilt_y) in degrees: spec §2 with the fitted kappa, else the calibration's."""
+        fit = self.registrar.kappa
+        if fit is None:
+            return math.degrees(pf.load.theta_x_rad), math.degrees(pf.load.theta_y_rad)
+        theta = tilt_angles_rad(pf.forces_n, fit.kappa_n_per_mm, self.calibration.sensor_separation_mm)
+        return math.degrees(theta[0]), math.degrees(theta[1])
+
     def path_rows(self) -> list[PathRow]:
         """Return one PathRow per frame seen so far (spec §4), in index order."""
         poses = self.final_poses() if self.finished else self.registrar.poses
@@ -211,8 +231,8 @@ class SessionReconstruction:
                     y_mm=y,
                     yaw_deg=yaw,
                     fz_n=pf.load.fz_n if pf else math.nan,
-                    tilt_x_deg=math.degrees(pf.load.theta_x_rad) if pf else math.nan,
-                    tilt_y_deg=math.degrees(pf.load.theta_y_rad) if pf else math.nan,
+                    tilt_x_deg=self._tilt_deg(pf)[0] if pf else math.nan,
+                    tilt_y_deg=self._tilt_deg(pf)[1] if pf else math.nan,
                     stretch=pf.stretch if pf else math.nan,
                     inliers=r.inliers,
                     status=r.status,
