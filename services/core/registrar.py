@@ -20,7 +20,7 @@ from services.core.frame_prep import PreparedFrame
 from services.core.methods import MethodOptions
 from services.core.pose_graph import Edge, optimise_poses, place_node
 from services.core.registration import IDENTITY, Similarity, SimilarityFit, estimate_similarity, match_features
-from services.core.tissue_model import AffineEvidence, KappaFit, corrected_relative, fit_kappa, foreshortening
+from services.core.tissue_model import AffineEvidence, ViewFit, corrected_relative, fit_view_model
 
 STATUS_OK, STATUS_LOST, STATUS_REJECTED = "ok", "lost", "rejected"
 # Why a frame was not placed (path.csv `reason`, the report, the session state); "" for placed frames.
@@ -91,6 +91,7 @@ class Registrar:
     centre_px: tuple[float, float]  # the principal point (rectified pixels): direct alignment's centre
     separation_mm: Sequence[float] = (53.0, 53.0)  # the force sensors' S_X, S_Y (spec §2)
     kappa_prior_n_per_mm: float = 18.0  # the calibration's kappa: the prior of the fitted one
+    compliance_per_n: float = 0.0  # the calibration's nu / (E A): the tissue anisotropy's unit
     poses: dict[int, Similarity] = field(default_factory=dict)
     features: dict[int, Features] = field(default_factory=dict)
     times: dict[int, float] = field(default_factory=dict)
@@ -101,9 +102,9 @@ class Registrar:
     loops_since_refine: int = 0
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)  # placed: vein, mask, scale
     forces: dict[int, np.ndarray] = field(default_factory=dict)  # placed: sensor forces F1..F4 (N)
-    kappa: KappaFit | None = None  # the effective kappa learned from the edges' affines (None: not yet)
+    view_fit: ViewFit | None = None  # the probe's tilt and tissue anisotropy learned from the edges' affines
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
-    _views: dict[int, np.ndarray] = field(default_factory=dict)  # foreshortening per frame at the current kappa
+    _views: dict[int, np.ndarray] = field(default_factory=dict)  # each frame's view D under the current fit
 
     @property
     def ransac_mm(self) -> float:
@@ -329,31 +330,33 @@ class Registrar:
         )
 
     def view(self, index: int) -> np.ndarray:
-        """Return a frame's foreshortening D (observed mm = D undeformed mm) at the fitted kappa (I before a fit)."""
-        if self.kappa is None or index not in self.forces:
+        """Return a frame's view D (observed mm = D undeformed mm) under the fitted view model (I before a fit)."""
+        if self.view_fit is None or index not in self.forces:
             return np.eye(2)
         cached = self._views.get(index)
         if cached is None:
-            cached = foreshortening(self.forces[index], self.kappa.kappa_n_per_mm, self.separation_mm)
+            cached = self.view_fit.model.views(self.forces[index])
             self._views[index] = cached
         return cached
 
     def undeformed(self, edges: list[Edge]) -> list[Edge]:
         """Return the edges measuring relative poses between undeformed frames (tilt foreshortening removed)."""
-        if self.kappa is None:
+        if self.view_fit is None:
             return edges
         return [
             e.with_relative(corrected_relative(e.relative, e.affine, self.view(e.i), self.view(e.j))) for e in edges
         ]
 
-    def fit_tilt(self) -> KappaFit | None:
-        """Refit the effective kappa from every edge's affine (services.core.tissue_model); return it."""
+    def fit_tilt(self) -> ViewFit | None:
+        """Refit the view model (kappa, anisotropy) from every edge's affine (services.core.tissue_model)."""
         evidence = [AffineEvidence(e.i, e.j, e.affine, e.affine_sigma) for e in self.edges if e.affine is not None]
-        fit = fit_kappa(evidence, self.forces, self.separation_mm, self.kappa_prior_n_per_mm)
+        fit = fit_view_model(
+            evidence, self.forces, self.separation_mm, self.kappa_prior_n_per_mm, self.compliance_per_n
+        )
         if fit is not None:
-            self.kappa = fit
+            self.view_fit = fit
             self._views = {}
-        return self.kappa
+        return self.view_fit
 
     def refine(self) -> tuple[int, ...]:
         """Re-optimise every placed pose on the pose graph; return the frames that moved (> MOVED_MM)."""

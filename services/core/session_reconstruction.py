@@ -106,6 +106,7 @@ class SessionReconstruction:
             centre_px=self.calibration.principal_point,
             separation_mm=self.calibration.sensor_separation_mm,
             kappa_prior_n_per_mm=self.calibration.hooke_n_per_mm,
+            compliance_per_n=self.calibration.compliance_per_n,
         )
         self.canvas = SparseCanvas(self.calibration.px_per_mm)
 
@@ -208,7 +209,7 @@ class SessionReconstruction:
 
     def _tilt_deg(self, pf: PreparedFrame) -> tuple[float, float]:
         """Return a frame's (tilt_x, tilt_y) in degrees: spec §2 with the fitted kappa, else the calibration's."""
-        fit = self.registrar.kappa
+        fit = self.registrar.view_fit
         if fit is None:
             return math.degrees(pf.load.theta_x_rad), math.degrees(pf.load.theta_y_rad)
         theta = tilt_angles_rad(pf.forces_n, fit.kappa_n_per_mm, self.calibration.sensor_separation_mm)

@@ -22,7 +22,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
+from scipy.optimize import minimize
 
 from services.core.registration import Similarity
 
@@ -31,6 +31,7 @@ PRIOR_LOG_SIGMA = 3.0  # the calibration's kappa is a weak prior: e^3 = 20x eith
 AFFINE_FLOOR = 1e-3  # non-similarity noise floor per edge (0.1 %: deformation no model here captures)
 MIN_AFFINE_EDGES = 8  # fewer edges with affine evidence: kappa stays at the prior
 CAUCHY_SCALE = 3.0  # robust scale, in units of an edge's sigma
+ANISOTROPY_PRIOR = 0.25  # the tissue's x/y compliance differs by a quarter either way at one sigma
 MIN_COS_TILT = 0.25  # a view tilted beyond 75 deg is no view: the stretch is capped there (4x)
 
 
@@ -45,21 +46,54 @@ class AffineEvidence:
 
 
 @dataclass(frozen=True)
-class KappaFit:
-    """The fitted effective kappa (N/mm), its 1-sigma range in log space, edges used and residual RMS."""
+class ViewModel:
+    """How a frame's view departs from the undeformed surface: the probe's tilt and the tissue's anisotropy.
+
+    kappa_n_per_mm: the effective kappa of spec §2's tilt formula; anisotropy: the tissue stretching
+    (1 + anisotropy) times the nominal compliance along the frame's x axis and (1 - anisotropy) along y, which
+    the radial rectification (isotropic, spec §2) leaves as diag(1 + e, 1 - e), e = anisotropy c F_Z.
+    """
 
     kappa_n_per_mm: float
-    log_sigma: float
+    anisotropy: float = 0.0
+    compliance_per_n: float = 0.0
+    separation_mm: tuple[float, float] = (53.0, 53.0)
+
+    def views(self, forces_n: np.ndarray) -> np.ndarray:
+        """Return D (..., 2, 2) for sensor forces (..., 4) N: observed (rectified) mm = D undeformed mm."""
+        d = foreshortening(forces_n, self.kappa_n_per_mm, self.separation_mm)
+        e = self.anisotropy * self.compliance_per_n * np.sum(np.asarray(forces_n, np.float64), axis=-1)
+        tissue = np.zeros(d.shape)
+        tissue[..., 0, 0] = 1.0 + e
+        tissue[..., 1, 1] = 1.0 - e
+        return d @ tissue
+
+
+@dataclass(frozen=True)
+class ViewFit:
+    """The fitted view model with 1-sigma uncertainties (log kappa, anisotropy), edges used, residual RMS."""
+
+    model: ViewModel
+    log_kappa_sigma: float
+    anisotropy_sigma: float
     n_edges: int
     residual_rms: float
-    residual_rms_nominal: float  # the same residual with the prior's kappa: how much the fit explains
+    residual_rms_nominal: float  # the same residual with the calibration's kappa and no anisotropy
+
+    @property
+    def kappa_n_per_mm(self) -> float:
+        """Return the fitted effective kappa (N/mm)."""
+        return self.model.kappa_n_per_mm
 
     def to_dict(self) -> dict[str, float | int]:
-        """Return the fit as JSON-able numbers (kappa N/mm with its 68 % range, residuals dimensionless)."""
+        """Return the fit as JSON-able numbers (kappa N/mm with its 68 % range, anisotropy, residuals)."""
+        k = self.model.kappa_n_per_mm
         return {
-            "kappa_n_per_mm": self.kappa_n_per_mm,
-            "kappa_low_n_per_mm": self.kappa_n_per_mm * math.exp(-self.log_sigma),
-            "kappa_high_n_per_mm": self.kappa_n_per_mm * math.exp(self.log_sigma),
+            "kappa_n_per_mm": k,
+            "kappa_low_n_per_mm": k * math.exp(-self.log_kappa_sigma),
+            "kappa_high_n_per_mm": k * math.exp(self.log_kappa_sigma),
+            "anisotropy": self.model.anisotropy,
+            "anisotropy_sigma": self.anisotropy_sigma,
             "edges": self.n_edges,
             "affine_residual_rms": self.residual_rms,
             "affine_residual_rms_nominal": self.residual_rms_nominal,
@@ -121,18 +155,19 @@ def _non_similarity(affines: np.ndarray) -> np.ndarray:
     return np.stack([(m[:, 0, 0] - m[:, 1, 1]) / 2.0, (m[:, 0, 1] + m[:, 1, 0]) / 2.0], axis=1) / scale[:, None]
 
 
-def fit_kappa(
+def fit_view_model(
     evidence: Sequence[AffineEvidence],
     forces_n: Mapping[int, np.ndarray],
     separation_mm: Sequence[float],
     kappa_prior_n_per_mm: float,
-) -> KappaFit | None:
-    """Return the MAP effective kappa (N/mm) that makes every match's corrected affine a similarity, or None.
+    compliance_per_n: float,
+) -> ViewFit | None:
+    """Return the MAP view model (kappa, anisotropy) that makes every match's corrected affine a similarity.
 
     Each edge's non-similarity residual counts with its sigma (evidence, with AFFINE_FLOOR added) under a
-    Cauchy loss; log kappa has a Gaussian prior of PRIOR_LOG_SIGMA about the calibration's kappa. The 1-D
-    search is over log kappa in KAPPA_BOUNDS_N_PER_MM; its sigma from the curvature of the objective.
-    None with fewer than MIN_AFFINE_EDGES edges.
+    Cauchy loss; log kappa has a Gaussian prior of PRIOR_LOG_SIGMA about the calibration's kappa, the anisotropy
+    one of ANISOTROPY_PRIOR about 0. A coarse scan over log kappa, then a joint search; sigmas from the
+    curvature of the objective. None with fewer than MIN_AFFINE_EDGES edges.
     """
     usable = [e for e in evidence if e.i in forces_n and e.j in forces_n]
     if len(usable) < MIN_AFFINE_EDGES:
@@ -142,34 +177,36 @@ def fit_kappa(
     f_j = np.stack([forces_n[e.j] for e in usable])
     sigma = np.sqrt(np.array([e.sigma for e in usable]) ** 2 + AFFINE_FLOOR**2)
     prior = math.log(kappa_prior_n_per_mm)
+    sep = (float(separation_mm[0]), float(separation_mm[1]))
 
-    def residuals(log_kappa: float) -> np.ndarray:
-        k = math.exp(log_kappa)
-        c = corrected_affine(affines, foreshortening(f_i, k, separation_mm), foreshortening(f_j, k, separation_mm))
+    def model(x: np.ndarray) -> ViewModel:
+        return ViewModel(math.exp(x[0]), float(x[1]), compliance_per_n, sep)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        m = model(x)
+        c = corrected_affine(affines, m.views(f_i), m.views(f_j))
         return np.linalg.norm(_non_similarity(c), axis=1) / sigma
 
-    def objective(log_kappa: float) -> float:
-        r = residuals(log_kappa)
+    def objective(x: np.ndarray) -> float:
+        r = residuals(x)
         data = float(np.sum(np.log1p((r / CAUCHY_SCALE) ** 2))) * CAUCHY_SCALE**2 / 2.0
-        return data + 0.5 * ((log_kappa - prior) / PRIOR_LOG_SIGMA) ** 2
+        return data + 0.5 * ((x[0] - prior) / PRIOR_LOG_SIGMA) ** 2 + 0.5 * (x[1] / ANISOTROPY_PRIOR) ** 2
 
     lo, hi = (math.log(b) for b in KAPPA_BOUNDS_N_PER_MM)
-    grid = np.linspace(lo, hi, 41)  # the objective can have a shoulder: a coarse scan, then a bounded search
-    best = int(np.argmin([objective(g) for g in grid]))
-    step = grid[1] - grid[0]
-    found = minimize_scalar(
-        objective, bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]), method="bounded"
-    )
-    log_k = float(found.x)
-    h = 0.01
-    curvature = (objective(log_k + h) - 2.0 * objective(log_k) + objective(log_k - h)) / h**2
-    log_sigma = 1.0 / math.sqrt(curvature) if curvature > 0 else step
-    r_fit = residuals(log_k) * sigma
-    r_nominal = residuals(prior) * sigma
-    return KappaFit(
-        kappa_n_per_mm=math.exp(log_k),
-        log_sigma=float(log_sigma),
+    grid = np.linspace(lo, hi, 41)  # the objective can have a shoulder: a coarse scan, then a joint search
+    start = np.array([grid[int(np.argmin([objective(np.array([g, 0.0])) for g in grid]))], 0.0])
+    x = minimize(objective, start, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-3}).x
+    x = np.array([np.clip(x[0], lo, hi), x[1]])
+    sigmas = []
+    for k, h in enumerate((0.01, 0.01)):
+        step = np.eye(2)[k] * h
+        curvature = (objective(x + step) - 2.0 * objective(x) + objective(x - step)) / h**2
+        sigmas.append(1.0 / math.sqrt(curvature) if curvature > 0 else math.inf)
+    return ViewFit(
+        model=model(x),
+        log_kappa_sigma=sigmas[0],
+        anisotropy_sigma=sigmas[1],
         n_edges=len(usable),
-        residual_rms=float(np.sqrt(np.mean(r_fit**2))),
-        residual_rms_nominal=float(np.sqrt(np.mean(r_nominal**2))),
+        residual_rms=float(np.sqrt(np.mean((residuals(x) * sigma) ** 2))),
+        residual_rms_nominal=float(np.sqrt(np.mean((residuals(np.array([prior, 0.0])) * sigma) ** 2))),
     )
