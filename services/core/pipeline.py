@@ -6,7 +6,8 @@ import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -37,6 +38,7 @@ class Reconstruction:
     mosaic: MosaicImage
     compliance: ComplianceFit | None
     seconds: float
+    learned: dict[str, Any] = field(default_factory=dict)  # SessionReconstruction.learned_model()
 
     @property
     def estimate_mm(self) -> np.ndarray:
@@ -135,4 +137,5 @@ def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = 
         mosaic,
         session.compliance,
         time.perf_counter() - started,
+        session.learned_model(),
     )

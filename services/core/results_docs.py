@@ -144,12 +144,14 @@ def mosaic_json(
     status: str,
     method: str,
     compliance: ComplianceFit | None = None,
+    tissue: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Return mosaic.json (spec §4 plus what the viewer needs), the one shape every producer writes.
 
     image: the rendered mosaic's meta (MosaicImage.meta(), or `image_meta`/`empty_image_meta`); version: the
     mosaic's change counter; revisions: {layer: {"level/col_row": revision}}; extent_mm: the session extent;
-    rows: the path (frame counts); status: receiving, processing or done; compliance: the fit once finished.
+    rows: the path (frame counts); status: receiving, processing or done; compliance: the fit once finished;
+    tissue: what the scan taught of the tissue and the probe (SessionReconstruction.learned_model).
     """
     doc: dict[str, Any] = {k: image[k] for k in IMAGE_KEYS if k in image}
     doc.update(
@@ -167,4 +169,6 @@ def mosaic_json(
     if compliance is not None:
         doc["compliance_per_n"] = compliance.compliance_per_n
         doc["gauge"] = compliance.gauge
+    if tissue is not None:
+        doc["tissue"] = dict(tissue)
     return doc

@@ -207,6 +207,26 @@ class SessionReconstruction:
         self.pasted = {}
         return old | self._sync_canvas(tuple(sorted(self.frames)))
 
+    def learned_model(self) -> dict[str, Any]:
+        """Return what the scan taught about the tissue and the probe (mosaic.json and report.json "tissue").
+
+        The calibration's priors, the fitted view model (effective kappa with its 68 % range, tissue anisotropy,
+        services.core.tissue_model) once fitted, and the compliance fit (E in kPa, gauge) once finished.
+        """
+        calib = self.calibration
+        doc: dict[str, Any] = {
+            "kappa_prior_n_per_mm": calib.hooke_n_per_mm,
+            "young_modulus_prior_kpa": calib.young_modulus_kpa,
+        }
+        if self.registrar.view_fit is not None:
+            doc.update(self.registrar.view_fit.to_dict())
+        if self.compliance is not None:
+            doc["compliance_per_n"] = self.compliance.compliance_per_n
+            doc["young_modulus_kpa"] = self.compliance.young_modulus_kpa(calib.poisson_ratio, calib.scanner_area_m2)
+            doc["gauge"] = self.compliance.gauge
+            doc["compliance_residual_rms"] = self.compliance.residual_rms
+        return doc
+
     def _tilt_deg(self, pf: PreparedFrame) -> tuple[float, float]:
         """Return a frame's (tilt_x, tilt_y) in degrees: spec §2 with the fitted kappa, else the calibration's."""
         fit = self.registrar.view_fit

@@ -126,6 +126,7 @@ def version_report(
     mosaic_version: int,
     method: str | None,
     backdrop: Backdrop | None = None,
+    tissue: Mapping[str, Any] | None = None,
 ) -> SessionReport:
     """Return the report of results version `version` (report.json + paths.png, errors.png), see the docstring.
 
@@ -140,6 +141,8 @@ def version_report(
         "path_rows": len(rows),
         "method": method,
     }
+    if tissue is not None:
+        extra["tissue"] = dict(tissue)
     report = build_session_report(rows, reference, mosaic, extra, sheet=False, backdrop=backdrop)
     images = {name: data for name, data in report.images.items() if name in ACCURACY_PLOTS}
     doc = {**report.doc, "plots": plot_links(session_id, version)}

@@ -64,8 +64,13 @@ def write_reconstruction(
     if recon.compliance is not None:
         meta["compliance_per_n"] = recon.compliance.compliance_per_n
         meta["gauge"] = recon.compliance.gauge
+    meta["tissue"] = recon.learned
     (out / "mosaic.json").write_text(json.dumps(meta, indent=2))
-    extra = {"method": recon.method, "seconds_per_frame": recon.seconds / max(1, len(recon.rows))}
+    extra = {
+        "method": recon.method,
+        "seconds_per_frame": recon.seconds / max(1, len(recon.rows)),
+        "tissue": recon.learned,
+    }
     report = build_session_report(
         recon.rows, reference, mosaic, extra, heading=f"veinmosaic reconstruction ({recon.method})", sheet=sheet
     )

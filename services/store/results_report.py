@@ -92,6 +92,7 @@ def write_version_report(
             mosaic_version=int(mosaic_doc.get("version", 0)),
             method=(rs.read_options(sid, v) or {}).get("method"),
             backdrop=_backdrop(rs, sid, v, mosaic_doc) if mosaic is None else None,
+            tissue=mosaic_doc.get("tissue"),
         )
     except ValueError as exc:
         raise NothingToCompareError(f"reference.csv: {exc}") from None

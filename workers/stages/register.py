@@ -411,6 +411,7 @@ class RegisterStage:
             status=status,
             method=held.options.name,
             compliance=held.recon.compliance if final else None,
+            tissue=held.recon.learned_model(),
         )
         pub.write_state(
             sid, v, cursor=held.cursor, fence=held.lease.token, finished=final, lost=held.lost, rejected=held.rejected

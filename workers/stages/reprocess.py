@@ -16,7 +16,7 @@ import logging
 import math
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -124,7 +124,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         recon = reconstruct(scan, opts, progress=progress)
         rows = sorted([*recon.rows, *(_rejected_row(ctx, sid, s) for s in poison)], key=lambda r: r.seq)
         heartbeat()
-        write_version(ctx, sid, v, rows, recon.mosaic, recon.method, recon.compliance, heartbeat)
+        write_version(ctx, sid, v, rows, recon.mosaic, recon.method, recon.compliance, heartbeat, recon.learned)
         heartbeat()
         write_report(ctx, sid, v)
         ctx.results.set_current(sid, v)
@@ -183,6 +183,7 @@ def write_version(
     method: str,
     compliance: ComplianceFit | None,
     heartbeat: Callable[[], None] = lambda: None,
+    tissue: Mapping[str, Any] | None = None,
 ) -> None:
     """Write a complete version: path, all tiles of both layers, mosaic.png/force.png, mosaic.json, state.
 
@@ -210,5 +211,6 @@ def write_version(
         status="done",
         method=method,
         compliance=compliance,
+        tissue=tissue,
     )
     pub.write_state(sid, v, cursor=len(rows), fence=0, finished=True)
