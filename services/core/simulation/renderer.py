@@ -23,6 +23,60 @@ VIGNETTE_FALLOFF = 0.12  # illumination drops by this fraction at the window's e
 FULL_SCALE_DN = 255.0  # noise is given in 8-bit grey levels (DN) whatever the output bit depth
 
 
+TISSUE_LAWS = ("linear", "stiffening", "power")
+
+
+@dataclass(frozen=True)
+class TissueLaw:
+    """The simulated tissue's true response: strain of local load F (N) and its x/y anisotropy.
+
+    linear: c F (spec §2's shape); stiffening: c F / (1 + F / half_n) (strain saturates as tissue stiffens);
+    power: c F0 (F / F0)^exponent with F0 = 10 N (the same strain at 10 N, flatter above). The strain is
+    (1 + anisotropy) times it along the frame's x axis and (1 - anisotropy) along y.
+    """
+
+    kind: str = "linear"
+    compliance_per_n: float = 0.0
+    half_n: float = 40.0
+    exponent: float = 0.8
+    anisotropy: float = 0.0
+
+    def strain(self, load_n: np.ndarray) -> np.ndarray:
+        """Return the isotropic strain (dimensionless) at local loads (N)."""
+        f = np.maximum(np.asarray(load_n, np.float64), 0.0)
+        if self.kind == "stiffening":
+            return self.compliance_per_n * f / (1.0 + f / self.half_n)
+        if self.kind == "power":
+            return self.compliance_per_n * 10.0 * (f / 10.0) ** self.exponent
+        return self.compliance_per_n * f
+
+    def to_dict(self) -> dict[str, float | str]:
+        """Return the law's truth (truth.json)."""
+        return {
+            "kind": self.kind,
+            "compliance_per_n": self.compliance_per_n,
+            "half_n": self.half_n,
+            "exponent": self.exponent,
+            "anisotropy": self.anisotropy,
+        }
+
+
+def view_stretch(observed_mm: np.ndarray, state: LoadState) -> np.ndarray:
+    """Return surface mm (..., 2) of observed mm under a tilted view: 1/cos(tilt) along the tilt, undone.
+
+    The view of a probe tilted by theta is the surface stretched 1/cos(theta) along the tilt direction (the
+    image-plane part of the tilted normal), as the paper models it and as the shared scans show.
+    """
+    n = state.normal
+    g = np.array([n[0], n[1]])
+    norm = float(np.linalg.norm(g))
+    if norm < 1e-12:
+        return observed_mm
+    g /= norm
+    along = observed_mm @ g
+    return observed_mm + ((float(n[2]) - 1.0) * along)[..., None] * g
+
+
 @dataclass(frozen=True)
 class FrameGeometry:
     """Per-scan precomputations: observed mm (H, W, 2) of every raw pixel, window mask, alpha and vignette."""
@@ -84,16 +138,23 @@ def frame_geometry(calib: Calibration) -> FrameGeometry:
     return FrameGeometry(obs, np.sum(obs * obs, axis=-1), mask, alpha, vignette_gain(calib))
 
 
-def true_undeformed_mm(geometry: FrameGeometry, state: LoadState, true_calib: Calibration) -> np.ndarray:
+def true_undeformed_mm(
+    geometry: FrameGeometry, state: LoadState, true_calib: Calibration, law: TissueLaw | None = None
+) -> np.ndarray:
     """Return the undeformed position (H, W, 2) mm about the frame centre of every raw pixel.
 
-    p = p' (1 - c F(p') (1 + 0.05 (|p'| / 25 mm)^2)) with c = nu / (E A) and F(p') = max(0, F_Z + kappa Z(p'))
-    from spec §2 evaluated with the TRUE constants; the radial term is deliberately not in spec §2.
+    The tilted view is undone first (view_stretch), then p = p' (1 - s(F(p')) (1 + 0.05 (|p'| / 25 mm)^2)) per
+    axis, s the tissue law's strain ((1 +- anisotropy) along x, y) and F(p') = max(0, F_Z + kappa Z(p')) from
+    spec §2 with the TRUE constants; the radial term is deliberately not in spec §2. Without a law: linear,
+    s = c F with c = nu / (E A) of true_calib.
     """
+    law = law or TissueLaw("linear", true_calib.compliance_per_n)
+    surface = view_stretch(geometry.observed_mm, state)
     load = local_load_n(geometry.observed_mm, state, true_calib)
     extra = 1.0 + UNMODELLED_RADIAL * geometry.radius_sq_mm2 / UNMODELLED_RADIUS_MM**2
-    factor = 1.0 - true_calib.compliance_per_n * load * extra
-    return geometry.observed_mm * factor[..., None]
+    strain = law.strain(load) * extra
+    factor = 1.0 - strain[..., None] * np.array([1.0 + law.anisotropy, 1.0 - law.anisotropy])
+    return surface * factor
 
 
 def world_maps(
@@ -113,9 +174,10 @@ def render_scene(
     yaw_deg: float,
     state: LoadState,
     true_calib: Calibration,
+    law: TissueLaw | None = None,
 ) -> np.ndarray:
     """Return the noiseless deformed view (float32 H x W, reflectance 0..1) seen through the lens."""
-    map_x, map_y = world_maps(true_undeformed_mm(geometry, state, true_calib), world, centre_mm, yaw_deg)
+    map_x, map_y = world_maps(true_undeformed_mm(geometry, state, true_calib, law), world, centre_mm, yaw_deg)
     return cv2.remap(world.image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 
@@ -18,7 +20,9 @@ from services.core.simulation.probe_path import (
     smooth_noise,
 )
 from services.core.simulation.renderer import (
+    TISSUE_LAWS,
     Imaging,
+    TissueLaw,
     apply_imaging,
     frame_geometry,
     motion_blur_kernel,
@@ -31,6 +35,8 @@ SCENARIOS = ("raster", "revisit", "hard", "short", "calib")
 
 NOMINAL_E_KPA = 16.1
 NOMINAL_KAPPA_N_PER_MM = 18.0
+TRUE_KAPPA_N_PER_MM = (0.1, 0.3)  # the effective kappa of a hand on tissue, log-uniform (draw_hand_kappa)
+HAND_TILT_DEG = {"raster": 10.0, "revisit": 10.0, "hard": 15.0, "short": 7.0}  # as the shared scans' README
 FORCE_RATE_HZ = 100.0
 FORCE_NOISE_N = 0.03
 FORCE_OFFSET_N = 0.1  # per-sensor constant offset, uniform in [-0.1, 0.1] N
@@ -61,6 +67,26 @@ def draw_true_constants(rng: np.random.Generator) -> tuple[float, float]:
     d = rng.uniform(0.04, 0.10) * rng.choice([-1.0, 1.0])
     d2 = rng.uniform(-0.10, 0.10)
     return NOMINAL_E_KPA * (1.0 + d), NOMINAL_KAPPA_N_PER_MM * (1.0 + d2)
+
+
+def draw_hand_kappa(rng: np.random.Generator) -> float:
+    """Return an effective kappa (N/mm) of a hand on tissue, log-uniform in TRUE_KAPPA_N_PER_MM.
+
+    The calibration's kappa (18 N/mm) is one phantom's: a hand-held probe tilts by degrees for a few newtons of
+    force difference, which the shared scans' trackers put at 0.13-0.17 N/mm (spec §2: a per-patient unknown).
+    """
+    return float(np.exp(rng.uniform(*np.log(TRUE_KAPPA_N_PER_MM))))
+
+
+def draw_tissue_law(rng: np.random.Generator, kind: str, compliance_per_n: float) -> TissueLaw:
+    """Return the true tissue law of a kind in TISSUE_LAWS: linear is spec §2's isotropic law; the others
+    stiffen (half strain at 25-60 N, or a power 0.7-0.9) and stretch 3-8 % more along one axis than the other."""
+    if kind not in TISSUE_LAWS:
+        raise ValueError(f"unknown tissue law {kind!r}; expected one of {', '.join(TISSUE_LAWS)}")
+    if kind == "linear":
+        return TissueLaw(kind, compliance_per_n)
+    anisotropy = float(rng.uniform(0.03, 0.08) * rng.choice([-1.0, 1.0]))
+    return TissueLaw(kind, compliance_per_n, float(rng.uniform(25.0, 60.0)), float(rng.uniform(0.7, 0.9)), anisotropy)
 
 
 def _stream_times(rng: np.random.Generator, t_first: float, t_last: float, rate_hz: float) -> np.ndarray:
@@ -104,7 +130,7 @@ def resolve_imaging(scenario: str, imaging: ImagingVariant | str) -> ImagingVari
     return scenario_imaging(scenario, imaging) if isinstance(imaging, str) else imaging
 
 
-def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realistic") -> Scan:
+def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realistic", tissue: str | None = None) -> Scan:
     """Return a simulated Scan (frames in memory) of a scenario in SCENARIOS, deterministic for the seed.
 
     imaging: a variant name ("realistic", the default that looks like the shared NIR scans; "faint";
@@ -112,7 +138,11 @@ def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realisti
     on (scenario, seed), never on the imaging. truth: young_modulus_kpa, hooke_n_per_mm (the true constants),
     poses [[x_mm, y_mm, yaw_deg], ...] in frame 0's coordinates, fz_n and tilt_x_deg / tilt_y_deg per frame,
     blurred frame indices, blur_px per frame (0 = sharp), gains per frame, path_length_mm, force_offsets_n,
-    imaging (the variant as a dict), scenario, seed.
+    imaging (the variant as a dict), scenario, seed, tissue (the law, TissueLaw.to_dict).
+    tissue: None for the phantom the project's bands were measured on (spec §2's linear law, the calibration's
+    kappa +-10 %, tilts under 0.3 deg); a law in TISSUE_LAWS for a patient as on the shared scans: a hand's
+    effective kappa (draw_hand_kappa), tilts up to HAND_TILT_DEG (a tilted view: 1/cos along the tilt) and the
+    law's shape and anisotropy. reference_angles_deg: yaw relative to frame 0 and the true tilts, as a tracker.
     """
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(SCENARIOS)}")
@@ -123,13 +153,18 @@ def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realisti
     )
     calib = nominal_calibration()
     e_true, kappa_true = draw_true_constants(rng_const)
+    spec = scenario_motion_spec(scenario) if scenario != "calib" else None
+    if tissue is not None:
+        kappa_true = draw_hand_kappa(rng_const)
+        spec = spec and dataclasses.replace(spec, max_tilt_deg=HAND_TILT_DEG[scenario])
     true_calib = calib.with_overrides(young_modulus_kpa=e_true, hooke_n_per_mm=kappa_true)
+    law = draw_tissue_law(rng_const, tissue or "linear", true_calib.compliance_per_n)
     sep = calib.sensor_separation_mm
 
     if scenario == "calib":
         motion = calibration_motion(rng_path, kappa_true, sep)
     else:
-        motion = free_hand_motion(rng_path, scenario_motion_spec(scenario), kappa_true, sep)
+        motion = free_hand_motion(rng_path, spec, kappa_true, sep)
     n = len(motion)
 
     lo = motion.centre_mm.min(axis=0) - WORLD_MARGIN_MM
@@ -150,7 +185,7 @@ def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realisti
         kernel = motion_blur_kernel(int(blur_px[k]), float(angles[k])) if blur_px[k] > 1 else None
         frame_imaging = Imaging(noise_dn=look.noise_dn, gain=float(gains[k]), blur_kernel=kernel, dtype=look.dtype)
         state = LoadState(float(fz[k]), float(tx[k]), float(ty[k]))
-        scene = render_scene(world, geometry, motion.centre_mm[k], float(motion.yaw_deg[k]), state, true_calib)
+        scene = render_scene(world, geometry, motion.centre_mm[k], float(motion.yaw_deg[k]), state, true_calib, law)
         frames.append(apply_imaging(scene, geometry, frame_imaging, rng_img))
 
     t_first, t_last = float(motion.frame_t_s[0]), float(motion.frame_t_s[-1])
@@ -178,6 +213,7 @@ def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realisti
         "imaging": look.to_dict(),
         "path_length_mm": path_length_mm(xy),
         "force_offsets_n": [float(v) for v in offsets],
+        "tissue": law.to_dict(),
     }
     return Scan(
         calibration=calib,
@@ -190,5 +226,6 @@ def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realisti
         imu_t_s=imu_t,
         imu_tilt_deg=imu,
         reference_mm=xy.copy(),
+        reference_angles_deg=np.stack([yaw, np.rad2deg(tx), np.rad2deg(ty)], axis=1),
         truth=truth,
     )
