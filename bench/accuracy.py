@@ -7,7 +7,10 @@
     and heavy blur; no gain drift and a strong one; 16-bit frames — over several seeds. Rows marked `sim`.
 
 Every (scan, method) prints: registered %, RMSE mm (over the registered frames only: read it with the
-registered %), final drift mm, error ratio %, s/frame (wall time of the whole offline pipeline).
+registered %), final drift mm, error ratio %, s/frame (wall time of the whole offline pipeline), and the worse
+axis's tilt RMS error in degrees where the reference has tilts (the shared scans, the tissue-* cells).
+Cells tissue-linear, tissue-stiffening, tissue-power: a patient as on the shared scans (a hand's tilt, a tissue
+law of that shape with x/y anisotropy), not an imaging look.
 
 Usage: python bench/accuracy.py [--quick] [--methods best,sift-chain,paper] [--scenarios raster,revisit,hard]
        [--cells default,faint,...] [--seeds 1,2] [--shared DIR | --no-shared] [--json OUT]
@@ -33,10 +36,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tqdm import tqdm
 
-from services.core.evaluation import evaluate_path
+from services.core.evaluation import evaluate_angles, evaluate_path
 from services.core.methods import method_options
 from services.core.pipeline import reconstruct
 from services.core.scan import Scan
+from services.core.session_report import path_angles_deg
+from services.core.simulation.renderer import TISSUE_LAWS
 from services.core.simulation.scenarios import simulate
 from services.core.simulation.variants import FAINT_CONTRAST, ImagingVariant, scenario_imaging
 from services.store.scan_folder import read_scan_folder
@@ -58,7 +63,9 @@ LOOKS: dict[str, Callable[[ImagingVariant], ImagingVariant]] = {
     "drift30": lambda v: dataclasses.replace(v, gain_drift=0.3),
     "16bit": lambda v: dataclasses.replace(v, bit_depth=16),
 }
-QUICK_LOOKS = ("default", "faint", "noise4", "heavy-blur", "16bit")
+# a patient as on the shared scans: a hand's tilt and a tissue law of each shape (simulate(..., tissue=...))
+TISSUE_CELLS = {f"tissue-{law}": law for law in TISSUE_LAWS}
+QUICK_LOOKS = ("default", "faint", "noise4", "heavy-blur", "16bit", *TISSUE_CELLS)
 QUICK_SCENARIOS = ("short",)
 FULL_SCENARIOS = ("raster", "revisit", "hard")
 
@@ -78,6 +85,8 @@ class Cell:
         """Return the cell's Scan (read from its folder, or simulated)."""
         if self.folder is not None:
             return read_scan_folder(self.folder)
+        if self.look in TISSUE_CELLS:
+            return simulate(self.scenario, self.seed, tissue=TISSUE_CELLS[self.look])
         imaging = LOOKS[self.look](scenario_imaging(self.scenario))
         return simulate(self.scenario, self.seed, dataclasses.replace(imaging, name=self.look))
 
@@ -93,9 +102,9 @@ def shared_cells(root: Path) -> list[Cell]:
 
 def sim_cells(scenarios: list[str], looks: list[str], seeds: list[int]) -> list[Cell]:
     """Return the simulator's Cells: every scenario x look x seed."""
-    unknown = [lk for lk in looks if lk not in LOOKS]
+    unknown = [lk for lk in looks if lk not in LOOKS and lk not in TISSUE_CELLS]
     if unknown:
-        raise SystemExit(f"unknown cells {unknown}; expected some of {', '.join(LOOKS)}")
+        raise SystemExit(f"unknown cells {unknown}; expected some of {', '.join([*LOOKS, *TISSUE_CELLS])}")
     return [
         Cell("sim", f"{sc}/{lk}/s{seed}", scenario=sc, look=lk, seed=seed)
         for sc in scenarios
@@ -126,12 +135,15 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
         path_length_mm=report.path_length_mm,
         s_per_frame=recon.seconds / len(scan),
     )
+    if scan.reference_angles_deg is not None:
+        angles = evaluate_angles(path_angles_deg(recon.rows), recon.registered, scan.reference_angles_deg)
+        row["tilt_rmse_deg"] = max(angles.get("tilt_x_rmse_deg", math.nan), angles.get("tilt_y_rmse_deg", math.nan))
     return row
 
 
 HEADER = (
     f"{'source':<6} | {'scan / cell':<28} | {'method':<10} | {'registered %':>12} | {'RMSE mm':>8} |"
-    f" {'final drift mm':>14} | {'error ratio %':>13} | {'s/frame':>7}"
+    f" {'final drift mm':>14} | {'error ratio %':>13} | {'s/frame':>7} | {'tilt RMS deg':>12}"
 )
 
 
@@ -150,7 +162,7 @@ def table_line(row: dict[str, Any]) -> str:
     return (
         f"{head} {fmt(row['registered_pct'], '12.1f')} | {fmt(row['rmse_mm'], '8.3f')} |"
         f" {fmt(row['final_drift_mm'], '14.3f')} | {fmt(row['error_ratio_pct'], '13.4f')} |"
-        f" {fmt(row['s_per_frame'], '7.3f')}"
+        f" {fmt(row['s_per_frame'], '7.3f')} | {fmt(row.get('tilt_rmse_deg'), '12.2f')}"
     )
 
 
