@@ -101,7 +101,7 @@ class Registrar:
     order: list[int] = field(default_factory=list)
     loops_since_refine: int = 0
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)  # placed: vein, mask, scale
-    forces: dict[int, np.ndarray] = field(default_factory=dict)  # placed: sensor forces F1..F4 (N)
+    forces: dict[int, np.ndarray] = field(default_factory=dict)  # every frame seen: sensor forces F1..F4 (N)
     view_fit: ViewFit | None = None  # the probe's tilt and tissue anisotropy learned from the edges' affines
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
     _views: dict[int, np.ndarray] = field(default_factory=dict)  # each frame's view D under the current fit
@@ -191,6 +191,7 @@ class Registrar:
 
     def add(self, pf: PreparedFrame) -> FrameResult:
         """Register one prepared frame; return its status, pose and which earlier frames moved."""
+        self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)  # its view, once the model is fitted
         blurred = self._is_blurred(pf)
         if not self.order:
             return self._accept(pf, IDENTITY, [], len(pf.features), blurred)
@@ -272,7 +273,6 @@ class Registrar:
             edges.append(self._edge(pf, other, found))
         if not edges:
             return self._fail(pf, blurred, self._why_not(pf))
-        self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)
         pose = place_node(self.poses, self.undeformed(edges), pf.index)
         total = sum(e.inliers for e in edges)
         result = self._accept(pf, pose, edges, total, blurred)
@@ -380,7 +380,6 @@ class Registrar:
         self.edges.extend(edges)
         self.order.append(pf.index)
         self.veins[pf.index] = (pf.vein, pf.vein_mask, _vein_scale(pf))
-        self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)
         if not blurred:  # only sharp, placed frames set the reference (noise frames would inflate it)
             self.sharpness.append(pf.sharpness)
         return FrameResult(pf.index, STATUS_OK, pose, inliers, blurred)
