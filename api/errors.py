@@ -28,6 +28,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from services.core.calibration import CalibrationError
 from services.core.image_header import BadImageError
 from services.core.method_options import without_values
+from services.core.study import StudyContextError
 from services.store.results_report import BadReferenceError, NoPathYetError, NothingToCompareError
 from services.store.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
 
@@ -128,6 +129,7 @@ SERVICE_ERRORS: dict[type[Exception], tuple[int, str, str | None]] = {
     BadReferenceError: (422, "invalid_reference", None),
     NothingToCompareError: (422, "nothing_to_compare", None),
     NoPathYetError: (409, "not_ready", None),
+    StudyContextError: (422, "invalid_study", None),  # its message names the field, never the value
     redis.ConnectionError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
     redis.TimeoutError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
 }
@@ -177,7 +179,11 @@ def validation_response(errors: list[dict[str, Any]]) -> JSONResponse:
 
 
 # a 422 whose failing fields all lie in one part of a body is named after that part (as its semantic checks are)
-_PART_CODES = (("calibration", "invalid_calibration"), ("options.calibration", "invalid_calibration"))
+_PART_CODES = (
+    ("calibration", "invalid_calibration"),
+    ("options.calibration", "invalid_calibration"),
+    ("study", "invalid_study"),
+)
 
 
 def _validation_code(details: list[dict[str, str]]) -> str:

@@ -8,6 +8,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt
 
 from services.core.method_options import MethodOverrides
 from services.core.methods import METHOD_NAMES
+from services.core.study import STUDY_FIELDS, StudyContext, parse_study
 from services.store.storage import MAX_SEQ
 
 # A JSON number that is finite: NaN/Infinity literals (which Python's json accepts) are rejected, and so are
@@ -71,11 +72,38 @@ class CalibrationDoc(Strict):
         return self.model_dump(mode="json", exclude_none=True)
 
 
+def _study_field(name: str, description: str, **constraints: Any) -> Any:
+    return Field(
+        default=None,
+        max_length=STUDY_FIELDS[name][1] * (3 if name.endswith(("name", "physician")) else 1),
+        description=description,
+        **constraints,
+    )
+
+
+class StudyDoc(Strict):
+    """The study context (spec §5): patient data, every field optional; services.core.study.parse_study checks it."""
+
+    patient_id: str | None = _study_field("patient_id", "the hospital's patient id")
+    patient_name: str | None = _study_field("patient_name", "DICOM person name, 'Family^Given'")
+    patient_birth_date: str | None = _study_field("patient_birth_date", "YYYY-MM-DD", pattern=r"^\d{4}-\d{2}-\d{2}$")
+    patient_sex: Literal["M", "F", "O"] | None = None
+    accession_number: str | None = _study_field("accession_number", "the order's accession number")
+    laterality: Literal["L", "R"] | None = Field(default=None, description="which breast: L or R")
+    referring_physician: str | None = _study_field("referring_physician", "DICOM person name")
+    study_description: str | None = _study_field("study_description", "free text")
+
+    def context(self) -> StudyContext | None:
+        """Return the validated StudyContext (None when nothing was given); raise StudyContextError."""
+        return parse_study(self.model_dump(exclude_none=True))
+
+
 class SessionCreate(Strict):
-    """POST /v1/sessions body; the label may identify a patient: stored, never logged."""
+    """POST /v1/sessions body; the label and the study may identify a patient: stored, never logged."""
 
     calibration: CalibrationDoc
     label: str = Field(default="", max_length=256)
+    study: StudyDoc | None = None
 
 
 class SessionCreated(Strict):
@@ -93,6 +121,9 @@ class SessionState(Strict):
     id: str
     status: Literal["receiving", "processing", "done", "failed"]
     label: str | None = None
+    study: dict[str, str] | None = (
+        None  # the study context: to the owner's key and admins only, never via a viewer link
+    )
     created: float
     finished: bool
     frames_received: int

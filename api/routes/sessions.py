@@ -46,8 +46,9 @@ def create_session(
         calibration = parse_calibration(body.calibration.document())
     except CalibrationError as exc:
         raise Validation(f"calibration: {exc}", code="invalid_calibration") from None
+    study = body.study.context() if body.study is not None else None  # StudyContextError: 422 invalid_study
     assert principal.fingerprint is not None
-    meta = store.create_session(principal.fingerprint, body.label, calibration)
+    meta = store.create_session(principal.fingerprint, body.label, calibration, study=study)
     now = request.app.state.clock()
     token = make_viewer_token(request.app.state.token_secret, meta.id, settings.viewer_token_ttl_s, now)
     response.headers["Location"] = f"/v1/sessions/{meta.id}"
@@ -79,6 +80,7 @@ def get_session(
         id=meta.id,
         status=meta.status,  # type: ignore[arg-type]
         label=meta.label if principal.session_id is None else None,  # viewer links never see the label
+        study=meta.study if principal.session_id is None else None,  # nor the study context
         created=meta.created,
         finished=meta.finished_at is not None,
         frames_received=store.count_frames(meta.id),

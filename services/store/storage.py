@@ -32,6 +32,7 @@ import numpy as np
 
 from services.core.calibration import Calibration, parse_calibration
 from services.core.image_header import check_header, read_header
+from services.core.study import StudyContext, parse_study
 from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, try_lock
 
 SessionStatus = Literal["receiving", "processing", "done", "failed"]
@@ -75,6 +76,7 @@ class SessionMeta:
     finished_at: float | None = None
     frames_expected: int | None = None
     error: str | None = None
+    study: dict[str, str] | None = None  # the study context (patient data: owner and admins only, never logged)
 
     @property
     def accepting_uploads(self) -> bool:
@@ -151,7 +153,14 @@ class SessionStore:
             yield path
 
     # ----- sessions ------------------------------------------------------------------------------------
-    def create_session(self, owner: str, label: str, calibration: Calibration, now: float | None = None) -> SessionMeta:
+    def create_session(
+        self,
+        owner: str,
+        label: str,
+        calibration: Calibration,
+        now: float | None = None,
+        study: StudyContext | None = None,
+    ) -> SessionMeta:
         """Create a session with a fresh unguessable id (uuid4 hex) and return its metadata."""
         session_id = uuid.uuid4().hex
         meta = SessionMeta(
@@ -160,6 +169,7 @@ class SessionStore:
             label=label,
             calibration=calibration.to_dict(),
             created=time.time() if now is None else now,
+            study=study.to_dict() if study is not None else None,
         )
         tmp_dir = self.root / f".{session_id}.tmp"
         try:
@@ -188,6 +198,10 @@ class SessionStore:
     def calibration(self, session_id: str) -> Calibration:
         """Return the session's validated Calibration."""
         return parse_calibration(self.get_meta(session_id).calibration)
+
+    def study(self, session_id: str) -> StudyContext | None:
+        """Return the session's study context (patient data), or None when it was created without one."""
+        return parse_study(self.get_meta(session_id).study)
 
     def _write_meta(self, path: Path, meta: SessionMeta) -> None:
         atomic_write_bytes(path / "session.json", _json_bytes(asdict(meta)))
