@@ -48,6 +48,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     """Reconstruct a scan folder and write path, mosaic, layers, plots and report (see services.store.results_io)."""
+    from services.core.dicom_export import scan_digest
     from services.core.methods import method_options
     from services.core.pipeline import reconstruct
     from services.store.results_io import write_reconstruction
@@ -57,7 +58,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     options = method_options(args.method).with_overrides(_parse_options(args.option))
     with _bar(f"reconstruct ({args.method})", len(scan)) as bar:
         recon = reconstruct(scan, options, progress=_sized(bar))
-    report = write_reconstruction(recon, args.out, scan.reference_track)
+    report = write_reconstruction(
+        recon, args.out, scan.reference_track, scan_digest=scan_digest(scan), label=Path(args.scan).resolve().name
+    )
     f = report.frames
     print(
         f"{f.n_ok}/{f.n_frames} frames registered ({100 * f.registered_fraction:.1f} %; {f.n_lost} lost, "
@@ -113,37 +116,112 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+STUDY_OPTIONS = (  # `veinmosaic export` options -> services.core.study fields (spec §5 `study`)
+    "patient_id",
+    "patient_name",
+    "patient_birth_date",
+    "patient_sex",
+    "accession_number",
+    "laterality",
+    "referring_physician",
+    "study_description",
+)
+
+
+def _results_key(results: Path) -> tuple[str, str]:
+    """Return (UID key, what it is) of a results folder: its scan's content digest, else its results' content."""
+    import hashlib
+
+    meta = json.loads((results / "mosaic.json").read_text())
+    digest = meta.get("scan_digest")
+    if isinstance(digest, str) and digest:
+        return f"scan:{digest}", "the scan's content"
+    h = hashlib.sha256(b"veinmosaic results v1\0")  # a folder written before scan digests: its own content
+    for name in ("layers.npz", "mosaic.png", "path.csv", "mosaic.json"):
+        if (results / name).is_file():
+            h.update(name.encode() + b"\0" + (results / name).read_bytes())
+    return f"results:{h.hexdigest()}", "the results' content (folder written before scan digests)"
+
+
 def cmd_export(args: argparse.Namespace) -> int:
-    """Write the vein mosaic, force map and coverage of a reconstruct output folder as DICOM files."""
+    """Write a reconstruct output folder's layers (and its one-page report) as DICOM files of one study."""
     from datetime import UTC, datetime
 
-    from services.core.dicom_export import EXPORT_LAYERS, ExportInfo, PatientInfo, export_layer
+    from services.core.dicom_export import STUDY_OBJECTS, ExportInfo, export_study
+    from services.core.study import parse_study
     from services.store.results_io import read_results_mosaic
 
-    mosaic = read_results_mosaic(args.results)
-    patient = None
-    if any((args.patient_name, args.patient_id, args.patient_birth_date, args.patient_sex)):
-        patient = PatientInfo(args.patient_name, args.patient_id, args.patient_birth_date, args.patient_sex)
+    results = Path(args.results)
+    study = parse_study({name: getattr(args, name) or None for name in STUDY_OPTIONS})  # names a bad field only
+    mosaic = read_results_mosaic(results)
     acquired = datetime.fromisoformat(args.acquired) if args.acquired else None
     if acquired is not None and acquired.tzinfo is None:
         acquired = acquired.replace(tzinfo=UTC)
-    meta = json.loads((Path(args.results) / "mosaic.json").read_text())
+    meta = json.loads((results / "mosaic.json").read_text())
+    key, source = (args.study_key, "--study-key") if args.study_key else _results_key(results)
     info = ExportInfo(
-        session_key=args.study_key or str(Path(args.results).resolve()),
+        key=key,
+        study=study,
         acquired=acquired,
         exported=datetime.now(UTC),
-        patient=patient,
         method=str(meta.get("method") or ""),
     )
-    out = Path(args.out) if args.out else Path(args.results) / "dicom"
+    wanted = list(dict.fromkeys(args.layer or STUDY_OBJECTS))
+    sheet = results / "sheet.pdf"
+    pdf = sheet.read_bytes() if "report" in wanted and sheet.is_file() else None
+    if pdf is None and "report" in wanted:
+        if args.layer:
+            raise ValueError(f"{results}: no sheet.pdf, the one-page report, to export")
+        wanted.remove("report")
+    out = Path(args.out) if args.out else results / "dicom"
     out.mkdir(parents=True, exist_ok=True)
-    for layer in args.layer or list(EXPORT_LAYERS):
-        target = out / f"{layer}.dcm"
-        target.write_bytes(export_layer(mosaic, layer, info))
+    for name, data in export_study(mosaic, info, pdf, only=wanted).items():
+        target = out / f"{name}.dcm"
+        target.write_bytes(data)
         print(f"wrote {target}")
-    if patient is None:
-        print("no patient identity given: the patient attributes are present and empty")
+    print(f"UIDs derived from {source}" + (" and the study context" if study is not None else ""))
+    if study is None:
+        print("no patient identity given (no study context): the patient and order attributes are present and empty")
     return 0
+
+
+def cmd_send(args: argparse.Namespace) -> int:
+    """Send the DICOM files (*.dcm) of a results folder to a PACS; exit 1 unless the PACS stored every one."""
+    import dataclasses
+
+    from services.pacs.destinations import DimseDestination, check_ae_title, parse_target
+    from services.pacs.objects import read_objects
+    from services.pacs.send import PacsError, send_objects
+    from services.settings import Settings
+
+    settings = Settings()
+    files = sorted(Path(args.results).rglob("*.dcm"))
+    if not files:
+        raise ValueError(f"{args.results}: no DICOM files (*.dcm); write them with `veinmosaic export` first")
+    destination = settings.pacs_destinations.get(args.to) or parse_target(args.to)
+    if args.calling_ae and isinstance(destination, DimseDestination):
+        destination = dataclasses.replace(destination, calling_ae=check_ae_title(args.calling_ae, "--calling-ae"))
+    data = [f.read_bytes() for f in files]
+    names: dict[str, Path] = {}
+    for f, d in zip(files, data, strict=True):
+        try:
+            (obj,) = read_objects([d])
+        except ValueError:
+            raise ValueError(f"{f}: not a DICOM Part 10 file with SOP Class, Instance and Syntax UIDs") from None
+        if obj.sop_instance_uid in names:
+            raise ValueError(f"{f}: the same SOP Instance UID as {names[obj.sop_instance_uid]}")
+        names[obj.sop_instance_uid] = f
+    try:
+        outcome = send_objects(destination, data, args.timeout or settings.pacs_timeout_s)
+    except PacsError as exc:
+        print(f"veinmosaic: send failed: {exc}", file=sys.stderr)
+        return 1
+    for uid in outcome.stored:
+        print(f"stored {names[uid]} ({uid})")
+    for uid, reason in outcome.failed.items():
+        print(f"REFUSED {names[uid]} ({uid}): {reason}")
+    print(f"{outcome.sent}/{len(files)} instance(s) stored at {outcome.destination} in {outcome.elapsed_s:.1f} s")
+    return 0 if outcome.ok else 1
 
 
 def _settings_for(args: argparse.Namespace) -> Settings:
@@ -279,7 +357,10 @@ def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
             ("coverage.png", f"{base}/mosaic.png?layer=coverage"),
             ("sheet.png", f"{base}/sheet.png"),
             ("sheet.pdf", f"{base}/sheet.pdf"),
-            *[(f"{layer}.dcm", f"{base}/export.dcm?layer={layer}") for layer in ("vein", "force", "coverage")],
+            *[
+                (f"{layer}.dcm", f"{base}/export.dcm?layer={layer}")
+                for layer in ("vein", "force", "coverage", "report")
+            ],
             *[(Path(u.split("?")[0]).name, u) for u in report.get("plots", {}).values() if str(u).startswith("/")],
         ]
         for name, url in downloads:
@@ -287,6 +368,7 @@ def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
                 (out / name).write_bytes(client.request("GET", url).content)
             except (httpx.HTTPError, RuntimeError) as exc:  # said, not hidden: the rest of the demo still runs
                 print(f"   could not fetch {name}: {exc}")
+        _write_scaled_maps(Path(service.data_dir), sid, out)
         registered = state.get("registered_fraction")
         print(
             f"session {state['status']}: {state.get('frames_processed')} frames processed, "
@@ -295,7 +377,7 @@ def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
         )
         print(f"accuracy vs the simulator's ground truth: {report.get('accuracy_summary', '')}")
         _print_warnings(state.get("warnings", []))
-        print(f"images, one-page report (sheet.pdf) and DICOM files in {out.resolve()}")
+        print(f"images, scaled force and coverage maps, one-page report (sheet.pdf) and DICOM files in {out.resolve()}")
         print("viewer:")
         print(viewer.get("url", "(no session)"))
         if args.hold:
@@ -305,6 +387,28 @@ def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
         else:
             print("the demo ends now and stops the service (the viewer link stops working); --hold keeps it serving")
     return 0 if state["status"] == "done" else 1
+
+
+def _write_scaled_maps(data_dir: Path, sid: str, out: Path) -> None:
+    """Write force_map.png and coverage_map.png: the finished layers in mm with colour scales (N; frames).
+
+    force.png and coverage.png are the viewer's layers as served (colours without a scale); these are the maps a
+    person reads, drawn from the finished layers in the demo's own data dir (the API serves no scaled map).
+    """
+    from services.core.plots import plot_coverage_map, plot_force_map
+    from services.store.results_store import ResultsStore
+
+    rs = ResultsStore(data_dir)
+    try:
+        version = rs.current_version(sid)
+        mosaic = rs.read_mosaic_layers(sid, version) if version is not None else None
+    except (OSError, ValueError):
+        mosaic = None
+    if mosaic is None:
+        print("   could not draw force_map.png and coverage_map.png: no finished layers in the data dir")
+        return
+    (out / "force_map.png").write_bytes(plot_force_map(mosaic.force_n, mosaic.px_per_mm, mosaic.origin_px))
+    (out / "coverage_map.png").write_bytes(plot_coverage_map(mosaic.coverage, mosaic.px_per_mm, mosaic.origin_px))
 
 
 def _free_port(host: str) -> int:
@@ -381,18 +485,47 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("results", type=Path, help="a folder written by `veinmosaic reconstruct`")
     p.add_argument("--out", type=Path, default=None, help="folder for the .dcm files (default: RESULTS/dicom)")
     p.add_argument(
-        "--layer", action="append", choices=["vein", "force", "coverage"], help="layer to export, repeatable "
-        "(default: all three)"
+        "--layer", action="append", choices=["vein", "force", "coverage", "report"], help="object to export, "
+        "repeatable (default: the three layers, and the report when RESULTS/sheet.pdf exists)"
     )  # fmt: skip
-    p.add_argument("--acquired", default=None, help="acquisition date-time, ISO 8601 (default: left empty)")
     p.add_argument(
-        "--study-key", default=None, help="key the study/series UIDs derive from (default: the results folder path)"
+        "--acquired", default=None, help="acquisition date-time, ISO 8601, UTC unless it has an offset (default: empty)"
     )
-    p.add_argument("--patient-name", default="", help="DICOM PatientName, as 'Family^Given' (default: empty)")
-    p.add_argument("--patient-id", default="", help="DICOM PatientID (default: empty)")
-    p.add_argument("--patient-birth-date", default="", help="DICOM PatientBirthDate, YYYYMMDD (default: empty)")
-    p.add_argument("--patient-sex", default="", choices=["", "M", "F", "O"], help="DICOM PatientSex (default: empty)")
+    p.add_argument(
+        "--study-key",
+        default=None,
+        help="key the UIDs derive from (default: the digest of the scan's content that reconstruct recorded)",
+    )
+    study_help = {
+        "patient_id": "PatientID",
+        "patient_name": "PatientName, as 'Family^Given'",
+        "patient_birth_date": "PatientBirthDate, YYYY-MM-DD",
+        "patient_sex": "PatientSex: M, F or O",
+        "accession_number": "AccessionNumber of the order",
+        "laterality": "Laterality: L or R, which breast",
+        "referring_physician": "ReferringPhysicianName, as 'Family^Given'",
+        "study_description": "StudyDescription",
+    }
+    for name in STUDY_OPTIONS:
+        p.add_argument(
+            f"--{name.replace('_', '-')}", default="", help=f"study context: DICOM {study_help[name]} (default: empty)"
+        )
     p.set_defaults(func=cmd_export)
+
+    p = command("send", "send a results folder's DICOM files (*.dcm, e.g. from `veinmosaic export`) to a PACS")
+    p.add_argument("results", type=Path, help="folder searched for *.dcm files (with its subfolders)")
+    p.add_argument(
+        "--to",
+        required=True,
+        metavar="URL|HOST:PORT:AET|NAME",
+        help="a DICOMweb base URL (STOW-RS), a DICOM peer HOST:PORT:AET (C-STORE), or a destination named in "
+        "VEINMOSAIC_PACS_DESTINATIONS (required)",
+    )
+    p.add_argument("--calling-ae", default=None, help="our AE title for C-STORE (default: VEINMOSAIC)")
+    p.add_argument(
+        "--timeout", type=float, default=None, help="seconds per network step (default: VEINMOSAIC_PACS_TIMEOUT_S)"
+    )
+    p.set_defaults(func=cmd_send)
 
     p = command("calibrate", "fit E and kappa from a calibration scan; write the updated calibration.json")
     p.add_argument("scan", type=Path, help="calibration scan folder (with imu.csv for kappa)")

@@ -9,13 +9,14 @@ WorkerSettings), parsed and checked by this model: unknown or mistyped fields st
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import AliasChoices, BaseModel, ConfigDict, Field, SecretStr
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from services.core.image_header import DEFAULT_MAX_FRAME_SIDE
 from services.core.methods import METHOD_NAMES
+from services.pacs.destinations import Destination, destinations_from_doc, parse_destinations
 
 Scope = Literal["ingest", "view", "admin"]
 
@@ -49,6 +50,10 @@ class WorkerSettings(BaseModel):
     reconcile_every_s: float = Field(default=60.0, ge=0)  # re-enqueue uploads with no job and no result (0: at start)
     job_busy_retry_s: float = Field(default=30.0, gt=0)  # a reprocess entry whose job runs in another worker waits
     heartbeat_file: str | None = None  # touched every loop (at most every 2 s): a container health check
+    pacs_max_attempts: int = Field(default=8, ge=1)  # a send to an unreachable PACS: attempts before it fails
+    pacs_retry_first_s: float = Field(default=5.0, gt=0)  # ... the wait after the first, doubling ...
+    pacs_retry_max_s: float = Field(default=300.0, gt=0)  # ... up to this
+    pacs_wait_s: float = Field(default=5.0, gt=0)  # a send job queued before its session is done looks again after
 
 
 class Settings(BaseSettings):
@@ -58,7 +63,10 @@ class Settings(BaseSettings):
     building Settings(api_keys=...) must clear VEINMOSAIC_API_KEYS from its environment.
     """
 
-    model_config = SettingsConfigDict(env_prefix="VEINMOSAIC_", extra="ignore", populate_by_name=True)
+    # errors never echo an input: API keys, the token secret and PACS headers are secrets
+    model_config = SettingsConfigDict(
+        env_prefix="VEINMOSAIC_", extra="ignore", populate_by_name=True, hide_input_in_errors=True
+    )
 
     data_dir: Path = Path("./data")
     redis_url: str | None = Field(
@@ -98,6 +106,31 @@ class Settings(BaseSettings):
     workers: int = Field(default=2, ge=0, le=64)
     log_level: str = "INFO"
     viewer_assets_dir: Path | None = None  # OpenSeadragon build folder; default: the wheel's copy, else node_modules
+    # PACS destinations (spec §5), the operator's: VEINMOSAIC_PACS_DESTINATIONS, one JSON object of named
+    # destinations, {"<name>": {"dicomweb": "<base URL>"}} or {"<name>": {"dimse": {"host", "port", "called_ae",
+    # "calling_ae"}}}; checked at start-up (services/pacs/destinations.py). Not in the repr: headers are secrets
+    pacs_destinations: Annotated[dict[str, Destination], NoDecode] = Field(default_factory=dict, repr=False)
+    pacs_timeout_s: float = Field(default=30.0, gt=0)  # a send's connect, each answer and each write wait this long
+    # destinations every session is sent to once it is done (the send job is queued when the session is finished)
+    pacs_auto_send: list[str] = Field(default_factory=list)
+
+    @field_validator("pacs_destinations", mode="before")
+    @classmethod
+    def _parse_pacs_destinations(cls, value: object) -> object:
+        """Parse the JSON text of the environment (or a dict given in code) into destinations."""
+        if isinstance(value, str):
+            return parse_destinations(value)
+        if isinstance(value, dict) and not all(isinstance(v, Destination) for v in value.values()):
+            return destinations_from_doc(value)
+        return value
+
+    @model_validator(mode="after")
+    def _auto_send_destinations_exist(self) -> Settings:
+        """Refuse an auto-send destination that is not configured (at start-up, not at the first send)."""
+        unknown = sorted(set(self.pacs_auto_send) - set(self.pacs_destinations))
+        if unknown:
+            raise ValueError(f"pacs_auto_send: not in pacs_destinations: {', '.join(unknown)}")
+        return self
 
 
 def get_settings() -> Settings:

@@ -6,13 +6,16 @@ import os
 import socket
 import threading
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import redis
 from pydantic import Field
 
+from services.pacs.destinations import Destination
 from services.settings import Settings, WorkerSettings
+from services.store.audit import AuditLog
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
 
@@ -32,6 +35,8 @@ class WorkerConfig(WorkerSettings):
     redis_url: str | None = None
     prefix: str = "vm:"
     consumer: str = Field(default_factory=default_consumer)
+    pacs_destinations: dict[str, Destination] = Field(default_factory=dict, repr=False)  # the Settings'
+    pacs_timeout_s: float = Field(default=30.0, gt=0)
 
     @classmethod
     def from_settings(cls, settings: Settings, **overrides: Any) -> WorkerConfig:
@@ -41,6 +46,8 @@ class WorkerConfig(WorkerSettings):
             "data_dir": settings.data_dir,
             "redis_url": settings.redis_url,
             "prefix": settings.redis_prefix,
+            "pacs_destinations": settings.pacs_destinations,
+            "pacs_timeout_s": settings.pacs_timeout_s,
         }
         doc.update({k: v for k, v in overrides.items() if v is not None})
         return cls.model_validate(doc)
@@ -60,3 +67,8 @@ class Context:
     def prefix(self) -> str:
         """Return the Redis key prefix."""
         return self.config.prefix
+
+    @cached_property
+    def audit(self) -> AuditLog:
+        """Return the data directory's audit log (the API's; safe across processes on one host)."""
+        return AuditLog(self.config.data_dir / "audit" / "audit.jsonl")

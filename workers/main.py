@@ -43,6 +43,7 @@ from workers.reconciler import Reconciler
 from workers.stages.prepare import Retry, handle_frame, live_options
 from workers.stages.register import RegisterStage
 from workers.stages.reprocess import JobInterruptedError, handle_job
+from workers.stages.send import handle_send
 
 log = logging.getLogger("veinmosaic.worker")
 
@@ -246,17 +247,18 @@ class Worker:
         if kind == "register":
             self.register.on_kick(sid, int(fields.get("version", LIVE_VERSION)))
             return None
-        if kind == "reprocess":
-            return self.run_reprocess(stream, entry_id, fields)
+        if kind in ("reprocess", "send"):
+            return self.run_job(stream, entry_id, fields)
         log.warning("entry of unknown kind dropped")
         return None
 
-    def run_reprocess(self, stream: str, entry_id: str, fields: dict[str, str]) -> Retry | None:
-        """Run a reprocess job once: under its run lock, unless it is finished (then the entry is dropped) or
-        running in another worker (then the entry waits job_busy_retry_s and looks again)."""
+    def run_job(self, stream: str, entry_id: str, fields: dict[str, str]) -> Retry | None:
+        """Run a job (reprocess or send) once: under its run lock, unless it is finished (then the entry is
+        dropped) or running in another worker (then the entry waits job_busy_retry_s and looks again). A send
+        may answer Retry (session not done, PACS unreachable): its entry comes back after the delay."""
         ctx, job_id = self.ctx, fields.get("job", "")
         if self._job_settled(job_id):  # a second entry of a finished job (a reconciler race)
-            log.info("entry of a finished reprocess job dropped")
+            log.info("entry of a finished job dropped")
             return None
         try:
             lock = ctx.store.jobs.run_lock(job_id)
@@ -273,7 +275,12 @@ class Worker:
                 ctx.r.xclaim(stream, queue.GROUP, ctx.config.consumer, 0, [entry_id], justid=True)
                 self.beat()
 
-            handle_job(ctx, fields, heartbeat)
+            if fields.get("kind") == "send":
+                outcome = handle_send(ctx, fields, heartbeat)
+                if isinstance(outcome, Retry):
+                    return outcome
+            else:
+                handle_job(ctx, fields, heartbeat)
             self.finish_job(job_id)
             ctx.store.jobs.drop_run_lock(job_id)
         return None
@@ -326,7 +333,7 @@ class Worker:
         if kind == "frame":
             queue.incr_metric(ctx.r, "frames_rejected_total", prefix=ctx.prefix)
             queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
-        elif kind == "reprocess" and fields.get("job"):
+        elif kind in ("reprocess", "send") and fields.get("job"):
             ctx.r.hset(queue.job_key(fields["job"], ctx.prefix), mapping={"state": "failed", "error": error[:300]})
             self.finish_job(fields["job"], "failed")
         queue.ack_delete(ctx.r, stream, entry_id)

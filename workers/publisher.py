@@ -10,6 +10,7 @@ register stage, which calls the publisher only while it holds the session.
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
@@ -30,6 +31,34 @@ class Publisher:
 
     def __init__(self, ctx: Context) -> None:
         self.ctx = ctx
+
+    # ----- audit -----------------------------------------------------------------------------------------------
+    def audit_send(
+        self,
+        sid: str,
+        job_id: str,
+        destination: str,
+        outcome: str,
+        instances: int,
+        version: int | None = None,
+    ) -> None:
+        """Append the audit record of one send attempt: who asked (the job's key), session, destination, outcome."""
+        owner = self.ctx.r.hget(queue.job_key(job_id, self.ctx.prefix), "owner")
+        owner = owner.decode() if isinstance(owner, bytes) else str(owner or "")
+        self.ctx.audit.append(
+            {
+                "ts": round(time.time(), 3),
+                "actor": f"key:{owner[:16]}" if owner else "worker",
+                "action": "pacs.send",
+                "session": sid,
+                "job": job_id,
+                "destination": destination,
+                "outcome": outcome,
+                "instances": int(instances),
+                "version": version,
+                "worker": self.ctx.config.consumer,
+            }
+        )
 
     # ----- results files ---------------------------------------------------------------------------------------
     def write_path(self, sid: str, v: int, rows: Sequence[PathRow]) -> None:

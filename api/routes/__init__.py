@@ -8,6 +8,7 @@ from api.routes.metrics import router as metrics_router
 from api.routes.report import router as report_router
 from api.routes.reprocess import router as reprocess_router
 from api.routes.results import router as results_router
+from api.routes.send import router as send_router
 from api.routes.sessions import router as sessions_router
 from api.routes.viewer import router as viewer_router
 
@@ -21,6 +22,7 @@ ROUTERS = (
     export_router,
     events_router,
     reprocess_router,
+    send_router,
     viewer_router,
 )
 
@@ -34,6 +36,7 @@ __all__ = [
     "report_router",
     "reprocess_router",
     "results_router",
+    "send_router",
     "sessions_router",
     "viewer_router",
 ]

@@ -58,7 +58,7 @@ def _enqueue(
     if jobs.queue_full(r, settings.redis_prefix, len(sessions), settings.queue_max_depth):
         raise ServiceUnavailable("the job queue is full; retry later", settings.retry_after_s, code="queue_full")
     owner = principal.fingerprint or ""
-    return jobs.enqueue_reprocess(r, settings.redis_prefix, owner, sessions, options, batch=batch, ledger=store.jobs)
+    return jobs.enqueue_jobs(r, settings.redis_prefix, owner, sessions, options, batch=batch, ledger=store.jobs)
 
 
 def _may_see(principal: Principal, owner: str) -> bool:

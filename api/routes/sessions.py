@@ -22,6 +22,7 @@ from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
 from services.core.calibration import CalibrationError, parse_calibration
 from services.core.scan_quality import scan_warnings, summarize_frames
 from services.jobs import queue
+from services.jobs import reprocess as jobs
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 log = logging.getLogger("veinmosaic.api")
@@ -91,13 +92,21 @@ def get_session(
         not_placed_reasons=frames.reasons if frames else {},
         warnings=scan_warnings(frames, meta.status, reprocess_running(results, meta.id)),
         extent=session_extent(results, meta.id),
+        tissue=(results.read_mosaic_meta(meta.id, version) or {}).get("tissue") if version is not None else None,
     )
 
 
 @router.post("/{session_id}/finish", status_code=status.HTTP_202_ACCEPTED, response_model=Accepted)
 def finish_session(meta: IngestSession, store: Store, r: RedisClient, settings: AppSettings) -> Accepted:
-    """Record that no more uploads come (idempotent) and queue the finish marker after the frame jobs."""
+    """Record that no more uploads come (idempotent) and queue the finish marker after the frame jobs; the first
+    finish also queues a send to each auto-send PACS destination (the job waits until the session is done)."""
+    first = meta.finished_at is None
     meta = store.finish(meta.id)
     queue.enqueue_finish(r, meta.id, prefix=settings.redis_prefix)
+    if first and settings.pacs_auto_send:
+        for name in settings.pacs_auto_send:
+            jobs.enqueue_jobs(
+                r, settings.redis_prefix, meta.owner, [meta.id], {"destination": name}, ledger=store.jobs, kind="send"
+            )
     log.info("session finished", extra={"session": meta.id, "frames": meta.frames_expected})
     return Accepted(id=meta.id, status=meta.status)

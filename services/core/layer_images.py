@@ -1,7 +1,9 @@
 """The coverage layer as an image, and the raw mosaic layers (force in N, coverage) as compact bytes.
 
-Coverage = how many frames saw each mosaic point. Its colour scale (VIRIDIS over 1..COVERAGE_FULL_SCALE
-frames, transparent where no frame saw the point) is shared by the viewer legend and the report plots.
+Coverage = how many frames saw each mosaic point. Its colour scale here (VIRIDIS over 1..COVERAGE_FULL_SCALE
+frames, transparent where no frame saw the point) is the viewer layer's and its legend's; the maps a person
+reads (coverage_map.png, the one-page report) scale to the scan's 95th percentile instead
+(services.core.plots.coverage_scale), as a fixed 10 frames is one flat colour on a normal scan.
 The raw layers travel as an .npz of uint16 planes: force in centinewtons (0 where uncovered, flagged by
 coverage 0) and coverage counts, so the DICOM export and the report can be rebuilt with real units.
 """

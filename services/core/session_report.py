@@ -3,8 +3,9 @@
 report.json: "frames" (counts by status, lost/rejected per reason, registered fraction), "warnings" (the
 5 % rule, services.core.scan_quality), "accuracy_summary" (one line), and — with a reference track — the spec §4
 accuracy figures at the top level (rmse_mm, max_error_mm, ..., as before) with paths.png and errors.png.
-With a mosaic, the one-page sheet (sheet.png, sheet.pdf): mosaic with path, force and coverage maps with
-colour scales, accuracy, lost-frame summary.
+With a mosaic, the one-page sheet (sheet.png, sheet.pdf, A4 portrait): identification (the caller's
+SheetIdentity), mosaic with path, force and coverage maps with colour scales, accuracy, fitted tissue model,
+lost-frame summary.
 
 The report of a results version (`version_report`: what the reprocess stage writes and the API serves) is
 the same document without the sheet (rendered on request), plus the version's identity, and its "plots" are
@@ -23,7 +24,7 @@ import numpy as np
 
 from services.core.evaluation import AccuracyReport, evaluate_angles, evaluate_path
 from services.core.mosaic import MosaicImage
-from services.core.plots import plot_error_along_scan, plot_paths_over_mosaic, session_sheet
+from services.core.plots import SheetIdentity, plot_error_along_scan, plot_paths_over_mosaic, session_sheet
 from services.core.scan_quality import FrameSummary, scan_warnings, summarize_frames
 from services.core.session_reconstruction import PathRow
 
@@ -66,7 +67,7 @@ def build_session_report(
     reference: np.ndarray | None,
     mosaic: MosaicImage | None,
     extra: Mapping[str, Any] | None = None,
-    heading: str = "veinmosaic session report",
+    identity: SheetIdentity | None = None,
     sheet: bool = True,
     backdrop: Backdrop | None = None,
 ) -> SessionReport:
@@ -74,6 +75,8 @@ def build_session_report(
 
     reference: (N, 2) positions in mm, or the (N, 5) track of services.core.reference (positions, yaw and tilts
     in degrees): with angles, report.json also has "angles" (yaw and tilt errors, evaluate_angles).
+    identity: who and what the sheet is about (None: every field "not given"); extra["tissue"], when given, is
+    shown on the sheet as the fitted tissue and probe model.
     backdrop: the image paths.png is drawn over when there is no mosaic with layers yet (a live version).
     Raises ValueError when a reference is given but no frame can be compared with it.
     """
@@ -104,7 +107,11 @@ def build_session_report(
         images["errors.png"] = plot_error_along_scan(accuracy)
         plots.update({"paths": "paths.png", "errors": "errors.png"})
     if mosaic is not None and sheet:
-        png, pdf = session_sheet(mosaic, estimate, registered, reference_mm, accuracy, frames, doc["warnings"], heading)
+        png, pdf = session_sheet(
+            mosaic, estimate, registered, reference_mm, accuracy, frames, doc["warnings"],
+            identity if identity is not None else SheetIdentity(session=""),
+            angles=doc.get("angles"), tissue=doc.get("tissue"),
+        )  # fmt: skip
         images["sheet.png"], images["sheet.pdf"] = png, pdf
         plots.update({"sheet": "sheet.png", "sheet_pdf": "sheet.pdf"})
     doc["plots"] = plots

@@ -225,9 +225,14 @@ def job_key(job_id: str, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{prefix}job:{job_id}"
 
 
-def job_entry(job_id: str, session_id: str, options: str) -> dict[str, str]:
-    """Return the stream entry of a reprocess job (options: its JSON document as stored in the job hash)."""
-    return {"kind": "reprocess", "job": job_id, "session": session_id, "options": options}
+JOB_KINDS = ("reprocess", "send")  # a new results version; a session's DICOM objects sent to a PACS
+
+
+def job_entry(job_id: str, session_id: str, options: str, kind: str = "reprocess") -> dict[str, str]:
+    """Return the stream entry of a job (options: its JSON document as stored in the job hash)."""
+    if kind not in JOB_KINDS:
+        raise ValueError(f"job kind must be one of {', '.join(JOB_KINDS)}")
+    return {"kind": kind, "job": job_id, "session": session_id, "options": options}
 
 
 def known_jobs(r: redis.Redis, prefix: str = DEFAULT_PREFIX) -> set[str]:
@@ -258,7 +263,8 @@ def requeue_job(r: redis.Redis, fields: dict[str, str], ttl_s: int, prefix: str 
     pipe = r.pipeline(transaction=True)
     pipe.hset(job_key(job_id, prefix), mapping={**fields, **state})
     pipe.expire(job_key(job_id, prefix), ttl_s)
-    pipe.xadd(jobs_stream(prefix), job_entry(job_id, fields.get("session", ""), fields.get("options", "{}")))
+    entry = job_entry(job_id, fields.get("session", ""), fields.get("options", "{}"), fields.get("kind") or "reprocess")
+    pipe.xadd(jobs_stream(prefix), entry)
     pipe.execute()
 
 

@@ -1,8 +1,10 @@
-"""Reprocess jobs in Redis (spec §5): enqueue, read back, progress; the one owner of the job and batch records.
+"""Jobs in Redis (spec §5): enqueue, read back, progress; the one owner of the job and batch records.
 
-A job is a Redis hash <prefix>job:<id> {id, state: queued|running|done|failed, done, total, session, version,
-error, owner, created, options, batch} plus an entry {"kind": "reprocess", "job", "session", "options"} on the
-stream <prefix>jobs, written in one MULTI so a worker never sees an entry without its hash. A batch is a hash
+Two kinds of job share this record: "reprocess" (a new results version) and "send" (a session's DICOM objects
+sent to a PACS). A job is a Redis hash <prefix>job:<id> {id, kind, state: queued|running|done|failed, done,
+total, session, version, error, owner, created, options, batch} plus an entry {"kind", "job", "session",
+"options"} on the stream <prefix>jobs, written in one MULTI so a worker never sees an entry without its hash. A
+batch is a hash
 <prefix>batch:<id> {jobs: json list, owner, created, sessions}. Both expire JOB_TTL_S after they were created.
 """
 
@@ -34,9 +36,10 @@ def new_id() -> str:
     return uuid.uuid4().hex
 
 
-def _job_fields(job_id: str, sid: str, owner: str, encoded: str, now: float, batch: str) -> dict[str, str]:
+def _job_fields(job_id: str, sid: str, owner: str, encoded: str, now: float, batch: str, kind: str) -> dict[str, str]:
     return {
         "id": job_id,
+        "kind": kind,
         "state": "queued",
         "done": "0",
         "total": "0",
@@ -55,7 +58,7 @@ def queue_full(r: redis.Redis, prefix: str, adding: int, max_depth: int) -> bool
     return int(r.xlen(queue.jobs_stream(prefix))) + adding > max_depth
 
 
-def enqueue_reprocess(
+def enqueue_jobs(
     r: redis.Redis,
     prefix: str,
     owner: str,
@@ -63,6 +66,7 @@ def enqueue_reprocess(
     options: dict[str, Any],
     batch: str = "",
     ledger: Ledger | None = None,
+    kind: str = "reprocess",
 ) -> list[str]:
     """Write one job hash per session and its stream entry (one MULTI), then record each job durably in the
     ledger (the 202's promise: the reconciler re-enqueues a recorded job Redis lost); return the job ids.
@@ -80,18 +84,20 @@ def enqueue_reprocess(
         pipe.expire(queue.batch_key(batch, prefix), JOB_TTL_S)
     encoded = json.dumps(options, separators=(",", ":"))
     records = {
-        job_id: _job_fields(job_id, sid, owner, encoded, now, batch) for job_id, sid in zip(ids, sessions, strict=True)
+        job_id: _job_fields(job_id, sid, owner, encoded, now, batch, kind)
+        for job_id, sid in zip(ids, sessions, strict=True)
     }
     for job_id, sid in zip(ids, sessions, strict=True):
         pipe.hset(queue.job_key(job_id, prefix), mapping=records[job_id])
         pipe.expire(queue.job_key(job_id, prefix), JOB_TTL_S)
-        pipe.xadd(queue.jobs_stream(prefix), queue.job_entry(job_id, sid, encoded))
+        pipe.xadd(queue.jobs_stream(prefix), queue.job_entry(job_id, sid, encoded, kind))
     replies = pipe.execute()
     if ledger is not None:
         try:
             for job_id in ids:
                 fields = records[job_id]
-                ledger.record(job_id, {k: fields[k] for k in ("session", "owner", "created", "options", "batch")})
+                keys = ("kind", "session", "owner", "created", "options", "batch")
+                ledger.record(job_id, {k: fields[k] for k in keys})
         except OSError:
             entries = replies[2 if batch else 0 :][2::3]  # the XADD replies: the entry ids
             with contextlib.suppress(redis.RedisError, OSError):
@@ -148,6 +154,7 @@ def job_view(raw: dict[str, str], job_id: str) -> dict[str, Any]:
     created = raw.get("created")
     return {
         "id": job_id,
+        "kind": raw.get("kind") or "reprocess",
         "state": raw.get("state") or "queued",
         "session": raw.get("session", ""),
         "version": as_int("version") or None,
@@ -158,6 +165,7 @@ def job_view(raw: dict[str, str], job_id: str) -> dict[str, Any]:
         "created": float(created) if created else None,
         "batch": raw.get("batch") or None,
         "options": options if isinstance(options, dict) else {},
+        "attempts": as_int("attempts"),
     }
 
 

@@ -2,9 +2,10 @@
 
 OUTPUTS: path.csv; mosaic.png (8-bit veins) and mosaic.json; force.png and coverage.png (the layers, pixel-
 aligned with mosaic.png: TURBO over 0..30 N; VIRIDIS over 1..10 frames with alpha 0 where never scanned);
-layers.npz (force in cN, coverage counts: for the DICOM export); force_map.png and coverage_map.png (the
-layers in mm with their colour scales); report.json (frames per status and reason, warnings, accuracy
-with a reference); with a reference paths.png and errors.png; sheet.png and sheet.pdf (the one-page report).
+layers.npz (force in cN, coverage counts: for the DICOM export, whose UIDs derive from mosaic.json's
+scan_digest); force_map.png and coverage_map.png (the layers in mm with their colour scales); report.json
+(frames per status and reason, warnings, accuracy with a reference); with a reference paths.png and
+errors.png; sheet.png and sheet.pdf (the one-page report).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numpy as np
 from services.core.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
 from services.core.mosaic import MosaicImage, force_to_color
 from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
-from services.core.plots import plot_coverage_map, plot_force_map
+from services.core.plots import SheetIdentity, plot_coverage_map, plot_force_map
 from services.core.session_report import SessionReport, build_session_report
 
 
@@ -43,11 +44,19 @@ def path_csv(rows: list[PathRow]) -> str:
 
 
 def write_reconstruction(
-    recon: Reconstruction, out_dir: str | Path, reference: np.ndarray | None, sheet: bool = True
+    recon: Reconstruction,
+    out_dir: str | Path,
+    reference: np.ndarray | None,
+    sheet: bool = True,
+    scan_digest: str | None = None,
+    label: str | None = None,
 ) -> SessionReport:
     """Write every output of a reconstruction to out_dir (see OUTPUTS); return its SessionReport.
 
     reference: the (N, 2) or (N, 5) reference track (services.core.session_report.build_session_report).
+    scan_digest: the scan's content digest (services.core.dicom_export.scan_digest), recorded in mosaic.json:
+    the key the DICOM export's UIDs derive from.
+    label: what the one-page report names the scan by (e.g. the scan folder's name; default: out_dir's name).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -65,15 +74,16 @@ def write_reconstruction(
         meta["compliance_per_n"] = recon.compliance.compliance_per_n
         meta["gauge"] = recon.compliance.gauge
     meta["tissue"] = recon.learned
+    if scan_digest:
+        meta["scan_digest"] = scan_digest
     (out / "mosaic.json").write_text(json.dumps(meta, indent=2))
     extra = {
         "method": recon.method,
         "seconds_per_frame": recon.seconds / max(1, len(recon.rows)),
         "tissue": recon.learned,
     }
-    report = build_session_report(
-        recon.rows, reference, mosaic, extra, heading=f"veinmosaic reconstruction ({recon.method})", sheet=sheet
-    )
+    identity = SheetIdentity(session=label or out.resolve().name, method=recon.method)  # offline: no patient
+    report = build_session_report(recon.rows, reference, mosaic, extra, identity=identity, sheet=sheet)
     for name, data in report.images.items():
         (out / name).write_bytes(data)
     (out / "report.json").write_text(json.dumps(report.doc, indent=2, allow_nan=False))

@@ -91,6 +91,15 @@ def test_repeated_reads_are_coalesced_writes_are_not(client: TestClient, session
 @pytest.mark.slow
 def test_label_canary_never_in_logs_or_foreign_responses(tmp_path: Path) -> None:
     marker = f"CANARY-{uuid.uuid4().hex}"
+    accession = f"ACC{uuid.uuid4().hex[:13]}"  # an accession number is at most 16 characters (DICOM SH)
+    study = {
+        "patient_id": marker,
+        "patient_name": f"{marker}^Jane",
+        "accession_number": accession,
+        "laterality": "L",
+        "referring_physician": f"{marker}^Ref",
+        "study_description": marker,
+    }
     bodies: list[tuple[str, str]] = []
     with live_api(tmp_path, KEYS, log_level="DEBUG") as api:
         http = httpx.Client(base_url=api.base_url, timeout=10)
@@ -100,8 +109,21 @@ def test_label_canary_never_in_logs_or_foreign_responses(tmp_path: Path) -> None
             bodies.append((f"{method} {path} -> {resp.status_code}", resp.text + json.dumps(dict(resp.headers))))
             return resp
 
-        created = call("POST", "/v1/sessions", json={"calibration": calibration_doc(), "label": marker}, headers=INGEST)
+        created = call(
+            "POST",
+            "/v1/sessions",
+            json={"calibration": calibration_doc(), "label": marker, "study": study},
+            headers=INGEST,
+        )
         sid, token = created.json()["id"], created.json()["viewer_token"]
+        for bad in (
+            {"patient_sex": marker},
+            {"patient_birth_date": marker},
+            {"laterality": marker},
+            {"patient_id": marker * 3},
+            {"patient_name": f"{marker}\\x"},
+        ):
+            call("POST", "/v1/sessions", json={"calibration": calibration_doc(), "study": bad}, headers=INGEST)
         call("POST", "/v1/sessions", json={"calibration": {"bogus": marker}, "label": marker}, headers=INGEST)
         call("POST", "/v1/sessions", json={"calibration": calibration_doc(), "label": marker * 10}, headers=INGEST)
         for seq in range(3):
@@ -140,8 +162,13 @@ def test_label_canary_never_in_logs_or_foreign_responses(tmp_path: Path) -> None
         audit_text = (api.data_dir / "audit" / "audit.jsonl").read_text()
 
     assert owner_view.json()["label"] == marker and admin_view.json()["label"] == marker  # the owner's own data
+    assert owner_view.json()["study"] == study and admin_view.json()["study"] == study
     assert len(logs) > 20, "the API logged its requests"
-    assert [line for line in logs if marker in line] == []
-    assert marker not in audit_text
-    leaked = [what for what, text in bodies if marker in text and not what.startswith(f"GET /v1/sessions/{sid} -> 200")]
+    assert [line for line in logs if marker in line or accession in line] == []
+    assert marker not in audit_text and accession not in audit_text
+    leaked = [
+        what
+        for what, text in bodies
+        if (marker in text or accession in text) and not what.startswith(f"GET /v1/sessions/{sid} -> 200")
+    ]
     assert leaked == [], leaked

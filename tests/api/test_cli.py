@@ -172,6 +172,7 @@ def test_export_writes_dicom_that_reads_back(outputs: Path, tmp_path: Path, caps
     from pydicom.pixels import apply_rescale
 
     from services.store.results_io import read_results_mosaic
+    from tests.services.core.test_dicom_export import dciodvfy
 
     out = tmp_path / "dicom"
     args = ["export", str(outputs), "--out", str(out), "--acquired", "2025-03-04T10:20:30", "--study-key", "s1"]
@@ -179,23 +180,75 @@ def test_export_writes_dicom_that_reads_back(outputs: Path, tmp_path: Path, caps
     printed = capsys.readouterr().out
     assert "no patient identity given" in printed
     mosaic = read_results_mosaic(outputs)
-    ds = {layer: dcmread(out / f"{layer}.dcm") for layer in ("vein", "force", "coverage")}
-    for d in ds.values():
-        assert float(d.PixelSpacing[0]) == pytest.approx(1 / mosaic.px_per_mm, rel=1e-9)  # mm per pixel
+    # the three layers and, since reconstruct wrote sheet.pdf, the one-page report
+    assert sorted(f.name for f in out.iterdir()) == ["coverage.dcm", "force.dcm", "report.dcm", "vein.dcm"]
+    ds = {f.stem: dcmread(f) for f in out.iterdir()}
+    for name, d in ds.items():
+        errors = [line for line in dciodvfy((out / f"{name}.dcm").read_bytes(), tmp_path, name) if line[:5] == "Error"]
+        assert errors == [], (name, errors)
         assert d.StudyDate == "20250304" and d.AcquisitionDateTime == "20250304102030"
+        assert d.TimezoneOffsetFromUTC == "+0000"  # --acquired without an offset is UTC
         assert str(d.PatientName) == "" and d.PatientID == ""  # nothing invented
     assert len({d.StudyInstanceUID for d in ds.values()}) == 1
+    assert bytes(ds["report"].EncapsulatedDocument).startswith((outputs / "sheet.pdf").read_bytes()[:64])
+    for layer in ("vein", "force", "coverage"):
+        assert float(ds[layer].PixelSpacing[0]) == pytest.approx(1 / mosaic.px_per_mm, rel=1e-9)  # mm per pixel
     assert (ds["vein"].pixel_array == mosaic.vein).all()
     scanned = mosaic.coverage > 0
     newtons = apply_rescale(ds["force"].pixel_array, ds["force"])
     np.testing.assert_allclose(newtons[scanned], mosaic.force_n[scanned], atol=0.005 + 1e-6)  # 0.01 N steps
-    # the integrator's patient identity, when given, is written as given; --layer exports only that layer
+    # the integrator's study context, when given, is written as given; --layer exports only that object
     only = tmp_path / "one"
-    named = ["--patient-name", "Doe^Jane", "--patient-id", "H-1", "--patient-birth-date", "19700101"]
+    named = ["--patient-name", "Doe^Jane", "--patient-id", "H-1", "--patient-birth-date", "1970-01-01"]
+    named += ["--accession-number", "A-9", "--laterality", "L", "--referring-physician", "Who^Doc"]
     assert main(["export", str(outputs), "--out", str(only), "--layer", "force", *named]) == 0
+    assert "no patient identity" not in capsys.readouterr().out
     assert sorted(f.name for f in only.iterdir()) == ["force.dcm"]
     d = dcmread(only / "force.dcm")
     assert (str(d.PatientName), d.PatientID, d.PatientBirthDate, d.PatientSex) == ("Doe^Jane", "H-1", "19700101", "")
+    assert (d.AccessionNumber, d.Laterality, str(d.ReferringPhysicianName)) == ("A-9", "L", "Who^Doc")
+    assert d.StudyInstanceUID != ds["force"].StudyInstanceUID  # patient data: a study of its own
+
+
+def test_export_uids_come_from_the_scan_not_the_folder(outputs: Path, scan_dir: Path, tmp_path: Path) -> None:
+    from pydicom import dcmread
+
+    from services.core.dicom_export import scan_digest
+    from services.store.scan_folder import read_scan_folder
+
+    meta = json.loads((outputs / "mosaic.json").read_text())
+    assert meta["scan_digest"] == scan_digest(read_scan_folder(scan_dir))  # reconstruct records the scan's digest
+
+    def uids(results: Path, out: Path) -> dict[str, tuple[str, str, str]]:
+        assert main(["export", str(results), "--out", str(out), "--layer", "vein", "--layer", "force"]) == 0
+        return {
+            f.stem: (d.StudyInstanceUID, d.SeriesInstanceUID, d.SOPInstanceUID)
+            for f in out.iterdir()
+            for d in [dcmread(f)]
+        }
+
+    first = uids(outputs, tmp_path / "a")
+    moved = tmp_path / "elsewhere"
+    shutil.copytree(outputs, moved, ignore=shutil.ignore_patterns("dicom"))
+    assert uids(moved, tmp_path / "b") == first  # another folder, the same scan: the same UIDs
+    other = tmp_path / "other-scan"  # another scan's results (its digest differs) in a folder of the same name
+    shutil.copytree(outputs, other, ignore=shutil.ignore_patterns("dicom"))
+    (other / "mosaic.json").write_text(json.dumps({**meta, "scan_digest": "0" * 64}))
+    again = uids(other, tmp_path / "c")
+    assert not {u for t in again.values() for u in t} & {u for t in first.values() for u in t}
+
+
+def test_export_refuses_a_bad_study_field_without_echoing_it(
+    outputs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = ["--patient-id", "SECRET-ID-42", "--patient-birth-date", "1970-13-45"]
+    assert main(["export", str(outputs), "--out", str(tmp_path / "x"), *bad]) == 2
+    captured = capsys.readouterr()
+    assert "patient_birth_date" in captured.err  # names the field ...
+    assert "1970-13-45" not in captured.err + captured.out and "SECRET" not in captured.err + captured.out  # ... only
+    assert not (tmp_path / "x").exists()  # nothing written
+    assert main(["export", str(outputs), "--out", str(tmp_path / "y"), "--laterality", "B"]) == 2
+    assert "laterality" in capsys.readouterr().err
 
 
 def test_export_of_a_non_results_folder_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -11,12 +11,15 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
+import numpy as np
 import pytest
 
 import api.cli as cli
 import api.client
 import services.core.simulation.scenarios
 import services.store.scan_folder
+from services.core.mosaic import MosaicImage
+from services.store.results_store import ResultsStore
 
 SID = "0123456789abcdef0123456789abcdef"
 VIEWER = f"/viewer/{SID}?token=tok"
@@ -158,3 +161,22 @@ def test_demo_says_when_a_download_fails(
     assert cli.main(["demo", "--out", str(tmp_path / "out")]) == 0
     assert "could not fetch sheet.pdf: HTTP 404 not_ready" in capsys.readouterr().out  # said, not skipped silently
     assert not (tmp_path / "out" / "sheet.pdf").exists() and (tmp_path / "out" / "sheet.png").is_file()
+
+
+def test_demo_writes_the_force_and_coverage_maps_with_their_scales(
+    demo: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    named, out = tmp_path / "mydata", tmp_path / "out"
+    assert cli.main(["demo", "--data-dir", str(named), "--out", str(out)]) == 0  # no finished layers yet: said
+    assert "could not draw force_map.png and coverage_map.png" in capsys.readouterr().out
+    assert not (out / "force_map.png").exists()
+    coverage = np.tile(np.arange(40, dtype=np.float32) % 30, (24, 1))  # 0 (never scanned) to 29 frames
+    force = np.where(coverage > 0, 0.5 * coverage, np.nan).astype(np.float32)
+    (named / "sessions" / SID).mkdir()
+    rs = ResultsStore(named)  # the finished results a worker leaves in the demo's data dir
+    rs.ensure_version(SID, 1, {"method": "best"})
+    rs.write_mosaic_images(SID, 1, MosaicImage(np.zeros((24, 40), np.uint8), force, coverage, 8.0, (5.0, 12.0)))
+    assert cli.main(["demo", "--data-dir", str(named), "--out", str(out)]) == 0
+    for name in ("force_map.png", "coverage_map.png"):  # the maps in mm with colour bars (N; frames)
+        assert (out / name).read_bytes().startswith(b"\x89PNG"), name
+    assert (out / "force.png").read_bytes() == f"/v1/sessions/{SID}/mosaic.png?layer=force".encode()  # as served

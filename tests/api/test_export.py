@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import re
 import zlib
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -22,16 +23,29 @@ from pydicom import dcmread
 from pydicom.pixels import apply_rescale
 
 from api.auth import make_viewer_token
-from services.core.dicom_export import MF_GRAY_BYTE_SC, MF_GRAY_WORD_SC, study_uid
+from services.core.dicom_export import ENCAPSULATED_PDF, SC_IMAGE, study_uid
 from services.core.mosaic import MosaicImage
 from services.core.session_reconstruction import PathRow
+from services.core.study import parse_study
 from services.store.results_store import ResultsStore
+from tests.services.core.test_dicom_export import dciodvfy
 
 PX_PER_MM = 8.0
 H, W = 120, 200  # px: 15 x 25 mm
 N_FRAMES = 20
 LOST, REJECTED = 5, 12
 LAYERS = ("vein", "force", "coverage")
+OBJECTS = (*LAYERS, "report")  # export.dcm?layer=: the layers and the one-page report
+STUDY = {
+    "patient_id": "H-4711",
+    "patient_name": "Doe^Jane",
+    "patient_birth_date": "1970-05-06",
+    "patient_sex": "F",
+    "accession_number": "ACC-0815",
+    "laterality": "R",
+    "referring_physician": "Who^Doctor",
+    "study_description": "NIR breast vein scan",
+}
 
 
 def known_mosaic() -> MosaicImage:
@@ -70,14 +84,17 @@ def install_known(client: TestClient, sid: str) -> MosaicImage:
     return mosaic
 
 
-def create(client: TestClient, key: dict[str, str] = INGEST) -> dict[str, Any]:
-    """Create a session (64 x 48 frames at 8 px/mm); return the 201 body."""
+def create(client: TestClient, key: dict[str, str] = INGEST, study: dict[str, str] | None = None) -> dict[str, Any]:
+    """Create a session (64 x 48 frames at 8 px/mm), with a study context when given; return the 201 body."""
     calibration = {
         "image_size": [64, 48],
         "camera_matrix": [[80.0, 0.0, 31.5], [0.0, 80.0, 23.5], [0.0, 0.0, 1.0]],
         "px_per_mm": PX_PER_MM,
     }
-    resp = client.post("/v1/sessions", json={"calibration": calibration, "label": "Jane Doe 1970"}, headers=key)
+    body: dict[str, Any] = {"calibration": calibration, "label": "Jane Doe 1970"}
+    if study is not None:
+        body["study"] = study
+    resp = client.post("/v1/sessions", json=body, headers=key)
     assert resp.status_code == 201, resp.text
     return resp.json()
 
@@ -143,9 +160,10 @@ def test_export_each_layer_is_dicom_with_known_pixels(ready: tuple[TestClient, d
             assert str(ds.data_element(name).value or "") == "", name
         assert "Jane" not in str(ds) and "1970" not in ds.PatientBirthDate
     assert len({ds.SeriesInstanceUID for ds in got.values()}) == 3  # one series per layer
-    assert got["vein"].SOPClassUID == MF_GRAY_BYTE_SC and np.array_equal(got["vein"].pixel_array, mosaic.vein)
+    assert all(ds.SOPClassUID == SC_IMAGE for ds in got.values())  # single-frame Secondary Capture
+    assert np.array_equal(got["vein"].pixel_array, mosaic.vein)
     force = got["force"]
-    assert force.SOPClassUID == MF_GRAY_WORD_SC and force.BitsStored == 16
+    assert force.BitsStored == 16 and (float(force.WindowCenter), float(force.WindowWidth)) == (15.0, 30.0)  # N
     newtons = apply_rescale(force.pixel_array, force)
     scanned = mosaic.coverage > 0
     # 0.01 N steps (RescaleSlope), half a step of rounding; 0 where never scanned
@@ -163,7 +181,7 @@ def test_export_bad_layer_is_a_clear_422(ready: tuple[TestClient, dict, MosaicIm
         err = _error(resp)
         # names the parameter that was wrong and what is allowed; the bad value is not echoed
         assert err["code"] == "validation_error" and "layer" in err["message"], err
-        assert all(f"'{name}'" in err["message"] for name in LAYERS), err
+        assert all(f"'{name}'" in err["message"] for name in OBJECTS), err
 
 
 def test_export_and_sheet_before_results_are_404_not_ready(client: TestClient) -> None:
@@ -178,6 +196,7 @@ AUTH_ROUTES = (
     "/export.dcm?layer=vein",
     "/export.dcm?layer=force",
     "/export.dcm?layer=coverage",
+    "/export.dcm?layer=report",
     "/sheet.png",
     "/sheet.pdf",
 )
@@ -205,6 +224,53 @@ def test_export_and_sheet_auth(ready: tuple[TestClient, dict, MosaicImage]) -> N
     assert _error(refused)["code"] == "not_found" and "Jane" not in refused.text
 
 
+def test_export_files_the_study_context_and_the_report(client: TestClient, tmp_path: Path) -> None:
+    created = create(client, study=STUDY)
+    sid = created["id"]
+    install_known(client, sid)
+    got = {}
+    for name in OBJECTS:
+        resp = client.get(f"/v1/sessions/{sid}/export.dcm?layer={name}", headers=INGEST)
+        assert resp.status_code == 200, (name, resp.text)
+        assert resp.headers["Content-Disposition"] == f'attachment; filename="{name}.dcm"'
+        errors = [line for line in dciodvfy(resp.content, tmp_path, name) if line.startswith("Error")]
+        assert errors == [], (name, errors)  # the reference validator: every object is valid
+        got[name] = dcmread(io.BytesIO(resp.content))
+    context = parse_study(STUDY)
+    for name, ds in got.items():
+        assert ds.StudyInstanceUID == study_uid(sid, context), name  # one study: the session with its context
+        assert (str(ds.PatientName), ds.PatientID, ds.PatientBirthDate, ds.PatientSex) == (
+            "Doe^Jane",
+            "H-4711",
+            "19700506",
+            "F",
+        ), name
+        assert ds.AccessionNumber == "ACC-0815" and str(ds.ReferringPhysicianName) == "Who^Doctor", name
+        assert ds.StudyDescription == "NIR breast vein scan" and ds.TimezoneOffsetFromUTC == "+0000", name
+    assert all(got[layer].Laterality == "R" and got[layer].BodyPartExamined == "BREAST" for layer in LAYERS)
+    report = got["report"]
+    assert report.SOPClassUID == ENCAPSULATED_PDF and report.MIMETypeOfEncapsulatedDocument == "application/pdf"
+    sheet = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=INGEST)
+    document = bytes(report.EncapsulatedDocument)[: report.EncapsulatedDocumentLength]  # less the even-length pad
+    assert document.startswith(b"%PDF") and pdf_text(document) == pdf_text(sheet.content)  # the sheet, wrapped
+    again = dcmread(io.BytesIO(client.get(f"/v1/sessions/{sid}/export.dcm?layer=report", headers=INGEST).content))
+    assert again.SOPInstanceUID == report.SOPInstanceUID  # re-exported: the same instance, not a duplicate
+    assert len({ds.SeriesInstanceUID for ds in got.values()}) == 4
+    # a viewer link never sees patient data: its objects carry none, so they are not the patient's study
+    token = created["viewer_token"]
+    for name in ("vein", "report"):
+        viewed = client.get(f"/v1/sessions/{sid}/export.dcm?layer={name}&token={token}")
+        assert viewed.status_code == 200, name
+        ds = dcmread(io.BytesIO(viewed.content))
+        assert ds.PatientID == "" and str(ds.PatientName) == "" and ds.AccessionNumber == "", name
+        assert ds.StudyInstanceUID == study_uid(sid) != got[name].StudyInstanceUID, name
+        assert b"H-4711" not in viewed.content and b"Doe^Jane" not in viewed.content, name
+        if name == "report":  # the wrapped sheet's drawn text (its streams are compressed) names no patient either
+            drawn = pdf_text(bytes(ds.EncapsulatedDocument))
+            assert "H-4711" not in drawn and "Doe" not in drawn and ds.BurnedInAnnotation == "NO", drawn
+    assert "H-4711" in pdf_text(document) and report.BurnedInAnnotation == "YES"  # the owner's sheet names them
+
+
 # ----- the one-page sheet -----------------------------------------------------------------------------------------
 
 
@@ -215,22 +281,38 @@ def test_sheet_png_and_pdf(ready: tuple[TestClient, dict, MosaicImage]) -> None:
     assert png.status_code == 200 and png.headers["content-type"] == "image/png"
     assert png.headers["X-Results-Version"] == "1" and "no-store" in png.headers["Cache-Control"]
     img = cv2.imdecode(np.frombuffer(png.content, np.uint8), cv2.IMREAD_COLOR)
-    assert img is not None and img.shape[1] > img.shape[0] > 800  # one landscape page, print resolution
+    assert img is not None and img.shape[0] > img.shape[1] > 1000  # one A4 portrait page, print resolution
     assert np.ptp(img.reshape(-1, 3), axis=1).max() > 100  # colour scales: not a grey page
     pdf = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=INGEST)
     assert pdf.status_code == 200 and pdf.headers["content-type"] == "application/pdf"
     assert pdf.content.startswith(b"%PDF") and "no-store" in pdf.headers["Cache-Control"]
     assert len(re.findall(rb"/Type\s*/Page\b", pdf.content)) == 1  # one page
-    text = pdf_text(pdf.content)
-    assert f"session {sid[:8]}" in text  # the heading: the session key's prefix, never the label
-    assert "Jane" not in text
-    assert "local load (N)" in text, text  # the force map's colour scale is in N
-    assert "frames that saw the point" in text and "never scanned" in text  # the coverage scale
-    assert text.count("x (mm") == 3 and text.count("y (mm") == 3  # the three maps' axes are in mm
-    assert f"frames: {N_FRAMES}, placed {N_FRAMES - 2}" in text, text  # the lost-frame summary
-    assert "lost: 1" in text and "few inliers: 1" in text and "rejected: 1" in text and "blur: 1" in text
-    assert "no reference track: accuracy not measured" in text
+    text = " ".join(pdf_text(pdf.content).split())  # wrapped lines joined
+    assert sid in text and "Results version 1" in text and "Method best" in text  # the session key, never the label
+    assert "Jane" not in text and "Accession number not given" in text  # no study: nothing invented
+    assert "Scan date and time 20" in text and " UTC" in text  # the session's creation, with its zone
+    assert "(N)" in text and "newtons (N)" in text, text  # the force map's colour scale is in N
+    assert "frames (linear" in text and "95th percentile" in text and "never scanned" in text  # the coverage scale
+    assert "20 mm" in text or "10 mm" in text or "5 mm" in text  # a scale bar
+    assert f"received: {N_FRAMES}" in text and f"placed (registered): {N_FRAMES - 2}" in text, text
+    assert "lost: 1 (few inliers 1)" in text and "rejected: 1 (blur 1)" in text  # the lost-frame summary
+    assert "no reference track: not measured" in text
     assert "WARNING: 2 of 20 frames (10.0 %) were not placed" in text  # the 5 % rule, on the page
+
+
+def test_sheet_identifies_the_patient_for_the_owner_only(client: TestClient) -> None:
+    created = create(client, study=STUDY)
+    sid = created["id"]
+    install_known(client, sid)
+    owner = " ".join(pdf_text(client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=INGEST).content).split())
+    assert "Accession number ACC-0815" in owner and "Patient ID H-4711" in owner and "Doe, Jane" in owner
+    assert "Laterality right breast" in owner and "Birth date 1970-05-06" in owner and "Who, Doctor" in owner
+    # a viewer link never sees patient data: the same page with the study's fields not given
+    viewed = client.get(f"/v1/sessions/{sid}/sheet.pdf?token={created['viewer_token']}")
+    assert viewed.status_code == 200
+    text = " ".join(pdf_text(viewed.content).split())
+    assert sid in text and "Accession number not given" in text and "Laterality not given" in text
+    assert not any(value in text for value in ("ACC-0815", "H-4711", "Jane", "1970-05-06", "Doctor"))
 
 
 def test_sheet_shows_accuracy_with_a_reference(ready: tuple[TestClient, dict, MosaicImage]) -> None:
@@ -246,7 +328,8 @@ def test_sheet_shows_accuracy_with_a_reference(ready: tuple[TestClient, dict, Mo
     assert resp.status_code == 200, resp.text
     pdf = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=INGEST)
     assert pdf.status_code == 200
-    text = pdf_text(pdf.content)
+    text = " ".join(pdf_text(pdf.content).split())
     assert "no reference track" not in text
-    assert "accuracy: RMSE" in text and "error (mm)" in text, text  # the figures and the error plot in mm
-    assert "reference" in text  # the reference track is drawn (and named) over the mosaic with the estimate
+    # (no "fi" in what is looked for: the PDF draws it as one ligature glyph, which pdf_text does not map back)
+    assert re.search(r"RMSE \d+\.\d{3} mm", text) and "max error" in text and "drift / path length" in text, text
+    assert "reference track" in text  # the reference track is drawn (and named) over the mosaic with the estimate

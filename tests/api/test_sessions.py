@@ -33,6 +33,49 @@ def test_create_session_201(client: TestClient) -> None:
     assert state["extent"] is None and state["label"] == "L"
 
 
+STUDY = {
+    "patient_id": "PID-0042",
+    "patient_name": "Doe^Jane",
+    "patient_birth_date": "1971-02-03",
+    "patient_sex": "F",
+    "accession_number": "ACC-7",
+    "laterality": "R",
+    "referring_physician": "Who^Doctor",
+    "study_description": "NIR vein mapping",
+}
+
+
+def test_study_context_is_stored_and_shown_to_the_owner_only(client: TestClient) -> None:
+    created = client.post("/v1/sessions", json={"calibration": calibration_doc(), "study": STUDY}, headers=INGEST)
+    assert created.status_code == 201, created.text
+    sid, token = created.json()["id"], created.json()["viewer_token"]
+    assert client.get(f"/v1/sessions/{sid}", headers=INGEST).json()["study"] == STUDY
+    assert client.get(f"/v1/sessions/{sid}", params={"token": token}).json()["study"] is None  # a viewer link
+    plain = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()["id"]
+    assert client.get(f"/v1/sessions/{plain}", headers=INGEST).json()["study"] is None  # created without one
+
+
+@pytest.mark.parametrize(
+    ("study", "field"),
+    [
+        ({"patient_sex": "X"}, "study.patient_sex"),
+        ({"laterality": "both"}, "study.laterality"),
+        ({"patient_birth_date": "1971-02-30"}, "patient_birth_date"),  # the right shape, not a date
+        ({"patient_birth_date": "03/02/1971"}, "study.patient_birth_date"),
+        ({"accession_number": "A" * 17}, "study.accession_number"),
+        ({"patient_name": "Doe\\Jane"}, "patient_name"),  # the DICOM value separator
+        ({"nickname": "J"}, "study.nickname"),
+    ],
+)
+def test_bad_study_is_422_naming_the_field_not_the_value(client: TestClient, study: dict, field: str) -> None:
+    resp = client.post("/v1/sessions", json={"calibration": calibration_doc(), "study": study}, headers=INGEST)
+    assert resp.status_code == 422
+    error = _error(resp)
+    assert error["code"] == "invalid_study" and field in error["message"]
+    value = next(iter(study.values()))
+    assert value not in error["message"] or value == "J"
+
+
 @pytest.mark.parametrize(
     ("calibration", "needle"),
     [

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -12,7 +13,10 @@ from services.core.evaluation import evaluate_path
 from services.core.plots import (
     ESTIMATE_COLOR,
     METHOD_COLORS,
+    OVER_SCANNED_COLOR,
     REFERENCE_COLOR,
+    coverage_scale,
+    coverage_scale_top,
     plot_coverage_map,
     plot_error_along_scan,
     plot_force_map,
@@ -146,3 +150,23 @@ def test_force_and_coverage_maps_have_colour_scales(tmp_path: Path) -> None:
         colourful = np.ptp(img.astype(np.int16), axis=2) > 60
         right = colourful[:, int(0.75 * img.shape[1]) :]
         assert right.any(axis=1).sum() > 0.5 * img.shape[0], name
+
+
+def test_coverage_scale_shows_under_and_over_scanned_areas_on_a_normal_scan(tmp_path: Path) -> None:
+    # a normal scan: most points seen by 10 to 45 frames, the edges by a few; the tile layer's fixed 10-frame
+    # top made all of it one flat colour
+    yy, xx = np.mgrid[0:80, 0:120]
+    coverage = np.rint(3 + 42 * np.exp(-((xx - 60) ** 2 + (yy - 40) ** 2) / 1500.0)).astype(np.float32)
+    coverage[:10, :15] = 0  # never scanned
+    seen = coverage[coverage > 0]
+    assert np.mean(seen >= 10) > 0.5  # a fixed 10-frame top would saturate most of the area
+    top = coverage_scale_top(coverage)
+    assert top == math.ceil(np.percentile(seen, 95)) and top > 10
+    scale = coverage_scale(coverage)
+    assert (scale.vmin, scale.vmax, scale.extend) == (1.0, top, "max")
+    assert np.mean(seen > top) <= 0.05  # only the most scanned 5 % beyond the top (in the "over" colour)
+    assert "95th percentile" in scale.caption and "linear" in scale.bar_labels[0] and scale.top_tick == f"{top} = P95"
+    assert coverage_scale_top(np.zeros((4, 4))) == 2  # nothing seen: still a scale
+    (tmp_path / "coverage_map.png").write_bytes(plot_coverage_map(coverage, 8.0, (60.0, 40.0)))
+    img = _read(tmp_path / "coverage_map.png")
+    assert _colour_mask(img, OVER_SCANNED_COLOR, tol=3).sum() > 100  # the over-scanned centre shows, in pink

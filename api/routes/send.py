@@ -1,0 +1,46 @@
+"""Sending a session's DICOM objects to a PACS the operator configured (spec §5: POST /v1/sessions/{id}/send).
+
+The route only checks and queues: a durable job (services.jobs.reprocess, the one job record; the ledger on
+disk keeps the 202's promise) that a worker runs once the session's results are finished, retrying an
+unreachable PACS with back-off (workers/stages/send.py). Re-sending stores the same instances: the objects'
+UIDs come from the session's identity and content.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import APIRouter, status
+
+from api.deps import AppSettings, IngestPrincipal, IngestSession, RedisClient, Store
+from api.errors import Conflict, ServiceUnavailable, Validation
+from api.schemas import JobAccepted, SendRequest
+from services.jobs import reprocess as jobs
+
+router = APIRouter(prefix="/v1/sessions", tags=["export"])
+log = logging.getLogger("veinmosaic.api")
+
+
+@router.post("/{session_id}/send", status_code=status.HTTP_202_ACCEPTED, response_model=JobAccepted)
+def send_session(
+    body: SendRequest,
+    meta: IngestSession,
+    principal: IngestPrincipal,
+    store: Store,
+    r: RedisClient,
+    settings: AppSettings,
+) -> JobAccepted:
+    """Queue a send of the session's DICOM objects (each layer, the one-page report) to a destination: 202."""
+    if body.destination not in settings.pacs_destinations:
+        configured = ", ".join(sorted(settings.pacs_destinations)) or "none are configured"
+        raise Validation(f"destination: not a configured PACS destination ({configured})", code="unknown_destination")
+    if meta.status == "failed":
+        raise Conflict("the session failed: it has no results to send", code="session_failed")
+    if jobs.queue_full(r, settings.redis_prefix, 1, settings.queue_max_depth):
+        raise ServiceUnavailable("the job queue is full; retry later", settings.retry_after_s, code="queue_full")
+    options = {"destination": body.destination}
+    (job_id,) = jobs.enqueue_jobs(
+        r, settings.redis_prefix, principal.fingerprint or "", [meta.id], options, ledger=store.jobs, kind="send"
+    )
+    log.info("send queued", extra={"session": meta.id})
+    return JobAccepted(job=job_id, session=meta.id, status_url=f"/v1/jobs/{job_id}")

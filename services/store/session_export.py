@@ -1,0 +1,99 @@
+"""A stored session's filing outputs: the one-page report and its DICOM study, built the same way for every caller.
+
+GET export.dcm and sheet.png/pdf (the API) and the PACS send job (the workers) all come here, so a download and
+a send of the same session and results version are the same objects with the same UIDs (export_study's key is
+the session id, its study the session's study context). The study context is patient data: callers that must
+not show it (a viewer link) pass with_study=False and get the objects without it (and so with their own UIDs).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Sequence
+from datetime import UTC, datetime
+
+from services.core.dicom_export import ExportInfo, export_study
+from services.core.mosaic import MosaicImage
+from services.core.plots import SheetIdentity
+from services.core.results_docs import path_rows_from_json
+from services.core.session_report import build_session_report
+from services.store.results_report import BadReferenceError, reference_for_rows
+from services.store.results_store import ResultsStore
+from services.store.storage import SessionStore
+
+
+class NotFinishedError(LookupError):
+    """The results version has no finished mosaic (layers.npz): processing is not done."""
+
+
+def finished_version(rs: ResultsStore, sid: str) -> int | None:
+    """Return the newest results version up to the current one with a finished mosaic, or None."""
+    current = rs.current_version(sid)
+    for v in range(current or 0, 0, -1):
+        if rs.image_path(sid, v, "layers.npz").is_file():
+            return v
+    return None
+
+
+def finished_mosaic(rs: ResultsStore, sid: str, version: int) -> MosaicImage:
+    """Return version's finished mosaic (force in N, coverage); NotFinishedError before it is written."""
+    mosaic = rs.read_mosaic_layers(sid, version)
+    if mosaic is None:
+        raise NotFinishedError("no finished mosaic yet: the export is available when processing is done")
+    return mosaic
+
+
+def session_sheet(
+    store: SessionStore, rs: ResultsStore, sid: str, version: int, fmt: str, with_study: bool = True
+) -> bytes:
+    """Return the one-page report of a finished results version as PNG or PDF bytes (A4)."""
+    mosaic = finished_mosaic(rs, sid, version)
+    meta = store.get_meta(sid)
+    rows = path_rows_from_json(rs.read_path(sid, version) or [])
+    reference = None
+    text = rs.read_reference(sid)
+    if text is not None and rows:
+        with contextlib.suppress(BadReferenceError):  # the sheet without accuracy
+            reference = reference_for_rows(text, rows, (f.seq for f in store.list_frames(sid)))
+    tissue = (rs.read_mosaic_meta(sid, version) or {}).get("tissue")
+    extra = {"tissue": tissue} if tissue else None
+    identity = SheetIdentity(
+        session=sid,  # the key, never the label (free text that may name the patient)
+        scan_time=datetime.fromtimestamp(meta.created, UTC),
+        results_version=version,
+        method=(rs.read_options(sid, version) or {}).get("method") or None,
+        study=store.study(sid) if with_study else None,
+    )
+    try:
+        report = build_session_report(rows, reference, mosaic, extra, identity=identity)
+    except ValueError:  # the reference matches no registered frame: the sheet without accuracy
+        report = build_session_report(rows, None, mosaic, extra, identity=identity)
+    return report.images[f"sheet.{fmt}"]
+
+
+def export_info(store: SessionStore, rs: ResultsStore, sid: str, version: int, with_study: bool = True) -> ExportInfo:
+    """Return what identifies a session's DICOM study: the session id as key, its study context, dates, method."""
+    meta = store.get_meta(sid)
+    return ExportInfo(
+        key=sid,
+        study=store.study(sid) if with_study else None,
+        acquired=datetime.fromtimestamp(meta.created, UTC),
+        exported=datetime.now(UTC),
+        method=str((rs.read_options(sid, version) or {}).get("method") or ""),
+        results_version=version,
+    )
+
+
+def session_objects(
+    store: SessionStore,
+    rs: ResultsStore,
+    sid: str,
+    version: int,
+    with_study: bool = True,
+    only: Sequence[str] | None = None,
+) -> dict[str, bytes]:
+    """Return {object: DICOM Part-10 bytes} of a finished version: each layer and the report (Encapsulated PDF)."""
+    mosaic = finished_mosaic(rs, sid, version)
+    info = export_info(store, rs, sid, version, with_study)
+    pdf = session_sheet(store, rs, sid, version, "pdf", with_study) if only is None or "report" in only else None
+    return export_study(mosaic, info, pdf, only=tuple(only) if only is not None else None)

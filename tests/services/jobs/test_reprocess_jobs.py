@@ -1,0 +1,55 @@
+"""The one job record (services/jobs/reprocess.py) for both kinds of job: reprocess and send."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from services.jobs import queue
+from services.jobs import reprocess as jobs
+from services.store.storage import JobLedger
+from tests.services.jobs.test_queue import rq
+
+__all__ = ["rq"]
+
+
+def _entries(r, prefix: str) -> list[dict[str, str]]:  # type: ignore[no-untyped-def]
+    return [{k.decode(): v.decode() for k, v in fields.items()} for _id, fields in r.xrange(queue.jobs_stream(prefix))]
+
+
+@pytest.mark.parametrize("kind", ["reprocess", "send"])
+def test_job_kind_is_in_hash_entry_ledger_and_view(rq, tmp_path: Path, kind: str) -> None:  # type: ignore[no-untyped-def]
+    r, prefix = rq
+    ledger = JobLedger(tmp_path / "jobs")
+    (job,) = jobs.enqueue_jobs(r, prefix, "f" * 64, ["a" * 32], {"destination": "pacs"}, ledger=ledger, kind=kind)
+    assert jobs.read_job(r, prefix, job)["kind"] == kind
+    assert _entries(r, prefix) == [
+        {
+            "kind": kind,
+            "job": job,
+            "session": "a" * 32,
+            "options": json.dumps({"destination": "pacs"}, separators=(",", ":")),
+        }
+    ]
+    (record,) = ledger.open_jobs()
+    assert record["kind"] == kind and record["id"] == job
+    view = jobs.job_view(jobs.read_job(r, prefix, job), job)
+    assert view["kind"] == kind and view["state"] == "queued" and view["attempts"] == 0
+
+
+def test_requeue_from_the_ledger_keeps_the_kind(rq, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    r, prefix = rq
+    ledger = JobLedger(tmp_path / "jobs")
+    (job,) = jobs.enqueue_jobs(r, prefix, "", ["b" * 32], {"destination": "pacs"}, ledger=ledger, kind="send")
+    r.delete(queue.jobs_stream(prefix), queue.job_key(job, prefix))  # Redis lost the job
+    (record,) = ledger.open_jobs()
+    queue.requeue_job(r, record, 60, prefix)
+    assert [e["kind"] for e in _entries(r, prefix)] == ["send"]
+    assert jobs.read_job(r, prefix, job)["kind"] == "send"
+
+
+def test_unknown_kind_is_refused() -> None:
+    with pytest.raises(ValueError, match="job kind"):
+        queue.job_entry("j", "s", "{}", kind="delete-everything")
