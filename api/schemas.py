@@ -34,8 +34,10 @@ def _integral(value: Any) -> Any:
     return int(value) if isinstance(value, float) and value.is_integer() else value
 
 
-# image_size: whole pixels; the upper bound is the max_frame_side setting (api.app writes it into the schema)
-Side = Annotated[int, BeforeValidator(_integral), Field(strict=True, ge=16, le=16384)]
+# image_size: whole pixels; the upper bound is the max_frame_side setting (api.app writes it into the schema).
+# Field before the validator: the other order puts raw `ge`/`le` (not JSON Schema) into the schema, which then
+# stated no bound at all, so sides below 16 were valid by the schema and 422 by the code.
+Side = Annotated[int, Field(strict=True, ge=16, le=16384), BeforeValidator(_integral)]
 Coefficients = (
     Annotated[list[Finite], Field(min_length=4, max_length=4)]
     | Annotated[list[Finite], Field(min_length=5, max_length=5)]
@@ -121,9 +123,8 @@ class SessionState(Strict):
     id: str
     status: Literal["receiving", "processing", "done", "failed"]
     label: str | None = None
-    study: dict[str, str] | None = (
-        None  # the study context: to the owner's key and admins only, never via a viewer link
-    )
+    # the study context: to the owner's key and admins only, never via a viewer link
+    study: dict[str, str] | None = None
     created: float
     finished: bool
     frames_received: int
@@ -134,6 +135,7 @@ class SessionState(Strict):
     not_placed_reasons: dict[str, int] = Field(default_factory=dict)  # lost + rejected frames per reason
     warnings: list[dict[str, str]] = Field(default_factory=list)  # [{"code", "message"}]: >5 % lost, failed, reprocess
     extent: dict[str, Any] | None = None
+    tissue: dict[str, Any] | None = None  # of the results served: what the scan taught (mosaic.json "tissue")
 
 
 class FrameMeta(Strict):
@@ -224,8 +226,14 @@ class BatchReprocessRequest(Strict):
     options: ReprocessOptions = Field(default_factory=ReprocessOptions)
 
 
+class SendRequest(Strict):
+    """POST /v1/sessions/{id}/send body: the name of a PACS destination the operator configured."""
+
+    destination: str = Field(min_length=1, max_length=64, description="a name in VEINMOSAIC_PACS_DESTINATIONS")
+
+
 class JobAccepted(Strict):
-    """202 answer to a reprocess request: the job id and where to follow it."""
+    """202 answer to a reprocess or send request: the job id and where to follow it."""
 
     job: str
     session: str
@@ -241,9 +249,11 @@ class BatchAccepted(Strict):
 
 
 class JobState(Strict):
-    """GET /v1/jobs/{id}: state queued|running|done|failed, progress done/total frames, the results version."""
+    """GET /v1/jobs/{id}: kind, state queued|running|done|failed, progress done/total (frames for a reprocess,
+    DICOM objects for a send), the results version; a send's attempts so far."""
 
     id: str
+    kind: Literal["reprocess", "send"] = "reprocess"
     state: str
     session: str
     version: int | None = None
@@ -254,6 +264,7 @@ class JobState(Strict):
     created: float | None = None
     batch: str | None = None
     options: dict[str, Any] = Field(default_factory=dict)
+    attempts: int = 0
 
 
 class BatchState(Strict):
