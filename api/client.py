@@ -127,9 +127,14 @@ class VeinmosaicClient:
             raise api_error(response)
         return response
 
-    def create_session(self, calibration: dict[str, Any], label: str) -> dict[str, Any]:
-        """Return the new session ({"id", "viewer_url", ...})."""
-        return self.request("POST", "/v1/sessions", json={"calibration": calibration, "label": label}).json()
+    def create_session(
+        self, calibration: dict[str, Any], label: str, study: dict[str, str] | None = None
+    ) -> dict[str, Any]:
+        """Return the new session ({"id", "viewer_url", ...}); study: the examination's context (spec §5)."""
+        body: dict[str, Any] = {"calibration": calibration, "label": label}
+        if study:
+            body["study"] = study
+        return self.request("POST", "/v1/sessions", json=body).json()
 
     def upload_frame(self, session_id: str, seq: int, t_s: float, data: bytes, filename: str) -> int:
         """Upload one frame; return the HTTP status (202 new, 200 already there)."""
@@ -174,6 +179,21 @@ class VeinmosaicClient:
                 raise TimeoutError(f"session not done after {timeout_s:.0f} s")
             time.sleep(0.5)
 
+    def send(self, session_id: str, destination: str) -> str:
+        """Queue a send of the session's DICOM objects to a configured PACS destination; return the job id."""
+        return self.request("POST", f"/v1/sessions/{session_id}/send", json={"destination": destination}).json()["job"]
+
+    def wait_job(self, job_id: str, timeout_s: float = 300.0) -> dict[str, Any]:
+        """Poll a job until it is done or failed; return its final state; raise TimeoutError."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            job = self.request("GET", f"/v1/jobs/{job_id}").json()
+            if job.get("state") in ("done", "failed"):
+                return job
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"job not finished after {timeout_s:.0f} s")
+            time.sleep(0.5)
+
 
 def upload_scan_folder(
     client: VeinmosaicClient,
@@ -183,8 +203,9 @@ def upload_scan_folder(
     parallel: int = 4,
     progress: Callable[[int, int], None] | None = None,
     on_session: Callable[[dict[str, Any]], None] | None = None,
+    study: dict[str, str] | None = None,
 ) -> str:
-    """Upload a scan folder (spec §3) as a device would; return the session id.
+    """Upload a scan folder (spec §3) as a device would; return the session id. study: the examination's context.
 
     realtime > 0 paces frames at that multiple of the recorded frame rate (1.0 = as recorded); 0 = as fast
     as the server accepts. Frames go in time order with `parallel` in flight; forces lead them.
@@ -192,7 +213,7 @@ def upload_scan_folder(
     scan_dir = Path(scan_dir)
     scan = read_scan_folder(scan_dir)
     calibration = json.loads((scan_dir / "calibration.json").read_text())
-    created = client.create_session(calibration, label)
+    created = client.create_session(calibration, label, study)
     session_id = created["id"]
     if on_session:
         on_session(created)

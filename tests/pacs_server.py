@@ -54,6 +54,12 @@ class Orthanc:
         resp.raise_for_status()
         return resp.json()
 
+    def get_bytes(self, path: str) -> bytes:
+        """GET a REST path of Orthanc's API and return the body (e.g. an instance's /rendered PNG)."""
+        resp = httpx.get(f"{self.http_url}{path}", timeout=30.0)
+        resp.raise_for_status()
+        return resp.content
+
     def find(self, level: str, **query: str) -> list[dict[str, Any]]:
         """Return the expanded resources at `level` (Patient, Study, Series, Instance) matching DICOM tags."""
         body = {"Level": level, "Query": query, "Expand": True}

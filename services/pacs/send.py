@@ -21,7 +21,7 @@ from services.pacs.stow import stow
 
 __all__ = ["PacsError", "PacsRejected", "PacsUnreachable", "SendOutcome", "send_objects"]
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("veinmosaic.pacs")
 
 
 def send_objects(

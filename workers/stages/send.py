@@ -85,9 +85,9 @@ def handle_send(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], No
             pub.audit_send(sid, job_id, name, "failed", 0, version)
             return None
         delay = retry_delay_s(attempt, cfg.pacs_retry_first_s, cfg.pacs_retry_max_s)
-        _set_job(ctx, job_id, state="queued", error=f"destination unreachable ({exc}); retry in {delay:.0f} s"[:300])
+        _set_job(ctx, job_id, state="queued", error=f"destination unreachable ({exc}); retry in {delay:.1f} s"[:300])
         pub.audit_send(sid, job_id, name, "retry", 0, version)
-        log.warning("PACS unreachable; send retried in %.0f s (attempt %d)", delay, attempt, extra={"session": sid})
+        log.warning("PACS unreachable; send retried in %.1f s (attempt %d)", delay, attempt, extra={"session": sid})
         return Retry(delay, "PACS unreachable")
     except PacsRejected as exc:
         _set_job(ctx, job_id, state="failed", error=f"the destination refused the objects: {exc}"[:300])
