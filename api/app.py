@@ -22,6 +22,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from api.audit import AuditMiddleware
 from api.auth import document_security, key_table
 from api.errors import BodyTooLarge, add_exception_handlers, document_errors, escaped_error_response
+from api.openapi_links import add_links
 from api.routes import ROUTERS
 from api.routes.audit import router as audit_router
 from api.routes.viewer import mount_static
@@ -171,9 +172,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     generate = app.openapi
 
     def openapi() -> dict[str, Any]:
-        """Return the OpenAPI document with every error status and the settings' frame size cap stated."""
+        """Return the OpenAPI document: every error status, the links between operations, the frame size cap."""
         if app.openapi_schema is None:
-            schema = document_security(document_errors(generate()))
+            schema = add_links(document_security(document_errors(generate())))
             side = schema["components"]["schemas"]["CalibrationDoc"]["properties"]["image_size"]
             for item in side["prefixItems"]:
                 item["maximum"] = s.max_frame_side
