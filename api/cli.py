@@ -39,7 +39,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from services.core.simulation.scenarios import simulate
     from services.store.scan_folder import write_scan_folder
 
-    scan = simulate(args.scenario, args.seed)
+    scan = simulate(args.scenario, args.seed, tissue=args.tissue, frames=args.frames)
     write_scan_folder(scan, args.out)
     length = scan.truth.get("path_length_mm", float("nan"))
     print(f"wrote {len(scan)} frames ({args.scenario}, seed {args.seed}, path {length:.0f} mm) to {args.out}")
@@ -462,9 +462,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command("simulate", "write a simulated scan folder (spec §3) with reference.csv and truth.json")
     p.add_argument(
-        "--scenario", default="short", choices=["raster", "revisit", "hard", "short", "calib"], help="kind of scan"
+        "--scenario",
+        default="short",
+        choices=["raster", "revisit", "hard", "short", "calib", "exam"],
+        help="kind of scan (exam: a minutes-long examination, passes over one area)",
     )
     p.add_argument("--seed", type=int, default=1, help="random seed (same seed, same scan)")
+    p.add_argument("--frames", type=int, default=None, help="an exam's frames (default 2400: 4 min at 10 frames/s)")
+    p.add_argument(
+        "--tissue",
+        default=None,
+        choices=["linear", "stiffening", "power"],
+        help="a patient's tissue law with a hand's tilts (default: the calibration phantom)",
+    )
     p.add_argument("--out", required=True, type=Path, help="scan folder to write (required)")
     p.set_defaults(func=cmd_simulate)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -54,6 +55,7 @@ def served(orthanc: Orthanc, tmp_path_factory: pytest.TempPathFactory) -> Iterat
         "VEINMOSAIC_REDIS_PREFIX": f"vmtest{uuid.uuid4().hex[:8]}:",
         "VEINMOSAIC_PACS_DESTINATIONS": json.dumps(destinations),
         "VEINMOSAIC_PACS_TIMEOUT_S": "5",
+        "VEINMOSAIC_PACS_AUTO_SEND": json.dumps(["web"]),  # every session goes to "web" once done
         "VEINMOSAIC_WORKER_CONFIG": json.dumps(worker),
         "VEINMOSAIC_LOG_LEVEL": "WARNING",
     }
@@ -71,14 +73,13 @@ def test_a_session_reaches_orthanc_by_both_protocols_filed_and_rendered(
     service, client = served
     folder = tmp_path / "scan"
     write_scan_folder(simulated("short", 1), folder)
-    sid = upload_scan_folder(client, folder, "send test", study=STUDY)
-    web_job = client.send(sid, "web")  # queued before the session is done: the job waits for the results
+    sid = upload_scan_folder(client, folder, "send test", study=STUDY)  # finishing it queued the auto-send
     assert client.wait_done(sid, timeout_s=240)["status"] == "done"
-    web = client.wait_job(web_job, timeout_s=120)
-    assert web["state"] == "done" and web["kind"] == "send", web
-    assert web["done"] == web["total"] == OBJECTS
-
-    (study,) = orthanc.find("Study", AccessionNumber=STUDY["accession_number"])
+    deadline = time.monotonic() + 120
+    while not (found := orthanc.find("Study", AccessionNumber=STUDY["accession_number"])):
+        assert time.monotonic() < deadline, "the auto-send never reached Orthanc"
+        time.sleep(0.5)
+    (study,) = found
     assert study["PatientMainDicomTags"]["PatientID"] == STUDY["patient_id"]
     assert study["PatientMainDicomTags"]["PatientName"] == STUDY["patient_name"]
     assert len(study["Series"]) == OBJECTS
@@ -98,10 +99,12 @@ def test_a_session_reaches_orthanc_by_both_protocols_filed_and_rendered(
         lit = float(np.mean(img > LIT_LEVEL))
         assert lit > LIT_SHARE, f"{s['MainDicomTags'].get('SeriesDescription')}: {lit:.3f} lit"
 
-    dimse = client.wait_job(client.send(sid, "dimse"), timeout_s=120)  # the same objects by C-STORE
+    dimse_job = client.send(sid, "dimse")  # the same objects by C-STORE
+    assert client.request("GET", f"/v1/jobs/{dimse_job}").json()["kind"] == "send"
+    dimse = client.wait_job(dimse_job, timeout_s=120)
     assert dimse["state"] == "done" and dimse["done"] == OBJECTS, dimse
     again = client.wait_job(client.send(sid, "web"), timeout_s=120)  # and again: idempotent
-    assert again["state"] == "done"
+    assert again["state"] == "done" and again["done"] == again["total"] == OBJECTS
     (same,) = orthanc.find("Study", AccessionNumber=STUDY["accession_number"])
     assert sorted(same["Series"]) == sorted(study["Series"])
     assert sum(len(orthanc.get(f"/series/{s}")["Instances"]) for s in same["Series"]) == OBJECTS
@@ -114,7 +117,7 @@ def test_a_session_reaches_orthanc_by_both_protocols_filed_and_rendered(
         ("web", "done"),
     ]
     assert all(r["actor"].startswith("key:") and r["instances"] == OBJECTS for r in sends)
-    assert len([r for r in records if r.get("action") == "pacs.send.request"]) == 3
+    assert len([r for r in records if r.get("action") == "pacs.send.request"]) == 2  # the auto-send is not a request
     audit_text = (service.data_dir / "audit" / "audit.jsonl").read_text()
     assert STUDY["patient_name"] not in audit_text and STUDY["accession_number"] not in audit_text
 
@@ -132,7 +135,7 @@ def test_an_unreachable_destination_is_retried_then_fails(
     assert job["state"] == "failed" and job["attempts"] == 2, job
     assert "unreachable" in (job["error"] or "")
     records = AuditLog(service.data_dir / "audit" / "audit.jsonl").query(session=sid, limit=100)
-    outcomes = [r["outcome"] for r in records if r.get("action") == "pacs.send"]
+    outcomes = [r["outcome"] for r in records if r.get("action") == "pacs.send" and r["destination"] == "dead"]
     assert sorted(outcomes) == ["failed", "retry"]
     with pytest.raises(ApiError) as refused:
         client.send(sid, "nowhere")

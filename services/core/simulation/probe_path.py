@@ -210,6 +210,28 @@ def sweep_turn_route(first_mm: float, second_mm: float) -> np.ndarray:
     return np.array([[0.0, 0.0], [first_mm, 0.0], [first_mm, second_mm]])
 
 
+def exam_route(
+    length_mm: float, width_mm: float = 168.0, height_mm: float = 108.0, spacing_mm: float = 18.0
+) -> np.ndarray:
+    """Return the corners (M, 2) mm of a minutes-long examination: serpentine passes over one width x height area,
+    alternately along rows (+x) and along columns (+y), each pass back over the last, cut at length_mm."""
+    rows = serpentine_route(width_mm, round(height_mm / spacing_mm) + 1, spacing_mm)
+    cols = serpentine_route(height_mm, round(width_mm / spacing_mm) + 1, spacing_mm)[:, ::-1]
+    passes, pts = (rows, rows[::-1], cols, cols[::-1]), [np.zeros((1, 2))]
+    total, k = 0.0, 0
+    while total < length_mm:
+        nxt = passes[k % len(passes)]
+        seg = np.concatenate([pts[-1][-1:], nxt])
+        total += float(np.linalg.norm(np.diff(seg, axis=0), axis=1).sum())
+        pts.append(nxt)
+        k += 1
+    route = np.concatenate(pts)
+    s = arc_length(route)
+    end = int(np.searchsorted(s, length_mm))
+    last = route[end - 1] + (route[end] - route[end - 1]) * (length_mm - s[end - 1]) / max(s[end] - s[end - 1], 1e-9)
+    return np.concatenate([route[:end], last[None]])
+
+
 # --- scenario motions ------------------------------------------------------------------------------------
 
 
@@ -300,8 +322,20 @@ def calibration_motion(
     )
 
 
-def scenario_motion_spec(scenario: str) -> MotionSpec:
-    """Return the MotionSpec of a free-hand scenario (raster, revisit, hard, short)."""
+EXAM_STEP_MM = 3.63  # the raster's mean step between frames (1274 mm over 336 frames), kept over an examination
+
+
+def scenario_motion_spec(scenario: str, n_frames: int | None = None) -> MotionSpec:
+    """Return the MotionSpec of a free-hand scenario (raster, revisit, hard, short; exam of n_frames, 2400 by
+    default: 4 minutes at 10 frames/s, ~8.7 m over one 168 x 108 mm area, as a breast examination)."""
+    if scenario == "exam":
+        n = 2400 if n_frames is None else int(n_frames)
+        return MotionSpec(
+            n_frames=n, route_mm=exam_route(n * EXAM_STEP_MM), corner_sigma_mm=4.0,
+            speed_variation=0.2, speed_tau_frames=8.0, wobble_mm=1.5, wobble_tau_frames=12.0,
+            yaw_amplitude_deg=2.5, yaw_tau_frames=40.0, load_range_n=(2.0, 12.0), load_tau_s=1.5,
+            max_tilt_deg=0.3, tilt_tau_s=2.0,
+        )  # fmt: skip
     if scenario == "raster":
         # 7 rows, 18 mm apart (the 40 mm-high view overlaps the next row by 55%), ~3.8 mm between frames
         return MotionSpec(

@@ -32,11 +32,19 @@ from services.core.simulation.variants import ImagingVariant, scenario_imaging
 from services.core.simulation.vein_texture import make_world
 
 SCENARIOS = ("raster", "revisit", "hard", "short", "calib")
+LONG_SCENARIOS = ("exam",)  # minutes long (2400 frames by default): for the long-examination bench, not test loops
+ALL_SCENARIOS = SCENARIOS + LONG_SCENARIOS
 
 NOMINAL_E_KPA = 16.1
 NOMINAL_KAPPA_N_PER_MM = 18.0
 TRUE_KAPPA_N_PER_MM = (0.1, 0.3)  # the effective kappa of a hand on tissue, log-uniform (draw_hand_kappa)
-HAND_TILT_DEG = {"raster": 10.0, "revisit": 10.0, "hard": 15.0, "short": 7.0}  # as the shared scans' README
+HAND_TILT_DEG = {
+    "raster": 10.0,
+    "revisit": 10.0,
+    "hard": 15.0,
+    "short": 7.0,
+    "exam": 10.0,
+}  # as the shared scans' README
 FORCE_RATE_HZ = 100.0
 FORCE_NOISE_N = 0.03
 FORCE_OFFSET_N = 0.1  # per-sensor constant offset, uniform in [-0.1, 0.1] N
@@ -130,7 +138,13 @@ def resolve_imaging(scenario: str, imaging: ImagingVariant | str) -> ImagingVari
     return scenario_imaging(scenario, imaging) if isinstance(imaging, str) else imaging
 
 
-def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realistic", tissue: str | None = None) -> Scan:
+def simulate(
+    scenario: str,
+    seed: int,
+    imaging: ImagingVariant | str = "realistic",
+    tissue: str | None = None,
+    frames: int | None = None,
+) -> Scan:
     """Return a simulated Scan (frames in memory) of a scenario in SCENARIOS, deterministic for the seed.
 
     imaging: a variant name ("realistic", the default that looks like the shared NIR scans; "faint";
@@ -143,17 +157,20 @@ def simulate(scenario: str, seed: int, imaging: ImagingVariant | str = "realisti
     kappa +-10 %, tilts under 0.3 deg); a law in TISSUE_LAWS for a patient as on the shared scans: a hand's
     effective kappa (draw_hand_kappa), tilts up to HAND_TILT_DEG (a tilted view: 1/cos along the tilt) and the
     law's shape and anisotropy. reference_angles_deg: yaw relative to frame 0 and the true tilts, as a tracker.
+    frames: the number of frames of an "exam" (default 2400: 4 minutes at 10 frames/s); other scenarios have theirs.
     """
-    if scenario not in SCENARIOS:
-        raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(SCENARIOS)}")
+    if scenario not in ALL_SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(ALL_SCENARIOS)}")
+    if frames is not None and (scenario != "exam" or frames < 24):
+        raise ValueError("frames: only an exam's length can be chosen, at least 24 frames")
     look = resolve_imaging(scenario, imaging)
     cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)
     rng_const, rng_path, rng_world, rng_img, rng_stream = (
-        np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), SCENARIOS.index(scenario)]).spawn(5)
+        np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), ALL_SCENARIOS.index(scenario)]).spawn(5)
     )
     calib = nominal_calibration()
     e_true, kappa_true = draw_true_constants(rng_const)
-    spec = scenario_motion_spec(scenario) if scenario != "calib" else None
+    spec = scenario_motion_spec(scenario, frames) if scenario != "calib" else None
     if tissue is not None:
         kappa_true = draw_hand_kappa(rng_const)
         spec = spec and dataclasses.replace(spec, max_tilt_deg=HAND_TILT_DEG[scenario])
