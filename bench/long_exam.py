@@ -51,8 +51,7 @@ def reconstruct(folder: Path, out: Path, method: str) -> dict[str, float]:
     if proc.returncode != 0 or not lines:
         raise RuntimeError(f"reconstruct failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
     usage = json.loads(lines[-1][len("RUSAGE ") :])
-    report = json.loads((out / "report.json").read_text())
-    accuracy = report.get("accuracy") or {}
+    accuracy = json.loads((out / "report.json").read_text())  # the accuracy keys are top-level
     return {
         "wall_s": wall,
         "cpu_s": float(usage["cpu_s"]),
@@ -84,8 +83,8 @@ def main() -> int:
             write_scan_folder(scan, folder)
             length = scan.truth["path_length_mm"]
             del scan
-        else:
-            length = float("nan")
+        else:  # kept from an earlier run (--keep): the length from its truth
+            length = float(json.loads((folder / "truth.json").read_text()).get("path_length_mm", float("nan")))
         n = len(list((folder / "frames").iterdir()))
         print(f"reconstructing {name} ({n} frames) ...", flush=True)
         res = reconstruct(folder, root / f"out-{name}", args.method)

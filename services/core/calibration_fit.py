@@ -221,7 +221,8 @@ def _features(scan: Scan, index: int) -> tuple[np.ndarray, np.ndarray | None]:
     centre = np.array(scan.calibration.principal_point)
     near = np.linalg.norm(found.points - centre, axis=1) <= CENTRAL_RADIUS_MM * scan.calibration.px_per_mm
     found = found.subset(near)
-    return found.points.astype(np.float32).reshape(-1, 2), (found.descriptors if len(found) else None)
+    desc = found.descriptors.astype(np.float32) if len(found) else None  # cv2.BFMatcher's L2 wants float32
+    return found.points.astype(np.float32).reshape(-1, 2), desc
 
 
 def measure_similarities(scan: Scan, ref_index: int, indices: list[int]) -> ScaleMeasurements:

@@ -19,7 +19,7 @@ SPREAD_GRID = (8, 6)  # cells across x, y over which adaptive keypoints are spre
 @dataclass(frozen=True)
 class Features:
     """Keypoints: positions (N, 2) float64 (pixels from detect_features; frame_prep turns them into mm about the
-    principal point), descriptors (N, D) float32, detection scales (N,) in pixels."""
+    principal point), descriptors (N, D) uint8, detection scales (N,) in pixels."""
 
     points: np.ndarray
     descriptors: np.ndarray
@@ -121,7 +121,9 @@ def detect_features(
         return empty_features()
     points = np.array([k.pt for k in keypoints], dtype=np.float64)
     sizes = np.array([k.size for k in keypoints], dtype=np.float64)
-    descriptors = np.asarray(descriptors, dtype=np.float32)
+    # SIFT's values are whole numbers 0-255 (OpenCV saturates them to uchar before storing them as float): kept
+    # as uint8, a quarter of the memory, exactly; matching computes in float32 (registration.nearest_descriptors)
+    descriptors = np.clip(np.rint(np.asarray(descriptors, dtype=np.float32)), 0, 255).astype(np.uint8)
     if mask is not None:
         h, w = mask.shape
         xi = np.clip(np.round(points[:, 0]).astype(int), 0, w - 1)

@@ -8,10 +8,11 @@ T_ij = T_i^-1 T_j, so a_j = a_i a_ij and t_j = t_i + a_i t_ij. Both equations ar
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.sparse import csr_matrix, identity
+from scipy.sparse import csr_matrix, diags, identity
 from scipy.sparse.linalg import spsolve
 
 from services.core.registration import Similarity
@@ -56,13 +57,17 @@ class GraphSolution:
 
 def edge_residuals_mm(poses: dict[int, Similarity], edges: list[Edge], lever_mm: float) -> np.ndarray:
     """Return each edge's residual norm in mm: translation misfit plus rotation/scale misfit at lever_mm."""
-    out = np.zeros(len(edges))
-    for k, e in enumerate(edges):
-        ti, tj = poses[e.i], poses[e.j]
-        r_a = (tj.a - ti.a * e.relative.a) * lever_mm
-        r_t = tj.t - ti.t - ti.a * e.relative.t
-        out[k] = float(np.sqrt(abs(r_a) ** 2 + abs(r_t) ** 2))
-    return out
+    if not edges:
+        return np.zeros(0)
+    ai = np.array([poses[e.i].a for e in edges])
+    ti = np.array([poses[e.i].t for e in edges])
+    aj = np.array([poses[e.j].a for e in edges])
+    tj = np.array([poses[e.j].t for e in edges])
+    ma = np.array([e.relative.a for e in edges])
+    mt = np.array([e.relative.t for e in edges])
+    r_a = (aj - ai * ma) * lever_mm
+    r_t = tj - ti - ai * mt
+    return np.sqrt(np.abs(r_a) ** 2 + np.abs(r_t) ** 2)
 
 
 def robust_weights(residuals_mm: np.ndarray, edges: list[Edge], scale_mm: float) -> np.ndarray:
@@ -72,15 +77,85 @@ def robust_weights(residuals_mm: np.ndarray, edges: list[Edge], scale_mm: float)
     return np.where(w < DROP_WEIGHT, 0.0, w)
 
 
+def _unit_system(
+    initial: dict[int, Similarity], edges: list[Edge], col: dict[int, int], lever_mm: float
+) -> tuple[csr_matrix, np.ndarray]:
+    """Return (A, b) of optimise_poses' linear system before the per-edge scaling (rows 4k..4k+3 for edge k:
+    a re/im at lever_mm, then t re/im), with the priors' rows after the edges' (already scaled by their sigmas).
+
+    Edge k states c_j X_j - M X_i = 0 in complex form (X = a scaled by the lever, or t), split into real and
+    imaginary rows; a term of a held node (not in col) moves to the right-hand side with its pose.
+    """
+    n_free = len(col)
+    ne = len(edges)
+    base = 4 * np.arange(ne)
+    ci = np.array([col.get(e.i, -1) for e in edges], dtype=np.int64)
+    cj = np.array([col.get(e.j, -1) for e in edges], dtype=np.int64)
+    ma = np.array([e.relative.a for e in edges], dtype=complex)
+    mt = np.array([e.relative.t for e in edges], dtype=complex)
+    held_i = (
+        np.array([initial[e.i].a if e.i not in col else 0j for e in edges], dtype=complex),
+        np.array([initial[e.i].t if e.i not in col else 0j for e in edges], dtype=complex),
+    )
+    held_j = (
+        np.array([initial[e.j].a if e.j not in col else 0j for e in edges], dtype=complex),
+        np.array([initial[e.j].t if e.j not in col else 0j for e in edges], dtype=complex),
+    )
+    b = np.zeros(4 * ne + 4 * n_free)
+    rows: list[np.ndarray] = []
+    cols: list[np.ndarray] = []
+    vals: list[np.ndarray] = []
+
+    def put(r: np.ndarray, c: np.ndarray, v: np.ndarray | float) -> None:
+        rows.append(r)
+        cols.append(c)
+        vals.append(np.broadcast_to(np.asarray(v, float), r.shape))
+
+    j, jf = cj >= 0, (cj < 0)
+    for off, scale in ((0, lever_mm), (1, lever_mm), (2, 1.0), (3, 1.0)):  # +X_j
+        put(base[j] + off, cj[j] + off, scale)
+    fa, ft = held_j[0][jf] * lever_mm, held_j[1][jf]
+    for off, v in ((0, fa.real), (1, fa.imag), (2, ft.real), (3, ft.imag)):
+        b[base[jf] + off] -= v
+    i, fi = ci >= 0, (ci < 0)
+    la, lt = ma[i] * lever_mm, mt[i]  # -a_i M: real row -(a_re m_re - a_im m_im), imag row -(a_re m_im + a_im m_re)
+    put(base[i], ci[i], -la.real)
+    put(base[i], ci[i] + 1, la.imag)
+    put(base[i] + 1, ci[i], -la.imag)
+    put(base[i] + 1, ci[i] + 1, -la.real)
+    put(base[i] + 2, ci[i], -lt.real)
+    put(base[i] + 2, ci[i] + 1, lt.imag)
+    put(base[i] + 3, ci[i], -lt.imag)
+    put(base[i] + 3, ci[i] + 1, -lt.real)
+    put(base[i] + 2, ci[i] + 2, -1.0)  # -t_i
+    put(base[i] + 3, ci[i] + 3, -1.0)
+    va = held_i[0][fi] * ma[fi] * lever_mm
+    vt = held_i[0][fi] * mt[fi] + held_i[1][fi]
+    for off, v in ((0, va.real), (1, va.imag), (2, vt.real), (3, vt.imag)):
+        b[base[fi] + off] += v
+    prior_sigma = np.array([PRIOR_A, PRIOR_A, PRIOR_T_MM, PRIOR_T_MM])
+    nodes = list(col)
+    c = np.array([col[n] for n in nodes], dtype=np.int64)[:, None] + np.arange(4)  # (F, 4) columns
+    a0 = np.array([initial[n].a for n in nodes], dtype=complex)
+    t0 = np.array([initial[n].t for n in nodes], dtype=complex)
+    put((4 * ne + c).ravel(), c.ravel(), np.tile(1.0 / prior_sigma, len(nodes)))
+    b[(4 * ne + c).ravel()] = (np.stack([a0.real, a0.imag, t0.real, t0.imag], axis=1) / prior_sigma).ravel()
+    shape = (4 * ne + 4 * n_free, 4 * n_free)
+    A = csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=shape)
+    return A, b
+
+
 def optimise_poses(
     initial: dict[int, Similarity],
     edges: list[Edge],
-    fixed: int,
+    fixed: int | Collection[int],
     lever_mm: float = 20.0,
     robust_mm: float = 0.5,
     iterations: int = 10,
 ) -> GraphSolution:
-    """Return poses minimising the robust (Cauchy) sum of edge misfits with node `fixed` held at its pose.
+    """Return poses minimising the robust (Cauchy) sum of edge misfits with node(s) `fixed` held at their poses.
+
+    Holding many nodes makes a local refinement: only the others move, the held ones anchor them.
 
     Residual rows per edge (spec-free, beyond the paper): (a_j - a_i a_ij) * lever_mm and
     t_j - t_i - a_i t_ij, each divided by the edge's sigma_mm; Cauchy scale sigma + robust_mm on the edge norm.
@@ -90,9 +165,9 @@ def optimise_poses(
     shrink to scale 0, as it did on a simulated hard scan).
     """
     nodes = sorted(initial)
-    free = [n for n in nodes if n != fixed]
+    held = {fixed} if isinstance(fixed, int) else set(fixed)
+    free = [n for n in nodes if n not in held]
     col = {n: 4 * k for k, n in enumerate(free)}  # a_re, a_im, t_re, t_im
-    anchor = initial[fixed]
     usable = [e for e in edges if e.i in initial and e.j in initial]
     poses = dict(initial)
     weights = robust_weights(edge_residuals_mm(poses, usable, lever_mm), usable, robust_mm)
@@ -102,59 +177,18 @@ def optimise_poses(
     for n in free:
         p = initial[n]
         x0[col[n] : col[n] + 4] = [p.a.real, p.a.imag, p.t.real, p.t.imag]
+    A0, b0 = _unit_system(initial, usable, col, lever_mm)
+    n_edge_rows = 4 * len(usable)
+    sigma = np.array([e.sigma_mm for e in usable])
     it = 0
     for it in range(1, iterations + 1):
-        rows, cols, vals, rhs = [], [], [], []
-        r = 0
-
-        def put(row: int, node: int, offset: int, value: float, rows=rows, cols=cols, vals=vals) -> None:
-            rows.append(row)
-            cols.append(col[node] + offset)
-            vals.append(value)
-
-        for k, e in enumerate(usable):
-            s = np.sqrt(weights[k]) / e.sigma_mm
-            m = e.relative
-            # complex equation c_j * X_j - M * X_i = 0, split in real/imag; X = a (scaled by lever) or t.
-            for eq in ("a", "t"):
-                scale = lever_mm if eq == "a" else 1.0
-                b = np.zeros(2)
-                # term +X_j (a_j or t_j)
-                off_j = 0 if eq == "a" else 2
-                if e.j == fixed:
-                    v = anchor.a if eq == "a" else anchor.t
-                    b -= np.array([v.real, v.imag]) * scale * s
-                else:
-                    put(r, e.j, off_j, scale * s)
-                    put(r + 1, e.j, off_j + 1, scale * s)
-                # term -a_i * m_a (for a) or -t_i - a_i * m_t (for t)
-                mult = m.a if eq == "a" else m.t
-                if e.i == fixed:
-                    v = anchor.a * mult + (anchor.t if eq == "t" else 0)
-                    b += np.array([v.real, v.imag]) * scale * s
-                else:
-                    # -(a_re + i a_im)(m_re + i m_im) -> real: -(a_re m_re - a_im m_im); imag: -(a_re m_im + a_im m_re)
-                    put(r, e.i, 0, -mult.real * scale * s)
-                    put(r, e.i, 1, mult.imag * scale * s)
-                    put(r + 1, e.i, 0, -mult.imag * scale * s)
-                    put(r + 1, e.i, 1, -mult.real * scale * s)
-                    if eq == "t":
-                        put(r, e.i, 2, -s)
-                        put(r + 1, e.i, 3, -s)
-                rhs.extend(b.tolist())
-                r += 2
-        for n in free:
-            p = initial[n]
-            for offset, (value, sigma) in enumerate(
-                ((p.a.real, PRIOR_A), (p.a.imag, PRIOR_A), (p.t.real, PRIOR_T_MM), (p.t.imag, PRIOR_T_MM))
-            ):
-                put(r, n, offset, 1.0 / sigma)
-                rhs.append(value / sigma)
-                r += 1
-        A = csr_matrix((vals, (rows, cols)), shape=(r, 4 * len(free)))
+        # each edge's 4 rows scaled by sqrt(weight) / sigma; the prior rows as built
+        scale = np.ones(A0.shape[0])
+        scale[:n_edge_rows] = np.repeat(np.sqrt(weights) / sigma, 4)
+        A = diags(scale) @ A0
         # normal equations, solved directly (SuperLU); the tiny ridge keeps a node without edges where it is
         normal = (A.T @ A + RIDGE * identity(A.shape[1], format="csr")).tocsc()
-        dx = spsolve(normal, A.T @ (np.asarray(rhs) - A @ x0))
+        dx = spsolve(normal, A.T @ (scale * b0 - A @ x0))
         x0 = x0 + dx
         for n in free:
             v = x0[col[n] : col[n] + 4]

@@ -40,6 +40,10 @@ REASONS = (
     REASON_MISSING,
     REASON_BAD_FRAME,
 )
+LOCAL_REFINE_FROM = 400  # placed frames: below this every refinement is global
+GLOBAL_GROWTH = 1.25  # ... from it, a global pass when the placed frames grew by this factor since the last one
+LOCAL_RADIUS_WINDOWS = 3.0  # a local pass frees the frames within this many window radii of the newest frame
+LOCAL_RECENT = 60  # ... and the newest frames
 MOVED_MM = 0.05  # a refined pose that moves a frame by less than this (0.4 px) does not re-render its tiles
 MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the placed frame's window
 DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
@@ -100,7 +104,9 @@ class Registrar:
     sharpness: list[float] = field(default_factory=list)
     order: list[int] = field(default_factory=list)
     loops_since_refine: int = 0
-    veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)  # placed: vein, mask, scale
+    last_global_refine: int = 0  # placed frames at the last global refinement
+    # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
+    veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
     forces: dict[int, np.ndarray] = field(default_factory=dict)  # every frame seen: sensor forces F1..F4 (N)
     view_fit: ViewFit | None = None  # the probe's tilt and tissue anisotropy learned from the edges' affines
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
@@ -222,7 +228,11 @@ class Registrar:
         cached = self._pyramids.get(index)
         if cached is not None:
             return cached
-        vein, mask, scale = (pf.vein, pf.vein_mask, _vein_scale(pf)) if pf is not None else self.veins[index]
+        if pf is not None:
+            vein, mask, scale = pf.vein, pf.vein_mask, _vein_scale(pf)
+        else:
+            vein, bits, scale = self.veins[index]
+            mask = (np.unpackbits(bits, count=vein.size).reshape(vein.shape) * np.uint8(255)).astype(np.uint8)
         pyramid = alignment_image(vein, mask, self.centre_px, self.px_per_mm, scale)
         self._pyramids[index] = pyramid
         while len(self._pyramids) > ALIGNMENT_CACHE:
@@ -358,14 +368,42 @@ class Registrar:
             self._views = {}
         return self.view_fit
 
-    def refine(self) -> tuple[int, ...]:
-        """Re-optimise every placed pose on the pose graph; return the frames that moved (> MOVED_MM)."""
+    def refine(self, final: bool = False) -> tuple[int, ...]:
+        """Re-optimise placed poses on the pose graph; return the frames that moved (> MOVED_MM).
+
+        Global (every pose, and the view model refitted) while the scan is short, at the end (final), and
+        whenever the placed frames grew by GLOBAL_GROWTH since the last global pass; in between a local pass
+        around the newest frame (local_refine). So a minutes-long examination costs a bounded amount per loop
+        closure, plus global passes whose total is a constant multiple of the last one (issue 15).
+        """
         self.loops_since_refine = 0
         if len(self.order) < 3 or not self.edges:
             return ()
-        if self.options.fit_tilt:
-            self.fit_tilt()
-        solution = optimise_poses(self.poses, self.undeformed(self.edges), fixed=self.order[0])
+        n = len(self.order)
+        if final or n < LOCAL_REFINE_FROM or n >= GLOBAL_GROWTH * self.last_global_refine:
+            self.last_global_refine = n
+            if self.options.fit_tilt:
+                self.fit_tilt()
+            return self._optimise(self.poses, self.edges, {self.order[0]})
+        return self.local_refine()
+
+    def local_refine(self) -> tuple[int, ...]:
+        """Re-optimise the poses near the newest frame (within LOCAL_RADIUS_WINDOWS window radii, and the newest
+        LOCAL_RECENT frames), the frames they share edges with held where they are; return the frames that moved."""
+        newest = self.poses[self.order[-1]].t
+        reach = LOCAL_RADIUS_WINDOWS * self.window_radius_mm
+        active = {i for i in self.order[-LOCAL_RECENT:]}
+        active |= {i for i in self.order if abs(self.poses[i].t - newest) < reach}
+        active.discard(self.order[0])
+        edges = [e for e in self.edges if e.i in active or e.j in active]
+        held = {e.i for e in edges if e.i not in active} | {e.j for e in edges if e.j not in active}
+        if not held:
+            held = {self.order[0]}
+        return self._optimise({i: self.poses[i] for i in active | held}, edges, held)
+
+    def _optimise(self, poses: dict[int, Similarity], edges: list[Edge], held: set[int]) -> tuple[int, ...]:
+        """Optimise `poses` on `edges` (undeformed) with `held` fixed; update them; return the frames that moved."""
+        solution = optimise_poses(poses, self.undeformed(edges), fixed=held)
         moved = tuple(i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM and i in self.poses)
         self.poses.update(solution.poses)
         return moved
@@ -379,7 +417,7 @@ class Registrar:
         self.stretches[pf.index] = pf.stretch
         self.edges.extend(edges)
         self.order.append(pf.index)
-        self.veins[pf.index] = (pf.vein, pf.vein_mask, _vein_scale(pf))
+        self.veins[pf.index] = (pf.vein, np.packbits(pf.vein_mask > 0), _vein_scale(pf))
         if not blurred:  # only sharp, placed frames set the reference (noise frames would inflate it)
             self.sharpness.append(pf.sharpness)
         return FrameResult(pf.index, STATUS_OK, pose, inliers, blurred)

@@ -17,6 +17,7 @@ import numpy as np
 from services.core.calibration import Calibration
 from services.core.compliance import ComplianceFit, fit_compliance
 from services.core.frame_prep import PreparedFrame, load_map_n
+from services.core.kept_frame import KeptFrame, keep_frame
 from services.core.methods import MethodOptions
 from services.core.mosaic import FrameLayers, MosaicImage, SparseCanvas, blend_weight
 from services.core.registrar import (
@@ -92,7 +93,7 @@ class SessionReconstruction:
     registrar: Registrar = field(init=False)
     canvas: SparseCanvas = field(init=False)
     results: dict[int, FrameResult] = field(default_factory=dict)
-    frames: dict[int, PreparedFrame] = field(default_factory=dict)
+    frames: dict[int, KeptFrame] = field(default_factory=dict)  # compact: row data, and pixels if pasteable
     pasted: dict[int, np.ndarray] = field(default_factory=dict)  # frame -> the 2x3 affine it is pasted with
     compliance: ComplianceFit | None = None
     gauge: float = 1.0
@@ -114,7 +115,7 @@ class SessionReconstruction:
         """Register a frame (in index order); return its result and the canvas tiles that changed."""
         result = self.registrar.add(pf)
         self.results[pf.index] = result
-        self.frames[pf.index] = pf
+        self.frames[pf.index] = keep_frame(pf, pasteable=result.status == STATUS_OK and not result.blurred)
         touched: set[tuple[int, int]] = set()
         if self.live:
             touched |= self._sync_canvas((pf.index, *result.moved))
@@ -139,7 +140,7 @@ class SessionReconstruction:
     def finish(self) -> set[tuple[int, int]]:
         """Run the final refinement and compliance self-calibration; return the canvas tiles that changed."""
         if self.options.refine:
-            self.registrar.refine()
+            self.registrar.refine(final=True)
         if self.options.self_calibrate:
             self.compliance = self._fit_compliance()
             self.gauge = self.compliance.gauge if self.compliance is not None else 1.0
@@ -152,11 +153,11 @@ class SessionReconstruction:
         loads = np.array([self.frames[i].load.fz_n for i in placed])
         return fit_compliance(scales, loads, self.calibration.compliance_per_n)
 
-    def _layers(self, pf: PreparedFrame) -> FrameLayers:
+    def _layers(self, kept: KeptFrame) -> FrameLayers:
         return FrameLayers(
-            intensity=pf.image.astype(np.float32) / 255.0,
-            weight=blend_weight(pf.mask),
-            force_n=load_map_n(self.calibration, pf.load),
+            intensity=kept.image().astype(np.float32) / 255.0,
+            weight=blend_weight(kept.mask()),
+            force_n=load_map_n(self.calibration, kept.load),
             centre_px=self.calibration.principal_point,
             px_per_mm=self.calibration.px_per_mm,
         )
@@ -183,7 +184,7 @@ class SessionReconstruction:
         for i in indices:
             pose = self._stitch_pose(i)
             old = self.pasted.get(i)
-            if old is not None and pose is not None and np.array_equal(old, pose):
+            if (old is not None and pose is not None and np.array_equal(old, pose)) or (old is None and pose is None):
                 continue
             layers = self._layers(self.frames[i])
             if old is not None:
@@ -227,7 +228,7 @@ class SessionReconstruction:
             doc["compliance_residual_rms"] = self.compliance.residual_rms
         return doc
 
-    def _tilt_deg(self, pf: PreparedFrame) -> tuple[float, float]:
+    def _tilt_deg(self, pf: KeptFrame) -> tuple[float, float]:
         """Return a frame's (tilt_x, tilt_y) in degrees: spec §2 with the fitted kappa, else the calibration's."""
         fit = self.registrar.view_fit
         if fit is None:

@@ -55,7 +55,7 @@ def test_mask_filters_keypoints_for_every_kind(textured: np.ndarray, window: np.
     assert len(found) > 20
     assert len(everywhere) > 2 * len(found)  # the texture outside the mask has keypoints too
     assert np.all(_inside(found.points, window))
-    assert found.descriptors.shape == (len(found), 128) and found.descriptors.dtype == np.float32
+    assert found.descriptors.shape == (len(found), 128) and found.descriptors.dtype == np.uint8  # SIFT values 0-255
     assert found.sizes_px.shape == (len(found),)
 
 
@@ -183,3 +183,15 @@ def test_adaptive_descriptors_match_a_shifted_copy(faint_frame, kind: str) -> No
     fit = estimate_similarity(a.points[iq], b.points[it], threshold=2.0)
     assert fit is not None and fit.inliers >= 20  # the broken descriptors: no fit or a few inliers
     assert abs(fit.transform.t - 24) < 0.5 and abs(abs(fit.transform.a) - 1) < 0.01
+
+
+def test_sift_descriptors_are_kept_exactly_as_uint8() -> None:
+    """OpenCV's SIFT values are whole numbers 0-255: the uint8 copy loses nothing (tolerance 0)."""
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.random((240, 320)).astype(np.float32), (0, 0), 2.5)
+    img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    _, raw = cv2.SIFT_create(nfeatures=200).detectAndCompute(img, None)
+    found = detect_features(img, np.full(img.shape, 255, np.uint8), "sift", max_features=200)
+    assert len(found) > 20 and raw is not None
+    assert np.array_equal(np.rint(raw), raw)  # whole numbers, as stored
+    assert found.descriptors.dtype == np.uint8 and found.descriptors.max() <= 255

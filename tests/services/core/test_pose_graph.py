@@ -123,3 +123,16 @@ def test_a_part_cut_off_by_a_dropped_edge_keeps_its_poses() -> None:
     for k in range(8):
         assert abs(abs(solution.poses[k].a) - 1) < 0.03
         assert abs(solution.poses[k].t - initial[k].t) < 1.0
+
+
+def test_held_nodes_stay_put_and_anchor_the_free_ones() -> None:
+    """A local refinement: nodes 0 and 4 held, 1-3 free between them; the free ones settle on the exact chain
+    (tolerance 1e-5 mm: noise-free edges; the weak pose priors, 50 mm, pull by ~(0.05/50)^2 of the 1 mm start
+    offset) while the held ones do not move at all."""
+    truth = {i: Similarity(1 + 0j, complex(3.0 * i, 0.5 * i)) for i in range(5)}
+    start = {i: (p if i in (0, 4) else Similarity(p.a, p.t + complex(0.8, -0.6))) for i, p in truth.items()}
+    edges = [Edge(i, i + 1, truth[i].inverse().compose(truth[i + 1]), 0.05) for i in range(4)]
+    solution = optimise_poses(start, edges, fixed={0, 4})
+    assert solution.poses[0] == start[0] and solution.poses[4] == start[4]
+    for i in (1, 2, 3):
+        assert abs(solution.poses[i].t - truth[i].t) < 1e-5

@@ -213,3 +213,33 @@ def test_frames_below_the_inlier_rule_are_placed_by_the_best_correlated_candidat
     # refused when the vein maps cannot confirm any candidate
     refused = _register(scan, first_frames, {"min_inliers": 2 * weakest, "neighbours": 0, "min_correlation": 1.01})
     assert all(refused[i].status == STATUS_LOST for i in weak[:1])
+
+
+def test_long_scan_refines_locally_between_growing_global_passes() -> None:
+    """Issue 15: past LOCAL_REFINE_FROM placed frames a refinement frees only the frames near the newest one
+    (far ones do not move at all: tolerance 0) until the placed frames grew by GLOBAL_GROWTH; then it is
+    global again, and the final refinement always is."""
+    from services.core.pose_graph import Edge
+    from services.core.registrar import GLOBAL_GROWTH, LOCAL_REFINE_FROM
+
+    options = dataclasses.replace(method_options("best"), fit_tilt=False)
+    registrar = Registrar(options, px_per_mm=8.0, window_radius_mm=20.0, centre_px=(320.0, 240.0))
+    n = LOCAL_REFINE_FROM + 50
+    rng = np.random.default_rng(5)
+    truth = {i: Similarity(1 + 0j, complex(3.6 * i, 0.0)) for i in range(n)}
+    for i in range(n):  # placed with a small random error, chained by exact edges
+        registrar.poses[i] = Similarity(1 + 0j, truth[i].t + complex(*rng.normal(0.0, 0.3, 2)))
+        registrar.order.append(i)
+        if i:
+            registrar.edges.append(Edge(i - 1, i, truth[i - 1].inverse().compose(truth[i]), 0.05))
+    registrar.last_global_refine = n  # a global pass just ran: the next one is local
+    before = dict(registrar.poses)
+    moved = registrar.refine()
+    assert moved and min(moved) >= n - 100, "only frames near the newest one move"
+    assert all(registrar.poses[i] == before[i] for i in range(n - 100))
+    registrar.last_global_refine = int(n / GLOBAL_GROWTH)  # grown enough: global again
+    moved = registrar.refine()
+    assert min(moved) < 50, "a global pass moves the early frames too"
+    registrar.last_global_refine = n
+    registrar.poses = dict(before)
+    assert min(registrar.refine(final=True)) < 50  # the final refinement is global
