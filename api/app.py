@@ -144,9 +144,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.audit = AuditLog(s.data_dir / "audit" / "audit.jsonl")
         app.state.redis = connect(s.redis_url, s.data_dir)
         try:
-            queue.ensure_group(app.state.redis, prefix=s.redis_prefix)
+            queue.ensure_groups(app.state.redis, prefix=s.redis_prefix)
         except Exception:  # Redis may come up later; /readyz reports it meanwhile
-            log.warning("could not create the consumer group at start-up")
+            log.warning("could not create the consumer groups at start-up")
         log.info("started", extra={"route": "lifespan"})
         try:
             yield

@@ -85,14 +85,6 @@ class Validation(APIError):
     status, code = 422, "validation_error"
 
 
-class TooManyRequests(APIError):
-    status, code = 429, "too_many_requests"
-
-    def __init__(self, message: str, retry_after_s: int = 2, **kw: Any) -> None:
-        super().__init__(message, **kw)
-        self.headers.setdefault("Retry-After", str(int(retry_after_s)))
-
-
 class ServiceUnavailable(APIError):
     status, code = 503, "service_unavailable"
 

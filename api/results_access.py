@@ -68,7 +68,7 @@ def reprocess_running(rs: ResultsStore, sid: str) -> bool:
         newer = [v for v in rs.list_versions(sid) if v > current]
     except FileNotFoundError:
         return False
-    return any(not ((state := rs.read_state(sid, v) or {}).get("finished") or state.get("failed")) for v in newer)
+    return any((state := rs.read_state(sid, v)) is None or not (state.finished or state.failed) for v in newer)
 
 
 def served_mosaic(rs: ResultsStore, sid: str, requested: int | None) -> tuple[int, dict[str, Any]]:

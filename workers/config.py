@@ -16,7 +16,8 @@ from pydantic import Field
 from services.pacs.destinations import Destination
 from services.settings import Settings, WorkerSettings
 from services.store.audit import AuditLog
-from services.store.results_store import ResultsStore
+from services.store.results_store import LIVE_VERSION, ResultsStore
+from services.store.session_version import SessionVersion
 from services.store.storage import SessionStore
 
 
@@ -67,6 +68,14 @@ class Context:
     def prefix(self) -> str:
         """Return the Redis key prefix."""
         return self.config.prefix
+
+    def version(self, sid: str, v: int = LIVE_VERSION) -> SessionVersion:
+        """Return results version v of session sid (the live run's by default)."""
+        return SessionVersion(self.store, self.results, sid, v)
+
+    def live_options(self) -> dict[str, str]:
+        """Return the options a live version is made with: this worker's method."""
+        return {"method": self.config.method, "source": "live"}
 
     @cached_property
     def audit(self) -> AuditLog:

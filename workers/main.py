@@ -32,7 +32,8 @@ from typing import Any
 import redis
 
 from services.core.image_header import DEFAULT_MAX_FRAME_SIDE, set_decoder_limits
-from services.jobs import delayed, queue
+from services.jobs import dead_letters, delayed, queue
+from services.jobs import reprocess as jobs
 from services.jobs.redis_backend import close, connect
 from services.settings import Settings
 from services.store.results_store import LIVE_VERSION, ResultsStore
@@ -40,7 +41,7 @@ from services.store.storage import SessionNotFoundError, SessionStore
 from workers.config import Context, WorkerConfig
 from workers.faults import Backoff, describe, is_transient
 from workers.reconciler import Reconciler
-from workers.stages.prepare import Retry, handle_frame, live_options
+from workers.stages.prepare import Retry, handle_frame
 from workers.stages.register import RegisterStage
 from workers.stages.reprocess import JobInterruptedError, handle_job
 from workers.stages.send import handle_send
@@ -289,8 +290,7 @@ class Worker:
         """Return True when the job is done or failed (its durable record, else its Redis hash says so)."""
         if self.ctx.store.jobs.is_finished(job_id):
             return True
-        raw = self.ctx.r.hget(queue.job_key(job_id, self.ctx.prefix), "state")
-        if (raw.decode() if isinstance(raw, bytes) else raw) in ("done", "failed"):
+        if jobs.read_job(self.ctx.r, self.ctx.prefix, job_id).get("state") in ("done", "failed"):
             self.finish_job(job_id)  # the record stayed open (a write failed after the job): close it now
             return True
         return False
@@ -305,8 +305,7 @@ class Worker:
             return
         try:
             if state is None:
-                raw = self.ctx.r.hget(queue.job_key(job_id, self.ctx.prefix), "state")
-                state = raw.decode() if isinstance(raw, bytes) else str(raw or "done")
+                state = jobs.read_job(self.ctx.r, self.ctx.prefix, job_id).get("state") or "done"
             self.ctx.store.jobs.finish(job_id, state)
         except (OSError, ValueError, redis.RedisError) as exc:
             log.warning("reprocess job record not closed (%s); the reconciler will", describe(exc))
@@ -319,22 +318,19 @@ class Worker:
         # the durable mark first: if storage or Redis fails here, the entry stays pending and is retried
         if kind == "frame":
             try:
-                live_options(ctx, sid)  # makes sure version 1 exists
+                ctx.version(sid).ensure(ctx.live_options())
             except (SessionNotFoundError, FileNotFoundError):
                 kind = None  # the session is gone: nothing to mark
             else:
                 ctx.results.mark_poison(sid, LIVE_VERSION, int(fields["seq"]), error)
                 queue.mark_frame_handled(ctx.r, sid, int(fields["seq"]), ctx.prefix)
-        ctx.r.xadd(
-            queue.dead_stream(ctx.prefix),
-            {**fields, "stream": stream, "entry": entry_id, "error": error[:300], "at": repr(time.time())},
-        )
-        queue.incr_metric(ctx.r, "dead_letters_total", prefix=ctx.prefix)
+        entry = {**fields, "stream": stream, "entry": entry_id, "error": error[:300], "at": repr(time.time())}
+        dead_letters.dead_letter(ctx.r, entry, ctx.prefix)
         if kind == "frame":
             queue.incr_metric(ctx.r, "frames_rejected_total", prefix=ctx.prefix)
             queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
         elif kind in ("reprocess", "send") and fields.get("job"):
-            ctx.r.hset(queue.job_key(fields["job"], ctx.prefix), mapping={"state": "failed", "error": error[:300]})
+            jobs.update_job(ctx.r, ctx.prefix, fields["job"], state="failed", error=error[:300])
             self.finish_job(fields["job"], "failed")
         queue.ack_delete(ctx.r, stream, entry_id)
 

@@ -19,7 +19,9 @@ from services.core.mosaic import MosaicImage
 from services.core.results_docs import LAYERS, mosaic_json, path_tail
 from services.core.session_reconstruction import PathRow
 from services.jobs import queue
+from services.jobs import reprocess as jobs
 from services.store.results_store import LIVE_VERSION
+from services.store.version_state import VersionState
 from workers.config import Context
 
 TileKey = tuple[int, int, int]  # (level, col, row)
@@ -43,8 +45,7 @@ class Publisher:
         version: int | None = None,
     ) -> None:
         """Append the audit record of one send attempt: who asked (the job's key), session, destination, outcome."""
-        owner = self.ctx.r.hget(queue.job_key(job_id, self.ctx.prefix), "owner")
-        owner = owner.decode() if isinstance(owner, bytes) else str(owner or "")
+        owner = jobs.read_job(self.ctx.r, self.ctx.prefix, job_id).get("owner", "")
         self.ctx.audit.append(
             {
                 "ts": round(time.time(), 3),
@@ -119,25 +120,8 @@ class Publisher:
         self.ctx.results.write_mosaic_meta(sid, v, doc)
         return doc
 
-    def write_state(
-        self,
-        sid: str,
-        v: int,
-        *,
-        cursor: int,
-        fence: int,
-        finished: bool,
-        lost: Sequence[int] = (),
-        rejected: Sequence[int] = (),
-    ) -> None:
-        """Write state.json: the registration cursor, the fence token, finished, the lost and rejected seqs."""
-        state = {
-            "cursor": cursor,
-            "fence": fence,
-            "finished": bool(finished),
-            "lost": list(lost),
-            "rejected": list(rejected),
-        }
+    def write_state(self, sid: str, v: int, state: VersionState) -> None:
+        """Write state.json of version v (services.store.version_state: the one shape, format-versioned)."""
         self.ctx.results.write_state(sid, v, state)
 
     # ----- counters and events ---------------------------------------------------------------------------------
@@ -159,12 +143,8 @@ class Publisher:
 
     def event(self, sid: str, kind: str, data: dict[str, Any]) -> None:
         """XADD an event {"type", "data": json} to the session's event stream (capped near EVENTS_MAXLEN)."""
-        ctx = self.ctx
-        ctx.r.xadd(
-            queue.events_stream(sid, ctx.prefix),
-            {"type": kind, "data": json.dumps(data, separators=(",", ":"), allow_nan=False)},
-            maxlen=queue.EVENTS_MAXLEN,
-            approximate=True,
+        queue.add_event(
+            self.ctx.r, sid, kind, json.dumps(data, separators=(",", ":"), allow_nan=False), self.ctx.prefix
         )
 
     def results_event(

@@ -20,15 +20,14 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from typing import Any
 
 from services.jobs import queue
+from services.jobs import reprocess as jobs
 from services.store.results_store import LIVE_VERSION
 from services.store.storage import SessionNotFoundError
 from workers.config import Context
-from workers.stages.prepare import stored_seqs
 
 log = logging.getLogger("veinmosaic.worker")
 
@@ -66,14 +65,6 @@ def known_frame_jobs(ctx: Context) -> set[tuple[str, int]]:
     return known
 
 
-def _seqs_in(path: os.PathLike[str] | str) -> set[int]:
-    try:
-        with os.scandir(path) as it:
-            return {int(e.name[:6]) for e in it if not e.name.startswith(".") and e.name[:6].isdigit()}
-    except FileNotFoundError:
-        return set()
-
-
 def reconcile(ctx: Context) -> dict[str, int]:
     """Re-enqueue stored frames with no job and no result, kick unheld sessions, rebuild lost counters."""
     started = time.monotonic()
@@ -89,17 +80,15 @@ def reconcile(ctx: Context) -> dict[str, int]:
         if meta.status in ("done", "failed"):
             stats["counters_rebuilt"] += _rebuild_counters(ctx, sid)
             continue
-        seqs = stored_seqs(ctx, sid)
-        vdir = ctx.results.version_dir(sid, LIVE_VERSION)
-        handled = _seqs_in(vdir / "prepared") | _seqs_in(vdir / "poison")
-        missing = [s for s in seqs if s not in handled and (sid, s) not in known]
+        sv = ctx.version(sid)
+        handled = sv.handled_seqs()
+        missing = [s for s in sv.stored_seqs() if s not in handled and (sid, s) not in known]
         for seq in missing:
             queue.requeue_frame(ctx.r, sid, seq, ctx.prefix)
         stats["frames_requeued"] += len(missing)
-        state = ctx.results.read_state(sid, LIVE_VERSION) or {}
-        cursor = int(state.get("cursor", 0))
-        pending = meta.finished_at is not None or any(s >= cursor for s in handled)
-        if pending and not state.get("finished") and not ctx.r.exists(queue.lease_key(sid, LIVE_VERSION, ctx.prefix)):
+        state = sv.state()
+        pending = meta.finished_at is not None or any(s >= state.cursor for s in handled)
+        if pending and not state.finished and not ctx.r.exists(queue.lease_key(sid, LIVE_VERSION, ctx.prefix)):
             queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
             stats["kicks"] += 1
     stats["jobs_requeued"] = reconcile_jobs(ctx)
@@ -134,11 +123,11 @@ def reconcile_jobs(ctx: Context) -> int:
         job_id = record.get("id", "")
         if not job_id or job_id in known:
             continue
-        state = _text(ctx.r.hget(queue.job_key(job_id, ctx.prefix), "state") or b"")
+        state = jobs.read_job(ctx.r, ctx.prefix, job_id).get("state", "")
         if state in ("done", "failed"):  # it finished; only the record's closing was lost
             ctx.store.jobs.finish(job_id, state)
             continue
-        queue.requeue_job(ctx.r, record, queue.JOB_TTL_S, ctx.prefix)
+        jobs.requeue_job(ctx.r, ctx.prefix, record)
         requeued += 1
     return requeued
 
@@ -147,8 +136,7 @@ def _rebuild_counters(ctx: Context, sid: str) -> int:
     """Re-count a finished live run's frames from its path when Redis lost the session's counters; 1 if done."""
     if ctx.r.exists(queue.session_key(sid, ctx.prefix)):
         return 0
-    state = ctx.results.read_state(sid, LIVE_VERSION) or {}
-    rows = ctx.results.read_path(sid, LIVE_VERSION) if state.get("finished") else None
+    rows = ctx.results.read_path(sid, LIVE_VERSION) if ctx.version(sid).state().finished else None
     if not rows:
         return 0
     counted = lost = 0

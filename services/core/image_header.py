@@ -10,7 +10,6 @@ services/__init__.py; `set_decoder_limits` sets Pillow's (Image.MAX_IMAGE_PIXELS
 from __future__ import annotations
 
 import io
-import os
 import struct
 import warnings
 import zlib
@@ -50,11 +49,6 @@ class ImageHeader:
 def set_decoder_limits(max_frame_side: int) -> None:
     """Cap Pillow's decodes at a max_frame_side square (OpenCV's cap is set when `services` is imported)."""
     Image.MAX_IMAGE_PIXELS = int(max_frame_side) ** 2
-
-
-def opencv_pixel_limit() -> int:
-    """Return OpenCV's per-decode pixel limit in this process (set by services/__init__.py before cv2 loads)."""
-    return int(os.environ.get("OPENCV_IO_MAX_IMAGE_PIXELS", str(1 << 30)))
 
 
 def read_header(data: bytes) -> ImageHeader:

@@ -1,4 +1,4 @@
-"""Force rectification of whole frames and keypoints (spec §2 order: undistort, then rectify about cx, cy)."""
+"""Force rectification of whole frames (spec §2 order: undistort, then rectify about cx, cy): the remap maps."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 
 from services.core.calibration import Calibration
-from services.core.camera import distort_points_px, mm_to_px, px_to_mm, undistort_points_px
-from services.core.force_model import LoadState, deform_points_mm, rectify_points_mm
+from services.core.camera import distort_points_px, mm_to_px, px_to_mm
+from services.core.force_model import LoadState, deform_points_mm
 
 
 def pixel_grid(width: int, height: int) -> np.ndarray:
@@ -46,17 +46,3 @@ def rectify_map(calib: Calibration, state: LoadState, step_px: int = MAP_STEP_PX
     fine = cv2.resize(coarse, (nx * step_px, ny * step_px), interpolation=cv2.INTER_LINEAR)
     fine = fine[step_px : step_px + h, step_px : step_px + w]
     return np.ascontiguousarray(fine[..., 0]), np.ascontiguousarray(fine[..., 1])
-
-
-def rectify_image(
-    raw: np.ndarray, calib: Calibration, state: LoadState, interpolation: int = cv2.INTER_LINEAR
-) -> np.ndarray:
-    """Return the undistorted, force-rectified frame (same size and dtype as raw; outside = 0)."""
-    map_x, map_y = rectify_map(calib, state)
-    return cv2.remap(raw, map_x, map_y, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-
-
-def rectify_keypoints_px(raw_px: np.ndarray, calib: Calibration, state: LoadState) -> np.ndarray:
-    """Return rectified pixel positions (N, 2) of raw keypoint positions (N, 2) (undistort, then rectify)."""
-    ideal = undistort_points_px(raw_px, calib)
-    return mm_to_px(rectify_points_mm(px_to_mm(ideal, calib), state, calib), calib)

@@ -78,15 +78,6 @@ def session_key(session_id: str, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{prefix}session:{session_id}"
 
 
-def ensure_group(r: redis.Redis, prefix: str = DEFAULT_PREFIX) -> None:
-    """Create the consumer group "workers" on the stream (and the stream) if missing; idempotent."""
-    try:
-        r.xgroup_create(frames_stream(prefix), GROUP, id="0", mkstream=True)
-    except redis.ResponseError as exc:
-        if "BUSYGROUP" not in str(exc):
-            raise
-
-
 def _enqueue_keys(session_id: str, prefix: str) -> list[str]:
     base = session_key(session_id, prefix)
     return [frames_stream(prefix), f"{base}:enqueued", f"{base}:enqueued_at", f"{base}:handled"]
@@ -111,7 +102,7 @@ def enqueue_frame(
         return bool(r.eval(_ENQUEUE_ONCE, 4, *_enqueue_keys(session_id, prefix), *args))
     pipe = r.pipeline(transaction=False)  # one round trip for the job and the counter
     pipe.eval(_ENQUEUE_ONCE, 4, *_enqueue_keys(session_id, prefix), *args)
-    pipe.hincrby(metrics_key(prefix), count, 1)
+    incr_metric(pipe, count, 1, prefix=prefix)
     return bool(pipe.execute()[0])
 
 
@@ -168,26 +159,18 @@ def session_counters(r: redis.Redis, session_id: str, prefix: str = DEFAULT_PREF
 
 # ----- worker streams and keys (added for the workers; the names above are unchanged) -----------------------
 # <prefix>register             stream of registration kicks {"kind": "register", "session", "version"}
-# <prefix>jobs                 stream of reprocess jobs {"kind": "reprocess", "job", "session", "options" (json)}
-# <prefix>dead                 dead-letter stream: entries that failed too often, with "stream", "entry", "error"
+# <prefix>jobs                 stream of jobs {"kind": "reprocess" | "send", "job", "session", "options" (json)}
+# <prefix>dead                 dead-letter stream: entries that failed too often (services.jobs.dead_letters)
 # <prefix>delayed              ZSET of jobs to put back on a stream at a time (score = Unix seconds)
 # <prefix>events:<id>          stream of progress events of a session (MAXLEN ~ 1000)
 # <prefix>metrics              hash of counters (Prometheus totals)
-# <prefix>job:<id>             hash {state, done, total, session, version, error, created, options}
-# <prefix>batch:<id>           hash {jobs: json list of job ids, created}
+# <prefix>job:<id>             a job's record, <prefix>batch:<id> a batch's (services.jobs.reprocess owns both)
 # <prefix>lease:<id>:<v>       the registration lease of (session, results version): "<consumer>:<token>"
 # <prefix>fence:<id>:<v>       the fencing token counter of that lease (INCR on every acquisition)
 # <prefix>kick:<id>:<v>        flag: work arrived while another worker held the lease
+# <prefix>regfail:<id>:<v>     hash seq -> registration failures of that frame (services.jobs.dead_letters)
 
 EVENTS_MAXLEN = 1000
-JOB_STATES = ("queued", "running", "done", "failed")
-
-_ENQUEUE_JOB = """
-redis.call('HSET', KEYS[2], 'state', 'queued', 'done', 0, 'total', 0, 'session', ARGV[2],
-           'options', ARGV[3], 'created', ARGV[4])
-redis.call('XADD', KEYS[1], '*', 'kind', 'reprocess', 'job', ARGV[1], 'session', ARGV[2], 'options', ARGV[3])
-return 1
-"""
 
 
 def register_stream(prefix: str = DEFAULT_PREFIX) -> str:
@@ -213,6 +196,11 @@ def delayed_key(prefix: str = DEFAULT_PREFIX) -> str:
 def events_stream(session_id: str, prefix: str = DEFAULT_PREFIX) -> str:
     """Return the name of a session's event stream (SSE ids are its entry ids)."""
     return f"{prefix}events:{session_id}"
+
+
+def add_event(r: redis.Redis, session_id: str, kind: str, data: str, prefix: str = DEFAULT_PREFIX) -> None:
+    """XADD an event {"type": kind, "data": data (JSON)} to the session's event stream (capped near EVENTS_MAXLEN)."""
+    r.xadd(events_stream(session_id, prefix), {"type": kind, "data": data}, maxlen=EVENTS_MAXLEN, approximate=True)
 
 
 def metrics_key(prefix: str = DEFAULT_PREFIX) -> str:
@@ -256,18 +244,6 @@ def known_jobs(r: redis.Redis, prefix: str = DEFAULT_PREFIX) -> set[str]:
     return known
 
 
-def requeue_job(r: redis.Redis, fields: dict[str, str], ttl_s: int, prefix: str = DEFAULT_PREFIX) -> None:
-    """Write a job's hash as queued (from its creation fields) and its stream entry again, in one MULTI."""
-    job_id = fields["id"]
-    state = {"state": "queued", "done": "0", "total": "0", "version": "", "error": ""}
-    pipe = r.pipeline(transaction=True)
-    pipe.hset(job_key(job_id, prefix), mapping={**fields, **state})
-    pipe.expire(job_key(job_id, prefix), ttl_s)
-    entry = job_entry(job_id, fields.get("session", ""), fields.get("options", "{}"), fields.get("kind") or "reprocess")
-    pipe.xadd(jobs_stream(prefix), entry)
-    pipe.execute()
-
-
 def batch_key(batch_id: str, prefix: str = DEFAULT_PREFIX) -> str:
     """Return the name of a batch's hash."""
     return f"{prefix}batch:{batch_id}"
@@ -298,6 +274,11 @@ def debug_order_key(session_id: str, version: int, prefix: str = DEFAULT_PREFIX)
     return f"{prefix}debug:order:{session_id}:{int(version)}"
 
 
+def log_order(r: redis.Redis, session_id: str, version: int, entry: str, prefix: str = DEFAULT_PREFIX) -> None:
+    """Append `entry` ("<token>:<seq>:<kind>") to the debug_order list of (session, version)."""
+    r.rpush(debug_order_key(session_id, version, prefix), entry)
+
+
 def reconcile_lock_key(prefix: str = DEFAULT_PREFIX) -> str:
     """Return the key of the reconciler's mutex."""
     return f"{prefix}reconcile:lock"
@@ -314,7 +295,8 @@ def worker_streams(prefix: str = DEFAULT_PREFIX) -> tuple[str, str, str]:
 
 
 def ensure_groups(r: redis.Redis, prefix: str = DEFAULT_PREFIX) -> None:
-    """Create the consumer group "workers" on every worker stream (frames, register, jobs); idempotent."""
+    """Create the consumer group "workers" on every worker stream (frames, register, jobs) and the streams if
+    missing; idempotent. The one creator of consumer groups (the API at start-up, every worker, the reconciler)."""
     for stream in worker_streams(prefix):
         try:
             r.xgroup_create(stream, GROUP, id="0", mkstream=True)
@@ -339,26 +321,9 @@ def enqueue_register(r: redis.Redis, session_id: str, version: int, prefix: str 
     return entry.decode() if isinstance(entry, bytes) else str(entry)
 
 
-def enqueue_reprocess(
-    r: redis.Redis, job_id: str, session_id: str, options_json: str, now: float, prefix: str = DEFAULT_PREFIX
-) -> None:
-    """Create job `job_id` (state queued) and put it on the jobs stream, atomically."""
-    keys = [jobs_stream(prefix), job_key(job_id, prefix)]
-    r.eval(_ENQUEUE_JOB, 2, *keys, job_id, session_id, options_json, repr(float(now)))
-
-
-def read_job(r: redis.Redis, job_id: str, prefix: str = DEFAULT_PREFIX) -> dict[str, str] | None:
-    """Return a job's hash as str -> str (state, done, total, session, version, error, ...), or None."""
-    raw = r.hgetall(job_key(job_id, prefix))
-    if not raw:
-        return None
-    return {
-        (k.decode() if isinstance(k, bytes) else k): (v.decode() if isinstance(v, bytes) else v) for k, v in raw.items()
-    }
-
-
 def incr_metric(r: redis.Redis, name: str, amount: float = 1, prefix: str = DEFAULT_PREFIX) -> None:
-    """Add `amount` to the counter `name` of the metrics hash (integer or float)."""
+    """Add `amount` to the counter `name` of the metrics hash (integer or float): the one writer of counters
+    (`r` may be a pipeline, to count in the same round trip as other commands)."""
     if float(amount).is_integer():
         r.hincrby(metrics_key(prefix), name, int(amount))
     else:

@@ -2,10 +2,10 @@
 
 Two kinds of job share this record: "reprocess" (a new results version) and "send" (a session's DICOM objects
 sent to a PACS). A job is a Redis hash <prefix>job:<id> {id, kind, state: queued|running|done|failed, done,
-total, session, version, error, owner, created, options, batch} plus an entry {"kind", "job", "session",
-"options"} on the stream <prefix>jobs, written in one MULTI so a worker never sees an entry without its hash. A
-batch is a hash
-<prefix>batch:<id> {jobs: json list, owner, created, sessions}. Both expire JOB_TTL_S after they were created.
+total, session, version, error, owner, created, options, batch, attempts} plus an entry {"kind", "job",
+"session", "options"} on the stream <prefix>jobs, written in one MULTI so a worker never sees an entry without
+its hash; a job's progress and outcome are written by `update_job` only. A batch is a hash <prefix>batch:<id>
+{jobs: json list, owner, created, sessions}. Both expire JOB_TTL_S after they were created.
 """
 
 from __future__ import annotations
@@ -113,6 +113,21 @@ def enqueue_jobs(
     return ids
 
 
+def requeue_job(r: redis.Redis, prefix: str, fields: dict[str, str], ttl_s: int = JOB_TTL_S) -> None:
+    """Write a job's record as queued again (from its creation fields, e.g. the ledger's) and its stream entry, in
+    one MULTI: the reconciler's re-enqueue of a job Redis lost."""
+    job_id = fields["id"]
+    state = {"state": "queued", "done": "0", "total": "0", "version": "", "error": ""}
+    pipe = r.pipeline(transaction=True)
+    pipe.hset(queue.job_key(job_id, prefix), mapping={**fields, **state})
+    pipe.expire(queue.job_key(job_id, prefix), ttl_s)
+    kind = fields.get("kind") or "reprocess"
+    pipe.xadd(
+        queue.jobs_stream(prefix), queue.job_entry(job_id, fields.get("session", ""), fields.get("options", "{}"), kind)
+    )
+    pipe.execute()
+
+
 def _decode(raw: dict[Any, Any]) -> dict[str, str]:
     return {
         (k.decode() if isinstance(k, bytes) else k): (v.decode() if isinstance(v, bytes) else v) for k, v in raw.items()
@@ -122,6 +137,12 @@ def _decode(raw: dict[Any, Any]) -> dict[str, str]:
 def read_job(r: redis.Redis, prefix: str, job_id: str) -> dict[str, str]:
     """Return a job's hash (decoded), {} when there is none."""
     return _decode(r.hgetall(queue.job_key(job_id, prefix)))
+
+
+def update_job(r: redis.Redis, prefix: str, job_id: str, **values: object) -> None:
+    """Set fields of a job's record (state, done, total, version, error, attempts, ...): the one writer of a job's
+    progress and outcome once it is enqueued (the workers' reprocess and send stages, the dead-lettering loop)."""
+    r.hset(queue.job_key(job_id, prefix), mapping={k: str(v) for k, v in values.items()})
 
 
 def read_batch(r: redis.Redis, prefix: str, batch_id: str) -> tuple[dict[str, str], list[tuple[str, dict[str, str]]]]:

@@ -5,12 +5,14 @@ Layout under data_dir/sessions/<id>/results/:
     reference.csv               spec §4 reference track, stored once per session (raw text), used by every version
     <v>/options.json            the options the version was made with ({"method": ..., ...})
     <v>/setup.npz               window mask (uint8 0/255) and flat field (float32) or none
-    <v>/prepared/<seq>.npz      a PreparedFrame (written once: the first writer wins, later writers are no-ops)
+    <v>/prepared/<seq>.npz      a PreparedFrame (written once: the first writer wins, later writers are no-ops;
+                                versioned: services.store.prepared_file)
     <v>/poison/<seq>.json       a frame that could not be prepared (dead-lettered): registered as "rejected"
     <v>/path.json               spec §4 path rows (null where a frame was not registered)
     <v>/mosaic.json             spec §4 fields + version, revisions, dzi, extent_mm, frames, status
     <v>/tiles/<layer>/<level>/<col>_<row>.png   Deep Zoom tiles, layer "vein" or "force"
-    <v>/{mosaic,force,coverage,paths,errors}.png, <v>/report.json, <v>/state.json
+    <v>/state.json              the version's VersionState (services.store.version_state; versioned)
+    <v>/{mosaic,force,coverage,paths,errors}.png, <v>/report.json
     <v>/layers.npz              raw force (cN) and coverage planes of the finished mosaic (DICOM export, report)
 Version 1 is the live run; reprocess makes 2, 3, ... Every write is atomic (durable.atomic_write_bytes), so
 readers (the API, other workers) see a whole old or a whole new file, never a part.
@@ -21,8 +23,8 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 import re
-import zipfile
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -31,14 +33,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.features import Features
-from services.core.force_model import LoadState
 from services.core.frame_prep import PreparedFrame
 from services.core.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
 from services.core.mosaic import MosaicImage, force_to_color
 from services.core.results_docs import LAYERS
 from services.core.session_reconstruction import PathRow, path_rows_json
 from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, replace_bytes, write_once
+from services.store.file_formats import npz_bytes
+from services.store.prepared_file import prepared_from_bytes, prepared_to_bytes
+from services.store.version_state import VersionState
 
 IMAGE_NAMES = ("mosaic.png", "force.png", "coverage.png", "paths.png", "errors.png", "layers.npz")
 LIVE_VERSION = 1
@@ -58,70 +61,16 @@ def _json_bytes(doc: Any) -> bytes:
     return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode()
 
 
+def _seqs_in(path: Path) -> set[int]:
+    try:
+        with os.scandir(path) as it:
+            return {int(e.name[:6]) for e in it if not e.name.startswith(".") and e.name[:6].isdigit()}
+    except FileNotFoundError:
+        return set()
+
+
 SETUP_CACHE = 8  # decoded setup.npz kept per store (sessions processed at once by one worker)
 MOSAIC_DOC_CACHE = 64  # parsed mosaic.json documents kept per store (sessions viewed at once by one API process)
-NPZ_COMPRESS_LEVEL = 1  # deflate level of prepared frames: level 6 (numpy's) cost 33 ms a frame, 1 costs 8 (+7 %)
-
-
-def _npz_bytes(**arrays: np.ndarray) -> bytes:
-    """Return arrays as .npz bytes (np.load reads them), deflated at NPZ_COMPRESS_LEVEL."""
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=NPZ_COMPRESS_LEVEL) as archive:
-        for name, value in arrays.items():
-            with archive.open(f"{name}.npy", "w", force_zip64=True) as entry:
-                np.lib.format.write_array(entry, np.asanyarray(value), allow_pickle=False)
-    return buf.getvalue()
-
-
-def prepared_to_bytes(pf: PreparedFrame) -> bytes:
-    """Return a PreparedFrame as .npz bytes (lossless; descriptors as uint8 when they are whole 0..255)."""
-    desc = np.asarray(pf.features.descriptors)
-    if desc.size == 0 or (
-        np.all(np.isfinite(desc)) and desc.min() >= 0 and desc.max() <= 255 and np.array_equal(desc, np.round(desc))
-    ):
-        desc_stored = desc.astype(np.uint8)
-    else:
-        desc_stored = desc.astype(np.float32)
-    return _npz_bytes(
-        meta=np.array([pf.index, pf.seq], np.int64),
-        scalars=np.array(
-            [pf.t_s, pf.load.fz_n, pf.load.theta_x_rad, pf.load.theta_y_rad, pf.stretch, pf.sharpness], np.float64
-        ),
-        desc_float=np.array([desc.dtype == np.float32], bool),
-        forces_n=np.asarray(pf.forces_n, np.float64),
-        image=pf.image,
-        mask=pf.mask,
-        vein=pf.vein,
-        vein_mask=pf.vein_mask,
-        points=np.asarray(pf.features.points, np.float64),
-        descriptors=desc_stored,
-        desc_width=np.array([desc.shape[1] if desc.ndim == 2 else 128], np.int64),
-        sizes_px=np.asarray(pf.features.sizes_px, np.float64),
-    )
-
-
-def prepared_from_bytes(data: bytes) -> PreparedFrame:
-    """Return the PreparedFrame stored by `prepared_to_bytes`."""
-    z = np.load(io.BytesIO(data), allow_pickle=False)
-    index, seq = (int(v) for v in z["meta"])
-    t_s, fz, tx, ty, stretch, sharpness = (float(v) for v in z["scalars"])
-    desc = z["descriptors"]
-    desc = desc.astype(np.float32).reshape(-1, int(z["desc_width"][0]))
-    features = Features(z["points"].reshape(-1, 2), desc, z["sizes_px"])
-    return PreparedFrame(
-        index=index,
-        seq=seq,
-        t_s=t_s,
-        forces_n=z["forces_n"],
-        load=LoadState(fz, tx, ty),
-        stretch=stretch,
-        image=z["image"],
-        mask=z["mask"],
-        features=features,
-        vein=z["vein"],
-        vein_mask=z["vein_mask"],
-        sharpness=sharpness,
-    )
 
 
 class ResultsStore:
@@ -192,9 +141,13 @@ class ResultsStore:
                 atomic_write_bytes(rdir / "current", str(v).encode())
             return v
 
+    def has_version(self, sid: str, v: int) -> bool:
+        """Return True if version v exists (its options.json is written when it is made)."""
+        return (self.version_dir(sid, v) / "options.json").exists()
+
     def set_current(self, sid: str, v: int) -> None:
         """Make version v the one the API serves."""
-        if not (self.version_dir(sid, v) / "options.json").exists():
+        if not self.has_version(sid, v):
             raise ValueError(f"version {v} does not exist")
         with self._locked(sid) as rdir:
             atomic_write_bytes(rdir / "current", str(int(v)).encode())
@@ -216,11 +169,6 @@ class ResultsStore:
         return self._read_json(self.version_dir(sid, v) / "options.json")
 
     # ----- setup and prepared frames ---------------------------------------------------------------------------
-    def write_setup(self, sid: str, v: int, mask: np.ndarray, flat: np.ndarray | None) -> None:
-        """Write (replace) the window mask and flat field of version v."""
-        self._setups.pop((sid, v), None)
-        atomic_write_bytes(self.version_dir(sid, v) / "setup.npz", self._setup_bytes(mask, flat))
-
     def write_setup_once(
         self, sid: str, v: int, mask: np.ndarray, flat: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -235,7 +183,7 @@ class ResultsStore:
         arrays = {"mask": np.asarray(mask, np.uint8)}
         if flat is not None:
             arrays["flat"] = np.asarray(flat, np.float32)
-        return _npz_bytes(**arrays)
+        return npz_bytes(**arrays)
 
     def read_setup(self, sid: str, v: int) -> tuple[np.ndarray, np.ndarray | None] | None:
         """Return (mask uint8, flat float32 or None) of version v, or None if not computed yet."""
@@ -275,7 +223,12 @@ class ResultsStore:
             data = self.prepared_path(sid, v, seq).read_bytes()
         except FileNotFoundError:
             return None
-        return prepared_from_bytes(data)
+        return prepared_from_bytes(data, f"prepared frame {int(seq)} of session {sid} version {int(v)}")
+
+    def handled_seqs(self, sid: str, v: int) -> set[int]:
+        """Return the seqs of version v's prepared or poison frames (from the file names only: cheap)."""
+        vdir = self.version_dir(sid, v)
+        return _seqs_in(vdir / "prepared") | _seqs_in(vdir / "poison")
 
     def mark_poison(self, sid: str, v: int, seq: int, reason: str = "") -> None:
         """Record that frame seq cannot be prepared (it is registered as rejected)."""
@@ -301,13 +254,14 @@ class ResultsStore:
         """Return the path rows of version v (dicts with the spec §4 columns), or None before any."""
         return self._read_json(self.version_dir(sid, v) / "path.json")
 
-    def write_state(self, sid: str, v: int, doc: dict[str, Any]) -> None:
-        """Write state.json (registration cursor, fence token, finished, lost/rejected seqs)."""
-        atomic_write_bytes(self.version_dir(sid, v) / "state.json", _json_bytes(doc))
+    def write_state(self, sid: str, v: int, state: VersionState) -> None:
+        """Write state.json of version v (services.store.version_state: cursor, fence, finished, failed, ...)."""
+        atomic_write_bytes(self.version_dir(sid, v) / "state.json", _json_bytes(state.to_json()))
 
-    def read_state(self, sid: str, v: int) -> dict[str, Any] | None:
-        """Return state.json of version v, or None."""
-        return self._read_json(self.version_dir(sid, v) / "state.json")
+    def read_state(self, sid: str, v: int) -> VersionState | None:
+        """Return the state of version v, None before any; UnknownFormatError for a format this release lacks."""
+        doc = self._read_json(self.version_dir(sid, v) / "state.json")
+        return None if doc is None else VersionState.from_json(doc, f"state.json of session {sid} version {int(v)}")
 
     def write_mosaic_meta(self, sid: str, v: int, doc: dict[str, Any]) -> None:
         """Write mosaic.json of version v."""

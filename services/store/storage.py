@@ -315,10 +315,15 @@ class SessionStore:
         if lo < anchor - max_span_s or hi > anchor + max_span_s:
             raise ImplausibleTimeError(f"timestamp more than {max_span_s:g} s away from the session's first timestamps")
 
+    def frame_seqs(self, session_id: str) -> list[int]:
+        """Return the seqs of the committed frames, ascending (from the commit records' names only: cheap)."""
+        with os.scandir(self.frames_dir(session_id)) as it:
+            names = [e.name for e in it if e.name.endswith(".json") and not e.name.startswith(".")]
+        return sorted(int(n[:-5]) for n in names if n[:-5].isdigit())
+
     def count_frames(self, session_id: str) -> int:
         """Return the number of committed frames."""
-        with os.scandir(self.frames_dir(session_id)) as it:
-            return sum(1 for e in it if e.name.endswith(".json") and not e.name.startswith("."))
+        return len(self.frame_seqs(session_id))
 
     def reprocess_refusal(self, meta: SessionMeta) -> tuple[str, str] | None:
         """Return (code, message) of why a session cannot be reprocessed yet (still receiving, no frames), else None."""

@@ -28,6 +28,7 @@ from services.core.mosaic import MosaicImage
 from services.core.session_reconstruction import PathRow
 from services.core.study import parse_study
 from services.store.results_store import ResultsStore
+from services.store.version_state import VersionState
 from tests.services.core.test_dicom_export import dciodvfy
 
 PX_PER_MM = 8.0
@@ -80,7 +81,7 @@ def install_known(client: TestClient, sid: str) -> MosaicImage:
     rs.write_mosaic_images(sid, 1, mosaic)
     rs.write_mosaic_meta(sid, 1, {**mosaic.meta(), "version": 1, "results_version": 1, "status": "done"})
     rs.write_path(sid, 1, path_rows())
-    rs.write_state(sid, 1, {"cursor": N_FRAMES, "fence": 1, "finished": True, "lost": [LOST], "rejected": [REJECTED]})
+    rs.write_state(sid, 1, VersionState(cursor=N_FRAMES, fence=1, finished=True, lost=[LOST], rejected=[REJECTED]))
     return mosaic
 
 

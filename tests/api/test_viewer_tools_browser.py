@@ -29,6 +29,7 @@ from services.core.results_docs import LAYERS, canvas_extent_mm, empty_revisions
 from services.core.session_reconstruction import PathRow
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
+from services.store.version_state import VersionState
 
 pytestmark = pytest.mark.slow
 
@@ -106,7 +107,7 @@ def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:
     rs.write_mosaic_meta(sid, 1, doc)
     rs.write_path(sid, 1, rows)
     lost = [s for s in LOST if s not in REJECTED]
-    rs.write_state(sid, 1, {"cursor": N_FRAMES, "fence": 1, "finished": True, "lost": lost, "rejected": list(REJECTED)})
+    rs.write_state(sid, 1, VersionState(cursor=N_FRAMES, fence=1, finished=True, lost=lost, rejected=REJECTED))
     return rows
 
 

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import json
-import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -22,7 +20,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from services.core.session_report import plot_links
 from services.core.simulation.scenarios import simulate
-from services.jobs import queue
+from services.jobs import reprocess as jobs
 from services.settings import Settings
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
@@ -115,13 +113,13 @@ def test_live_and_reprocess_serve_the_same_documents(
     assert posted.status_code == 200, posted.text
     live = served(api, sid, 1)
 
-    queue.enqueue_reprocess(backend.r, "job-same", sid, json.dumps({"method": "best"}), time.time(), backend.prefix)
+    (job,) = jobs.enqueue_jobs(backend.r, backend.prefix, "", [sid], {"method": "best"})
     wait_for(
-        lambda: (queue.read_job(backend.r, "job-same", backend.prefix) or {}).get("state") in ("done", "failed"),
+        lambda: jobs.read_job(backend.r, backend.prefix, job).get("state") in ("done", "failed"),
         DONE_TIMEOUT_S,
         "reprocess job done",
     )
-    assert queue.read_job(backend.r, "job-same", backend.prefix)["state"] == "done"
+    assert jobs.read_job(backend.r, backend.prefix, job)["state"] == "done"
     assert results.current_version(sid) == 2
     assert results.read_report(sid, 2) is not None  # written by the reprocess stage, not rebuilt by the API
     again = served(api, sid, 2)

@@ -16,8 +16,10 @@ import pytest
 from services.core.pipeline import Reconstruction
 from services.core.scan import Scan
 from services.jobs import queue
+from services.jobs import reprocess as jobs
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
+from services.store.version_state import VersionState
 from tests.sim_cache import live_short, offline_best
 from tests.workers.conftest import Backend, store_scan, wait_for
 
@@ -121,10 +123,10 @@ def test_two_workers_out_of_order_equal_offline_then_reprocess(
     assert live_s < 60, f"live processing took {live_s:.1f} s"
 
     # reprocess: a new version by the offline pipeline over the stored uploads; current only when complete
-    queue.enqueue_reprocess(backend.r, "job-1", sid, json.dumps({"method": "best"}), time.time(), backend.prefix)
-    wait_for(lambda: (queue.read_job(backend.r, "job-1", backend.prefix) or {}).get("state") in ("done", "failed"),
+    (job_id,) = jobs.enqueue_jobs(backend.r, backend.prefix, "", [sid], {"method": "best"})
+    wait_for(lambda: jobs.read_job(backend.r, backend.prefix, job_id).get("state") in ("done", "failed"),
              DONE_TIMEOUT_S, "job done")  # fmt: skip
-    job = queue.read_job(backend.r, "job-1", backend.prefix)
+    job = jobs.read_job(backend.r, backend.prefix, job_id)
     assert job["state"] == "done", job
     assert job["version"] == "2" and results.current_version(sid) == 2
     assert_matches_offline(results.read_path(sid, 2), 1)
@@ -173,11 +175,11 @@ def test_crashed_worker_session_is_taken_over(backend: Backend, spawn_worker: Ca
     uploader.start()
     wait_for(lambda: bool(sids) or len(store.list_sessions()) == 1, 20, "session created")
     sid = store.list_sessions()[0]
-    wait_for(lambda: (results.read_state(sid, 1) or {}).get("cursor", 0) >= 8, 30, "victim registered 8 frames")
+    wait_for(lambda: (results.read_state(sid, 1) or VersionState()).cursor >= 8, 30, "victim registered 8 frames")
     victim.send_signal(signal.SIGKILL)
     victim.wait(timeout=10)
-    cursor_at_kill = results.read_state(sid, 1)["cursor"]
-    assert cursor_at_kill < 40 and not (results.read_state(sid, 1) or {}).get("finished")
+    state_at_kill = results.read_state(sid, 1)
+    assert state_at_kill is not None and state_at_kill.cursor < 40 and not state_at_kill.finished
     spawn_worker("heir")
     uploader.join(timeout=30)
     wait_done(store, sid)

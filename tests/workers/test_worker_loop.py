@@ -4,7 +4,6 @@ delivery counts, reprocess options validation, and a reprocess job run once unde
 from __future__ import annotations
 
 import time
-import uuid
 
 import cv2
 import numpy as np
@@ -13,6 +12,7 @@ import pytest
 from services.core.calibration import default_calibration
 from services.core.method_options import parse_options, validate_options
 from services.jobs import queue
+from services.jobs import reprocess as jobs
 from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.storage import SessionStore
 from tests.sim_cache import simulated
@@ -63,18 +63,18 @@ def test_failing_frame_is_retried_then_dead_lettered(backend: Backend) -> None:
 def test_autoclaim_handles_abandoned_entries_and_counts_deliveries(backend: Backend) -> None:
     r, p = backend.r, backend.prefix
     queue.ensure_groups(r, p)
-    jobs = queue.jobs_stream(p)
-    queue.enqueue_reprocess(r, "job-a", "b" * 32, "{}", time.time(), p)
-    got = r.xreadgroup(queue.GROUP, "ghost", {jobs: ">"}, count=1)  # a worker that then dies
+    stream = queue.jobs_stream(p)
+    (job,) = jobs.enqueue_jobs(r, p, "", ["b" * 32], {})
+    got = r.xreadgroup(queue.GROUP, "ghost", {stream: ">"}, count=1)  # a worker that then dies
     ((entry_id, _),) = got[0][1]
     for _ in range(2):  # two more deliveries (e.g. claimed by workers that died too)
-        r.xclaim(jobs, queue.GROUP, "ghost2", 0, [entry_id])
+        r.xclaim(stream, queue.GROUP, "ghost2", 0, [entry_id])
     worker = _worker(backend, claim_idle_ms=0, max_deliveries=3)
     worker.autoclaim()
     # the 4th delivery exceeds max_deliveries: dead-lettered, the job failed, the entry gone
     assert r.xlen(queue.dead_stream(p)) == 1
-    assert queue.read_job(r, "job-a", p)["state"] == "failed"
-    assert r.xpending(jobs, queue.GROUP)["pending"] == 0 and r.xlen(jobs) == 0
+    assert jobs.read_job(r, p, job)["state"] == "failed"
+    assert r.xpending(stream, queue.GROUP)["pending"] == 0 and r.xlen(stream) == 0
     # an abandoned entry with deliveries left is simply handled (here: a frame of an unknown session, dropped)
     queue.enqueue_frame(r, "c" * 32, 0, p)
     r.xreadgroup(queue.GROUP, "ghost", {queue.frames_stream(p): ">"}, count=1)
@@ -132,10 +132,9 @@ def test_a_reprocess_job_runs_once_while_another_worker_holds_it(backend: Backen
     r, p = backend.r, backend.prefix
     store = SessionStore(backend.data_dir)
     sid = store_scan(store, simulated("short", 1))
-    job = uuid.uuid4().hex
     queue.ensure_groups(r, p)
-    for _ in range(2):
-        queue.enqueue_reprocess(r, job, sid, "{}", time.time(), p)
+    (job,) = jobs.enqueue_jobs(r, p, "", [sid], {})
+    jobs.requeue_job(r, p, jobs.read_job(r, p, job))  # the reconciler's second entry of the same job
     worker = _worker(backend, job_busy_retry_s=0.2)
     results = ResultsStore(backend.data_dir)
 
@@ -148,12 +147,12 @@ def test_a_reprocess_job_runs_once_while_another_worker_holds_it(backend: Backen
         while r.xlen(queue.jobs_stream(p)) and time.monotonic() < deadline:
             worker.step()
         assert r.xlen(queue.jobs_stream(p)) == 0  # both entries handled ...
-        assert queue.read_job(r, job, p)["state"] == "queued"  # ... neither ran
+        assert jobs.read_job(r, p, job)["state"] == "queued"  # ... neither ran
         assert reprocessed() == []
     deadline = time.monotonic() + 120
-    while queue.read_job(r, job, p)["state"] != "done" and time.monotonic() < deadline:
+    while jobs.read_job(r, p, job)["state"] != "done" and time.monotonic() < deadline:
         worker.step()
-    assert queue.read_job(r, job, p)["state"] == "done"
+    assert jobs.read_job(r, p, job)["state"] == "done"
     settle = time.monotonic() + 2.0  # the second entry comes back after job_busy_retry_s and is dropped
     while time.monotonic() < settle:
         worker.step()

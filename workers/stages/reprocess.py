@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import shutil
 import time
 from collections.abc import Callable, Mapping
@@ -23,16 +22,16 @@ import numpy as np
 
 from services.core.compliance import ComplianceFit
 from services.core.deepzoom import DziGeometry, TilePyramid
-from services.core.image_header import BadImageError
-from services.core.method_options import apply_calibration, parse_options
 from services.core.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas
 from services.core.pipeline import reconstruct
-from services.core.results_docs import canvas_extent_mm, empty_revisions, rejected_row
+from services.core.results_docs import canvas_extent_mm, empty_revisions
 from services.core.session_reconstruction import PathRow
 from services.jobs import queue
+from services.jobs import reprocess as jobs
 from services.store.results_report import write_version_report
-from services.store.results_store import LIVE_VERSION
-from services.store.storage import SessionNotFoundError, StorageError
+from services.store.session_version import method_of
+from services.store.storage import SessionNotFoundError
+from services.store.version_state import VersionState
 from workers.config import Context
 from workers.faults import is_transient
 from workers.publisher import Publisher
@@ -73,7 +72,7 @@ def canvas_from_mosaic(mosaic: MosaicImage) -> SparseCanvas:
 
 
 def _set_job(ctx: Context, job_id: str, **values: Any) -> None:
-    ctx.r.hset(queue.job_key(job_id, ctx.prefix), mapping={k: str(v) for k, v in values.items()})
+    jobs.update_job(ctx.r, ctx.prefix, job_id, **values)
 
 
 def write_report(ctx: Context, sid: str, v: int) -> dict[str, Any] | None:
@@ -94,8 +93,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
     started = time.perf_counter()
     try:
         doc = json.loads(fields.get("options") or "{}")
-        opts, calib_over = parse_options(doc, strict=False)
-        calib = apply_calibration(ctx.store.calibration(sid), calib_over)
+        opts, calib = method_of(ctx.store, sid, doc)
     except SessionNotFoundError:
         _set_job(ctx, job_id, state="failed", error="no such session")
         return
@@ -103,10 +101,11 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         _set_job(ctx, job_id, state="failed", error=f"invalid options: {exc}"[:300])
         return
     v = ctx.results.create_version(sid, {**doc, "source": "reprocess", "job": job_id}, make_current=False)
+    sv = ctx.version(sid, v)
     _set_job(ctx, job_id, state="running", version=v, started=time.time())
     try:
         heartbeat()
-        poison = _unreadable_frames(ctx, sid, calib.image_size)  # decodes every frame the live run did not prepare
+        poison = sv.unusable_seqs()  # decodes every frame the live run did not prepare
         heartbeat()
         scan = scan_from_store(ctx.store, sid, calib, exclude_seqs=poison)
         _set_job(ctx, job_id, total=len(scan) + len(poison), done=0)
@@ -122,7 +121,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
                 heartbeat()
 
         recon = reconstruct(scan, opts, progress=progress)
-        rows = sorted([*recon.rows, *(_rejected_row(ctx, sid, s) for s in poison)], key=lambda r: r.seq)
+        rows = sorted([*recon.rows, *(sv.rejected_row(s) for s in poison)], key=lambda r: r.seq)
         heartbeat()
         write_version(ctx, sid, v, rows, recon.mosaic, recon.method, recon.compliance, heartbeat, recon.learned)
         heartbeat()
@@ -138,7 +137,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
             raise
         log.exception("reprocess job failed")
         _set_job(ctx, job_id, state="failed", error=f"{type(exc).__name__}: {exc}"[:300])
-        ctx.results.write_state(sid, v, {"finished": False, "failed": True})  # the viewer's banner stops
+        Publisher(ctx).write_state(sid, v, VersionState(failed=True))  # the viewer's banner stops
         return
     seconds = time.perf_counter() - started
     _set_job(ctx, job_id, state="done", done=len(rows), finished=time.time())
@@ -146,32 +145,6 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
     queue.incr_metric(ctx.r, "job_seconds_sum", seconds + 1e-9, prefix=ctx.prefix)
     queue.incr_metric(ctx.r, "job_seconds_count", prefix=ctx.prefix)
     Publisher(ctx).version_event(sid, v, job_id)
-
-
-def _unreadable_frames(ctx: Context, sid: str, image_size: tuple[int, int] | list[int]) -> list[int]:
-    """Return the seqs of stored frames that cannot be decoded as 8/16-bit images of `image_size` (w, h).
-
-    Frames the live run prepared are known to decode; every other one (rejected, or not reached) is decoded
-    here. A storage fault while reading is raised (the job is retried), never taken for a bad frame.
-    """
-    shape = (int(image_size[1]), int(image_size[0]))
-    bad = []
-    for rec in ctx.store.list_frames(sid):
-        if ctx.results.has_prepared(sid, LIVE_VERSION, rec.seq):
-            continue
-        try:
-            img = ctx.store.load_frame(sid, rec.seq)
-        except (StorageError, BadImageError):  # undecodable, or over the frame size cap (from its header)
-            bad.append(rec.seq)
-            continue
-        if img.shape != shape or img.dtype not in (np.uint8, np.uint16):
-            bad.append(rec.seq)
-    return bad
-
-
-def _rejected_row(ctx: Context, sid: str, seq: int) -> PathRow:
-    rec = ctx.store.get_frame(sid, seq)
-    return rejected_row(seq, rec.t_s if rec is not None else math.nan)
 
 
 def write_version(
@@ -213,4 +186,4 @@ def write_version(
         compliance=compliance,
         tissue=tissue,
     )
-    pub.write_state(sid, v, cursor=len(rows), fence=0, finished=True)
+    pub.write_state(sid, v, VersionState(cursor=len(rows), finished=True))

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 from services.jobs import queue
+from services.jobs import reprocess as jobs
 from services.pacs.send import PacsRejected, PacsUnreachable, send_objects
 from services.store.session_export import finished_version, session_objects
 from services.store.storage import SessionNotFoundError
@@ -28,15 +29,11 @@ log = logging.getLogger("veinmosaic.worker")
 
 
 def _set_job(ctx: Context, job_id: str, **values: Any) -> None:
-    ctx.r.hset(queue.job_key(job_id, ctx.prefix), mapping={k: str(v) for k, v in values.items()})
+    jobs.update_job(ctx.r, ctx.prefix, job_id, **values)
 
 
 def _attempts(ctx: Context, job_id: str) -> int:
-    raw = ctx.r.hget(queue.job_key(job_id, ctx.prefix), "attempts")
-    try:
-        return int(raw or 0)
-    except ValueError:
-        return 0
+    return int(jobs.job_view(jobs.read_job(ctx.r, ctx.prefix, job_id), job_id)["attempts"])
 
 
 def retry_delay_s(attempt: int, first_s: float, max_s: float) -> float:

@@ -1,14 +1,16 @@
-"""Tests for whole-frame and keypoint rectification (services/core/rectification.py, spec §2 order)."""
+"""Tests for whole-frame rectification (services/core/rectification.py, spec §2 order): the maps, checked against
+the analytic keypoint rectification, and frames remapped through them as frame_prep.prepare_frame does."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from services.core.calibration import Calibration, parse_calibration
-from services.core.camera import distort_points_px
-from services.core.force_model import LoadState, load_state
-from services.core.rectification import pixel_grid, rectify_image, rectify_keypoints_px, rectify_map
+from services.core.camera import distort_points_px, mm_to_px, px_to_mm, undistort_points_px
+from services.core.force_model import LoadState, load_state, rectify_points_mm
+from services.core.rectification import pixel_grid, rectify_map
 from tests.tolerances import TOL
 
 W, H = 640, 480
@@ -16,6 +18,20 @@ FX, FY, CX, CY = 610.0, 590.0, 330.2, 235.7  # off-centre principal point, fx !=
 LENS = (-0.12, 0.03, 0.0005, -0.0003)
 # A pressed, tilted probe: F_Z = 12 N, F2 > F1 and F4 > F3 (load higher toward +y and -x).
 FORCES = np.array([1.0, 4.0, 2.0, 5.0])
+
+
+def rectify_keypoints_px(raw_px: np.ndarray, calib: Calibration, state: LoadState) -> np.ndarray:
+    """Return rectified pixel positions (N, 2) of raw positions (N, 2): undistort, then rectify (the analytic
+    inverse of rectify_map, from the camera and force models)."""
+    ideal = undistort_points_px(raw_px, calib)
+    return mm_to_px(rectify_points_mm(px_to_mm(ideal, calib), state, calib), calib)
+
+
+def rectify_image(raw: np.ndarray, calib: Calibration, state: LoadState) -> np.ndarray:
+    """Return `raw` rectified as frame_prep.prepare_frame rectifies a frame: cv2.remap through rectify_map,
+    bilinear, 0 outside the raw frame."""
+    map_x, map_y = rectify_map(calib, state)
+    return cv2.remap(raw, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
 def make_calib(dist: tuple[float, ...] = LENS) -> Calibration:

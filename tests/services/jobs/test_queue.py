@@ -34,8 +34,9 @@ def rq(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[tuple[redis.R
 def test_enqueue_once_and_depth(rq: tuple[redis.Redis, str]) -> None:
     r, prefix = rq
     assert queue.queue_depth(r, prefix=prefix) == 0  # no stream yet
-    queue.ensure_group(r, prefix=prefix)
-    queue.ensure_group(r, prefix=prefix)  # idempotent (BUSYGROUP ignored)
+    queue.ensure_groups(r, prefix=prefix)
+    queue.ensure_groups(r, prefix=prefix)  # idempotent (BUSYGROUP ignored)
+    assert all(r.xinfo_groups(s)[0]["name"] == queue.GROUP.encode() for s in queue.worker_streams(prefix))
     assert queue.enqueue_frame(r, "s1", 0, prefix=prefix)
     assert not queue.enqueue_frame(r, "s1", 0, prefix=prefix)
     assert queue.enqueue_frame(r, "s1", 1, prefix=prefix)

@@ -45,9 +45,19 @@ def test_requeue_from_the_ledger_keeps_the_kind(rq, tmp_path: Path) -> None:  # 
     (job,) = jobs.enqueue_jobs(r, prefix, "", ["b" * 32], {"destination": "pacs"}, ledger=ledger, kind="send")
     r.delete(queue.jobs_stream(prefix), queue.job_key(job, prefix))  # Redis lost the job
     (record,) = ledger.open_jobs()
-    queue.requeue_job(r, record, 60, prefix)
+    jobs.requeue_job(r, prefix, record, ttl_s=60)
     assert [e["kind"] for e in _entries(r, prefix)] == ["send"]
     assert jobs.read_job(r, prefix, job)["kind"] == "send"
+
+
+def test_update_job_writes_progress_and_outcome(rq) -> None:  # type: ignore[no-untyped-def]
+    r, prefix = rq
+    (job,) = jobs.enqueue_jobs(r, prefix, "", ["c" * 32], {})
+    jobs.update_job(r, prefix, job, state="running", version=3, done=0, total=40)
+    jobs.update_job(r, prefix, job, done=40, state="done")
+    view = jobs.job_view(jobs.read_job(r, prefix, job), job)
+    assert (view["state"], view["version"], view["done"], view["total"], view["progress"]) == ("done", 3, 40, 40, 1.0)
+    assert jobs.read_job(r, prefix, "0" * 32) == {}  # no such job
 
 
 def test_unknown_kind_is_refused() -> None:

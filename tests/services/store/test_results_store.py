@@ -14,13 +14,10 @@ from services.core.force_model import LoadState
 from services.core.frame_prep import PreparedFrame
 from services.core.session_reconstruction import PathRow
 from services.store.durable import write_once
-from services.store.results_store import (
-    LIVE_VERSION,
-    ResultsStore,
-    prepared_from_bytes,
-    prepared_to_bytes,
-)
+from services.store.prepared_file import prepared_from_bytes, prepared_to_bytes
+from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.storage import SessionStore
+from services.store.version_state import VersionState
 
 
 @pytest.fixture
@@ -139,8 +136,9 @@ def test_write_once_and_setup_once(stores: tuple[ResultsStore, str], tmp_path: P
     assert np.array_equal(got_mask, m1) and got_flat is not None
     got_mask2, _ = rs.write_setup_once(sid, 1, np.zeros((4, 5), np.uint8), None)  # a later writer loses
     assert np.array_equal(got_mask2, m1)
-    rs.write_setup(sid, 1, m1, None)
-    assert rs.read_setup(sid, 1)[1] is None
+    rs2 = ResultsStore(rs.data_dir)  # another process reads the first writer's setup from disk
+    got_mask3, got_flat3 = rs2.read_setup(sid, 1)
+    assert np.array_equal(got_mask3, m1) and np.array_equal(got_flat3, np.ones((4, 5), np.float32))
 
 
 def test_prepared_first_writer_wins_and_poison(stores: tuple[ResultsStore, str]) -> None:
@@ -171,8 +169,9 @@ def test_path_state_meta_report_reference_images_tiles(stores: tuple[ResultsStor
     assert got[1]["x_mm"] is None and got[1]["t_s"] == 0.6 and got[1]["status"] == "lost"
     assert list(got[0]) == ["seq", "t_s", "x_mm", "y_mm", "yaw_deg", "fz_n", "tilt_x_deg", "tilt_y_deg",
                             "stretch", "inliers", "status", "reason"]  # fmt: skip
-    rs.write_state(sid, 1, {"cursor": 2, "fence": 3, "finished": False})
-    assert rs.read_state(sid, 1)["cursor"] == 2
+    assert rs.read_state(sid, 1) is None
+    rs.write_state(sid, 1, VersionState(cursor=2, fence=3, lost=[1]))
+    assert rs.read_state(sid, 1) == VersionState(cursor=2, fence=3, finished=False, lost=(1,))
     assert rs.read_mosaic_meta(sid, 1) is None
     rs.write_mosaic_meta(sid, 1, {"version": 4})
     assert rs.read_mosaic_meta(sid, 1) == {"version": 4}

@@ -1,0 +1,71 @@
+"""A prepared frame's file (<v>/prepared/<seq>.npz): lossless, so registration replays it exactly; versioned.
+
+PREPARED_FORMAT is recorded in the file (array "format"); a file without it is format 0, the same layout.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+from services.core.features import Features
+from services.core.force_model import LoadState
+from services.core.frame_prep import PreparedFrame
+from services.store.file_formats import check_format, npz_bytes
+
+PREPARED_FORMAT = 1
+READABLE_FORMATS = (0, 1)
+
+
+def prepared_to_bytes(pf: PreparedFrame) -> bytes:
+    """Return a PreparedFrame as .npz bytes (lossless; descriptors as uint8 when they are whole 0..255)."""
+    desc = np.asarray(pf.features.descriptors)
+    if desc.size == 0 or (
+        np.all(np.isfinite(desc)) and desc.min() >= 0 and desc.max() <= 255 and np.array_equal(desc, np.round(desc))
+    ):
+        desc_stored = desc.astype(np.uint8)
+    else:
+        desc_stored = desc.astype(np.float32)
+    return npz_bytes(
+        format=np.array([PREPARED_FORMAT], np.int64),
+        meta=np.array([pf.index, pf.seq], np.int64),
+        scalars=np.array(
+            [pf.t_s, pf.load.fz_n, pf.load.theta_x_rad, pf.load.theta_y_rad, pf.stretch, pf.sharpness], np.float64
+        ),
+        desc_float=np.array([desc.dtype == np.float32], bool),
+        forces_n=np.asarray(pf.forces_n, np.float64),
+        image=pf.image,
+        mask=pf.mask,
+        vein=pf.vein,
+        vein_mask=pf.vein_mask,
+        points=np.asarray(pf.features.points, np.float64),
+        descriptors=desc_stored,
+        desc_width=np.array([desc.shape[1] if desc.ndim == 2 else 128], np.int64),
+        sizes_px=np.asarray(pf.features.sizes_px, np.float64),
+    )
+
+
+def prepared_from_bytes(data: bytes, what: str = "prepared frame") -> PreparedFrame:
+    """Return the PreparedFrame stored by `prepared_to_bytes`; UnknownFormatError naming `what` if unknown."""
+    z = np.load(io.BytesIO(data), allow_pickle=False)
+    check_format(what, int(z["format"][0]) if "format" in z.files else 0, READABLE_FORMATS)
+    index, seq = (int(v) for v in z["meta"])
+    t_s, fz, tx, ty, stretch, sharpness = (float(v) for v in z["scalars"])
+    desc = z["descriptors"]
+    desc = desc.astype(np.float32).reshape(-1, int(z["desc_width"][0]))
+    features = Features(z["points"].reshape(-1, 2), desc, z["sizes_px"])
+    return PreparedFrame(
+        index=index,
+        seq=seq,
+        t_s=t_s,
+        forces_n=z["forces_n"],
+        load=LoadState(fz, tx, ty),
+        stretch=stretch,
+        image=z["image"],
+        mask=z["mask"],
+        features=features,
+        vein=z["vein"],
+        vein_mask=z["vein_mask"],
+        sharpness=sharpness,
+    )

@@ -1,0 +1,102 @@
+"""Flush timing: what a held session publishes, and when.
+
+A flush writes path.json, the changed tiles, mosaic.json and state.json, counts the frames handled since the
+last one and publishes one event, all through the publisher and only after the fence check. Flushes happen at
+most every flush_interval (flush_every_s, or twice the last flush's duration if longer: flushing takes at most
+a third of the time); the whole images (mosaic.png, force.png, coverage.png) at most every image_every_s, and
+the tiles of levels where one tile holds the whole canvas with them. The final flush writes everything.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+
+from services.core.registrar import STATUS_OK
+from services.core.results_docs import canvas_extent_mm, empty_revisions, image_meta
+from services.core.session_reconstruction import PathRow
+from services.store.version_state import VersionState
+from workers.config import Context
+from workers.publisher import Publisher
+from workers.stages.register.held import HeldSession
+from workers.stages.register.lease import LeaseKeeper
+
+
+class Flusher:
+    """Decides when a held session is flushed and writes the flush through the publisher."""
+
+    def __init__(self, ctx: Context, publisher: Publisher, leases: LeaseKeeper) -> None:
+        self.ctx = ctx
+        self.publisher = publisher
+        self.leases = leases
+
+    def due(self, held: HeldSession, now: float | None = None) -> bool:
+        """Return True when flush_interval has passed since the last flush."""
+        now = time.monotonic() if now is None else now
+        return now - held.clocks.flushed >= held.clocks.flush_interval
+
+    def flush(self, held: HeldSession, final: bool) -> None:
+        """Write path, changed tiles, images when due, mosaic.json and state; count frames; publish an event."""
+        ctx, cfg, pub = self.ctx, self.ctx.config, self.publisher
+        sid, v, pending = held.sid, held.version, held.pending
+        self.leases.renew_if_due(held, force=True)
+        self.leases.check_fence(held)
+        now = time.monotonic()
+        rows = self._rows(held)
+        pub.write_path(sid, v, rows)
+        doc = ctx.results.read_mosaic_meta(sid, v) or {}
+        version = int(doc.get("version", 0)) + 1
+        revisions: dict[str, dict[str, int]] = doc.get("revisions") or empty_revisions()
+        images_due = final or not doc.get("width") or now - held.clocks.images >= cfg.image_every_s
+        pending.deferred |= held.pyramid.update(held.recon.canvas, pending.touched)
+        pending.touched = set()
+        # levels where one tile holds the whole canvas are only seen zoomed far out: refresh them with the images
+        small = held.geometry.tiles_at(0) == (1, 1)
+        whole = {k for k in pending.deferred if held.geometry.tiles_at(k[0]) == (1, 1)} if small else set()
+        changed = pending.deferred if images_due else pending.deferred - whole
+        pending.deferred = set() if images_due else whole
+        tiles_event = pub.write_tiles(sid, v, held.pyramid, changed, version, revisions, durable=final)
+        image = image_meta(doc, held.calib.px_per_mm)
+        if images_due:
+            image = pub.write_images(sid, v, held.recon.canvas.render(), raw_layers=final)  # + coverage, layers
+            held.clocks.images = now
+        finished = ctx.store.get_meta(sid).finished_at is not None
+        status = "done" if final else ("processing" if finished else "receiving")
+        doc = pub.write_mosaic_json(
+            sid,
+            v,
+            image,
+            version=version,
+            revisions=revisions,
+            geometry=held.geometry,
+            extent_mm=canvas_extent_mm(held.recon.canvas),
+            rows=rows,
+            status=status,
+            method=held.options.name,
+            compliance=held.recon.compliance if final else None,
+            tissue=held.recon.learned_model(),
+        )
+        fence = held.lease.token
+        pub.write_state(sid, v, VersionState(held.cursor, fence, final, lost=held.lost, rejected=held.rejected))
+        self.record_counters(held, pending.seqs)
+        pub.results_event(sid, doc, tiles_event, rows, pending.seqs, pending.path_reset or final)
+        pending.seqs = []
+        pending.path_reset = False
+        pending.dirty = False
+        held.clocks.flushed = time.monotonic()
+        held.clocks.flush_interval = max(cfg.flush_every_s, 2.0 * (held.clocks.flushed - now))
+
+    def record_counters(self, held: HeldSession, seqs: list[int]) -> None:
+        """Count the frames `seqs` that have a registration result (idempotent per seq)."""
+        statuses = {s: r.status for s, r in held.recon.results.items()}
+        outcomes = [(seq, statuses[seq] != STATUS_OK) for seq in sorted(set(seqs)) if seq in statuses]
+        self.publisher.count_frames(held.sid, held.version, outcomes)
+
+    @staticmethod
+    def _rows(held: HeldSession) -> list[PathRow]:
+        """Return the path rows, with the stored time of frames registered without a prepared frame."""
+        rows = held.recon.path_rows()
+        return [
+            replace(r, t_s=held.times[r.seq]) if not math.isfinite(r.t_s) and r.seq in held.times else r for r in rows
+        ]

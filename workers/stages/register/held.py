@@ -1,0 +1,80 @@
+"""A session whose registration lease this worker holds: its reconstruction, its cursor, what is not published.
+
+The bottom of the register stage: plain data that every other module of the package reads and writes.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from services.core.calibration import Calibration
+from services.core.deepzoom import DziGeometry, TilePyramid
+from services.core.methods import MethodOptions
+from services.core.session_reconstruction import SessionReconstruction
+from services.jobs.leases import Lease
+from services.store.session_version import SessionVersion
+
+
+@dataclass
+class Pending:
+    """What changed since the last flush: the next flush writes it and announces it in one event."""
+
+    touched: set[tuple[int, int]] = field(default_factory=set)  # canvas tiles the reconstruction changed
+    deferred: set[tuple[int, int, int]] = field(default_factory=set)  # whole-canvas levels, rendered with images
+    seqs: list[int] = field(default_factory=list)  # frames handled (added, lost or rejected)
+    path_reset: bool = False  # an earlier frame moved (refinement): clients should re-read the path
+    dirty: bool = False  # the cursor moved: state.json is behind
+
+
+@dataclass
+class Clocks:
+    """When (time.monotonic) the lease was renewed, the cursor last moved, the last flush and image render ran."""
+
+    renewed: float = 0.0
+    progressed: float = field(default_factory=time.monotonic)
+    flushed: float = 0.0
+    flush_interval: float = 0.0  # max(flush_every_s, 2 x the last flush's duration): flushing stays <= 1/3
+    images: float = 0.0
+
+
+@dataclass
+class HeldSession:
+    """A session version this worker holds the lease of, with its in-memory reconstruction and publishing state."""
+
+    sv: SessionVersion
+    lease: Lease
+    recon: SessionReconstruction
+    geometry: DziGeometry
+    pyramid: TilePyramid
+    cursor: int = 0  # frames [0, cursor) are registered (added, lost or rejected)
+    lost: list[int] = field(default_factory=list)
+    rejected: list[int] = field(default_factory=list)
+    times: dict[int, float] = field(default_factory=dict)  # t_s of frames registered without a PreparedFrame
+    pending: Pending = field(default_factory=Pending)
+    clocks: Clocks = field(default_factory=Clocks)
+
+    @property
+    def sid(self) -> str:
+        """Return the session id."""
+        return self.sv.sid
+
+    @property
+    def version(self) -> int:
+        """Return the results version."""
+        return self.sv.v
+
+    @property
+    def key(self) -> tuple[str, int]:
+        """Return (session id, version): the key of the stage's held sessions."""
+        return self.sv.sid, self.sv.v
+
+    @property
+    def calib(self) -> Calibration:
+        """Return the version's calibration."""
+        return self.sv.calibration
+
+    @property
+    def options(self) -> MethodOptions:
+        """Return the version's method options."""
+        return self.sv.method_options
