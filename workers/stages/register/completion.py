@@ -38,9 +38,12 @@ class Completion:
         self.leases.renew_if_due(held, force=True)
         self.leases.check_fence(held)
         held.pending.touched |= held.recon.finish()
-        self.flusher.flush(held, final=True)
-        if held.version == LIVE_VERSION and session_status != "failed":
-            self.ctx.store.set_status(held.sid, "done")
+
+        def mark_done() -> None:  # after every file is written, before the final event: no client sees it early
+            if held.version == LIVE_VERSION and session_status != "failed":
+                self.ctx.store.set_status(held.sid, "done")
+
+        self.flusher.flush(held, final=True, before_event=mark_done)
         log.info("session done", extra={"session": held.sid, "frames": len(held.recon.results)})
 
     def finish_empty(self, lease: Lease, sv: SessionVersion, session_status: str, rejected: list[int]) -> None:
@@ -67,6 +70,6 @@ class Completion:
         pub.write_state(sid, v, VersionState(cursor=cursor, fence=lease.token, finished=True, rejected=rejected))
         pub.count_frames(sid, v, [(seq, True) for seq in rejected])
         if session_status != "failed":
-            ctx.store.set_status(sid, "done")
+            ctx.store.set_status(sid, "done")  # before the event, as in complete
         pub.results_event(sid, doc, {}, rows, rejected, path_reset=True)
         lease.release(ctx.r, mode="final")

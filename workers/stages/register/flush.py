@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 from services.core.registrar import STATUS_OK
@@ -36,8 +37,12 @@ class Flusher:
         now = time.monotonic() if now is None else now
         return now - held.clocks.flushed >= held.clocks.flush_interval
 
-    def flush(self, held: HeldSession, final: bool) -> None:
-        """Write path, changed tiles, images when due, mosaic.json and state; count frames; publish an event."""
+    def flush(self, held: HeldSession, final: bool, before_event: Callable[[], None] | None = None) -> None:
+        """Write path, changed tiles, images when due, mosaic.json and state; count frames; publish an event.
+
+        before_event runs once everything is written and before the event goes out (the completion sets the
+        session's status there, so a client woken by the final event reads the status done).
+        """
         ctx, cfg, pub = self.ctx, self.ctx.config, self.publisher
         sid, v, pending = held.sid, held.version, held.pending
         self.leases.renew_if_due(held, force=True)
@@ -80,6 +85,8 @@ class Flusher:
         fence = held.lease.token
         pub.write_state(sid, v, VersionState(held.cursor, fence, final, lost=held.lost, rejected=held.rejected))
         self.record_counters(held, pending.seqs)
+        if before_event is not None:
+            before_event()
         pub.results_event(sid, doc, tiles_event, rows, pending.seqs, pending.path_reset or final)
         pending.seqs = []
         pending.path_reset = False
