@@ -134,6 +134,8 @@ class SessionState(Strict):
     registered_fraction: float | None = None  # of the results served: frames placed / path rows
     not_placed_reasons: dict[str, int] = Field(default_factory=dict)  # lost + rejected frames per reason
     warnings: list[dict[str, str]] = Field(default_factory=list)  # [{"code", "message"}]: >5 % lost, failed, reprocess
+    # while live: upload-to-placement lag of the newest placed frames {"p50_s", "p95_s", "frames"}; null when done
+    lag: dict[str, float | int] | None = None
     extent: dict[str, Any] | None = None
     tissue: dict[str, Any] | None = None  # of the results served: what the scan taught (mosaic.json "tissue")
 

@@ -125,6 +125,11 @@ class Publisher:
         self.ctx.results.write_state(sid, v, state)
 
     # ----- counters and events ---------------------------------------------------------------------------------
+    def record_lags(self, sid: str, v: int, lags_s: Sequence[float]) -> None:
+        """Record the upload-to-placement lags (s) of frames the live version just published."""
+        if v == LIVE_VERSION:
+            queue.record_lags(self.ctx.r, sid, lags_s, self.ctx.prefix)
+
     def count_frames(self, sid: str, v: int, outcomes: Iterable[tuple[int, bool]]) -> None:
         """Count each (seq, lost) of the live version once: session counters, frames_processed/lost_total."""
         if v != LIVE_VERSION:

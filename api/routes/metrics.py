@@ -5,7 +5,9 @@ one scrape of any API process sees the whole deployment. RedisMetrics is a prome
 over that hash and the queue streams; the library writes the text (format 0.0.4, or OpenMetrics when the
 scraper asks for it in Accept). Known fields get a HELP text; any other numeric field is exported as
 veinmosaic_<field> (a counter when it ends in _total), so new worker metrics appear without an API change. No
-labels carry session ids or anything about patients. Unauthenticated, like /healthz: it holds counts only.
+labels carry session ids or anything about patients: the live lag is one summary over the sessions placing
+frames (with how many are behind); a session's own lag is in its state, GET /v1/sessions/{id}.
+Unauthenticated, like /healthz: it holds counts only.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from prometheus_client.exposition import choose_encoder
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric, SummaryMetricFamily
 
 from api.deps import AppSettings, RedisClient
+from services.core.scan_quality import LAG_WARNING_S, live_lag
 from services.jobs import queue
 
 router = APIRouter(tags=["health"])
@@ -44,6 +47,7 @@ KNOWN_COUNTERS: dict[str, str] = {
     "reconcile_runs_total": "Runs of the reconciler (at worker start-up, after a Redis restart, periodically).",
 }
 SUMMARIES = {"job_seconds": "Wall time of finished reprocess jobs, seconds."}
+LIVE_WINDOW_S = 60.0  # a session is live for the lag gauges while frames of it were placed this recently
 _NAME_OK = re.compile(r"^[a-zA-Z_][a-zA-Z0-9_]*$")
 
 
@@ -64,6 +68,21 @@ class RedisMetrics:
 
     def __init__(self, r: redis.Redis, prefix: str) -> None:
         self.r, self.prefix = r, prefix
+
+    def live_lag(self) -> tuple[list[float], int, int]:
+        """Return (the newest lags of every session placing frames in the last minute, sessions placing, of them
+        behind by more than LAG_WARNING_S at p95); empty when Redis is down."""
+        try:
+            lags, behind = [], 0
+            sessions = queue.placing_sessions(self.r, LIVE_WINDOW_S, self.prefix)
+            for sid in sessions:
+                own = queue.recent_lags(self.r, sid, self.prefix)
+                summary = live_lag(own)
+                behind += int(summary is not None and summary.p95_s > LAG_WARNING_S)
+                lags.extend(own)
+            return lags, len(sessions), behind
+        except (redis.RedisError, OSError):
+            return [], 0, 0
 
     def read(self) -> tuple[dict[str, float], dict[str, float], float, float, float]:
         """Return (hash fields, stream depths, delayed jobs, dead letters, redis_up); zeros when Redis is down."""
@@ -116,6 +135,23 @@ class RedisMetrics:
         yield GaugeMetricFamily(PREFIX + "delayed_jobs", "Jobs re-scheduled for later (not ready yet).", value=delayed)
         yield GaugeMetricFamily(PREFIX + "dead_letters", "Entries in the dead-letter stream.", value=dead)
         yield GaugeMetricFamily(PREFIX + "redis_up", "1 if Redis answered this scrape, else 0.", value=up)
+        lags, placing, behind = self.live_lag()
+        lag = GaugeMetricFamily(
+            PREFIX + "live_lag_seconds",
+            "Upload-to-placement lag of the newest frames of the sessions placing frames in the last minute.",
+            labels=["quantile"],
+        )
+        summary = live_lag(lags)
+        if summary is not None:
+            lag.add_metric(["0.5"], summary.p50_s)
+            lag.add_metric(["0.95"], summary.p95_s)
+        yield lag
+        yield GaugeMetricFamily(PREFIX + "live_sessions", "Sessions with frames placed in the last minute.", placing)
+        yield GaugeMetricFamily(
+            PREFIX + "live_sessions_behind",
+            f"Of those, sessions whose placements trail their uploads by more than {LAG_WARNING_S:.0f} s (p95).",
+            behind,
+        )
 
 
 def render_metrics(r: redis.Redis, prefix: str, accept: str | None = None) -> tuple[bytes, str]:

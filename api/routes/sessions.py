@@ -20,7 +20,7 @@ from api.errors import Validation
 from api.results_access import get_results, reprocess_running, resolve_version, session_extent
 from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
 from services.core.calibration import CalibrationError, parse_calibration
-from services.core.scan_quality import scan_warnings, summarize_frames
+from services.core.scan_quality import live_lag, scan_warnings, summarize_frames
 from services.jobs import queue
 from services.jobs import reprocess as jobs
 
@@ -77,6 +77,7 @@ def get_session(
     version = resolve_version(results, meta.id, None)
     rows = results.read_path(meta.id, version) if version is not None else None
     frames = summarize_frames(rows) if rows else None
+    lag = live_lag(queue.recent_lags(r, meta.id, prefix=settings.redis_prefix)) if meta.status != "done" else None
     return SessionState(
         id=meta.id,
         status=meta.status,  # type: ignore[arg-type]
@@ -90,7 +91,8 @@ def get_session(
         frames_rejected=frames.n_rejected if frames else 0,
         registered_fraction=frames.registered_fraction if frames else None,
         not_placed_reasons=frames.reasons if frames else {},
-        warnings=scan_warnings(frames, meta.status, reprocess_running(results, meta.id)),
+        warnings=scan_warnings(frames, meta.status, reprocess_running(results, meta.id), lag),
+        lag=lag.to_dict() if lag is not None else None,
         extent=session_extent(results, meta.id),
         tissue=(results.read_mosaic_meta(meta.id, version) or {}).get("tissue") if version is not None else None,
     )

@@ -40,6 +40,7 @@
     pxPerMm: null,
     extentMm: null,
     frames: { processed: 0, ok: 0, lost: 0, rejected: 0 },
+    lag: null, // while live: {p50_s, p95_s, frames} from GET /v1/sessions/{id}
     framesKnown: false, // counters arrived (until then the status line says "loading results")
     received: null,
     path: new Map(), // seq -> [x_mm, y_mm, status]
@@ -634,6 +635,7 @@
         state.received = s.frames_received;
         if (s.status) state.status = s.status;
         state.warnings = s.warnings || [];
+        state.lag = s.status !== "done" && s.lag ? s.lag : null;
         if (!state.framesKnown && s.frames_processed > 0) {
           state.frames.processed = s.frames_processed;
           state.framesKnown = true;
@@ -666,6 +668,10 @@
       text += f.rejected ? ", " + f.rejected + " rejected)" : ")";
     }
     if (state.received !== null) text += " · " + state.received + " received";
+    if (state.lag && state.status !== "done") {
+      // upload-to-placement lag of the newest frames (the session state's p50/p95), live only
+      text += " · lag " + state.lag.p50_s.toFixed(1) + " s (p95 " + state.lag.p95_s.toFixed(1) + " s)";
+    }
     if (state.measure.active) {
       text += state.measure.mm !== null ? " · distance " + state.measure.mm.toFixed(1) + " mm" : " · click two points to measure";
     }

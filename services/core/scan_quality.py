@@ -7,9 +7,11 @@ viewer all show what `summarize_frames` and `scan_warnings` return.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
 
 WARN_FRACTION = 0.05  # more than this fraction of frames lost or rejected is a warning
 STATUS_OK, STATUS_LOST, STATUS_REJECTED = "ok", "lost", "rejected"
@@ -111,14 +113,49 @@ def frames_warning(summary: FrameSummary) -> str | None:
     )
 
 
-def scan_warnings(summary: FrameSummary | None, status: str = "", reprocessing: bool = False) -> list[dict[str, str]]:
-    """Return the warnings of a scan or session as [{"code", "message"}]: frames lost, failed, reprocessing."""
+LAG_WARNING_S = 5.0  # a live session whose placements trail their uploads by more than this (p95) is behind
+
+
+@dataclass(frozen=True)
+class LiveLag:
+    """Upload-to-placement lag of a live session's newest placed frames: median and 95th percentile (s)."""
+
+    p50_s: float
+    p95_s: float
+    frames: int
+
+    def to_dict(self) -> dict[str, float | int]:
+        """Return the JSON form (seconds rounded to 0.01)."""
+        return {"p50_s": round(self.p50_s, 2), "p95_s": round(self.p95_s, 2), "frames": self.frames}
+
+
+def live_lag(lags_s: Sequence[float]) -> LiveLag | None:
+    """Return the lag summary of the newest placements' lags (s), or None before any frame was placed."""
+    if not lags_s:
+        return None
+    values = np.asarray(lags_s, float)
+    return LiveLag(float(np.percentile(values, 50)), float(np.percentile(values, 95)), len(values))
+
+
+def scan_warnings(
+    summary: FrameSummary | None, status: str = "", reprocessing: bool = False, lag: LiveLag | None = None
+) -> list[dict[str, str]]:
+    """Return the warnings of a scan or session as [{"code", "message"}]: failed, frames lost, reprocessing,
+    and (while it is live) processing more than LAG_WARNING_S behind the uploads."""
     out: list[dict[str, str]] = []
     if status == "failed":
         out.append({"code": "processing_failed", "message": "Processing failed: the results may be incomplete."})
     text = frames_warning(summary) if summary is not None else None
     if text:
         out.append({"code": "frames_lost", "message": text})
+    if lag is not None and status in ("receiving", "processing") and lag.p95_s > LAG_WARNING_S:
+        out.append(
+            {
+                "code": "falling_behind",
+                "message": f"Processing is behind the uploads: 95 % of the latest frames were placed within "
+                f"{lag.p95_s:.1f} s of their upload (more than {LAG_WARNING_S:.0f} s).",
+            }
+        )
     if reprocessing:
         out.append(
             {

@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import redis
@@ -155,6 +156,47 @@ def session_counters(r: redis.Redis, session_id: str, prefix: str = DEFAULT_PREF
     raw = r.hgetall(session_key(session_id, prefix))
     get = {(k.decode() if isinstance(k, bytes) else k): int(v) for k, v in raw.items()}
     return {"processed": get.get("processed", 0), "lost": get.get("lost", 0)}
+
+
+LAG_KEEP = 200  # the newest placements whose upload-to-placement lag a session keeps
+
+
+def lag_key(session_id: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the list of a session's newest upload-to-placement lags (s, newest first)."""
+    return f"{prefix}lag:{session_id}"
+
+
+def record_lags(r: redis.Redis, session_id: str, lags_s: Sequence[float], prefix: str = DEFAULT_PREFIX) -> None:
+    """Push a flush's lags (s) onto the session's list, kept to its newest LAG_KEEP (one round trip)."""
+    if not lags_s:
+        return
+    key = lag_key(session_id, prefix)
+    pipe = r.pipeline(transaction=False)
+    pipe.lpush(key, *(f"{float(v):.3f}" for v in lags_s))
+    pipe.ltrim(key, 0, LAG_KEEP - 1)
+    pipe.expire(key, JOB_TTL_S)
+    pipe.zadd(placing_key(prefix), {session_id: time.time()})
+    pipe.execute()
+
+
+def placing_key(prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the ZSET of sessions by the time (Unix s) a worker last placed frames of theirs."""
+    return f"{prefix}placing"
+
+
+def placing_sessions(r: redis.Redis, within_s: float, prefix: str = DEFAULT_PREFIX) -> list[str]:
+    """Return the sessions that had frames placed in the last within_s seconds (older entries are dropped)."""
+    now = time.time()
+    pipe = r.pipeline(transaction=False)
+    pipe.zremrangebyscore(placing_key(prefix), "-inf", now - 24 * 3600)
+    pipe.zrangebyscore(placing_key(prefix), now - within_s, "+inf")
+    _, members = pipe.execute()
+    return [m.decode() if isinstance(m, bytes) else str(m) for m in members]
+
+
+def recent_lags(r: redis.Redis, session_id: str, prefix: str = DEFAULT_PREFIX) -> list[float]:
+    """Return the session's newest upload-to-placement lags (s, newest first; [] before any placement)."""
+    return [float(v) for v in r.lrange(lag_key(session_id, prefix), 0, LAG_KEEP - 1)]
 
 
 # ----- worker streams and keys (added for the workers; the names above are unchanged) -----------------------

@@ -87,3 +87,24 @@ def test_metrics_openmetrics_on_request(client: TestClient) -> None:
     assert lines[-1] == "# EOF" and "# TYPE veinmosaic_jobs_done counter" in lines
     assert any(line.startswith("veinmosaic_jobs_done_total ") and float(line.split()[1]) >= 2 for line in lines)
     assert 'veinmosaic_queue_depth{stream="frames"} ' in resp.text
+
+
+def test_live_lag_in_the_session_state_and_metrics(client: TestClient, session_id: str) -> None:
+    """Issue 15: a session's upload-to-placement lag (p50/p95 of its newest placements) in its state, the
+    'falling_behind' warning past 5 s (p95), and one summary over live sessions in /metrics (no session label)."""
+    r, prefix = client.app.state.redis, client.app.state.settings.redis_prefix  # type: ignore[attr-defined]
+    assert client.get(f"/v1/sessions/{session_id}", headers=INGEST).json()["lag"] is None  # nothing placed yet
+    queue.record_lags(r, session_id, [0.4] * 18 + [0.9, 1.1], prefix)
+    state = client.get(f"/v1/sessions/{session_id}", headers=INGEST).json()
+    assert state["lag"] == {"p50_s": 0.4, "p95_s": 0.91, "frames": 20}  # linear: 0.9 + 0.05 x 0.2
+    assert "falling_behind" not in [w["code"] for w in state["warnings"]]
+    samples, _ = parse_exposition(client.get("/metrics").text)
+    assert samples['veinmosaic_live_lag_seconds{quantile="0.5"}'] == 0.4
+    assert samples["veinmosaic_live_sessions"] == 1 and samples["veinmosaic_live_sessions_behind"] == 0
+    queue.record_lags(r, session_id, [7.0] * 20, prefix)  # the newest placements trail by 7 s
+    state = client.get(f"/v1/sessions/{session_id}", headers=INGEST).json()
+    assert state["lag"]["p95_s"] == 7.0
+    assert "falling_behind" in [w["code"] for w in state["warnings"]]
+    text = client.get("/metrics").text
+    assert parse_exposition(text)[0]["veinmosaic_live_sessions_behind"] == 1
+    assert session_id not in text

@@ -158,6 +158,8 @@ def test_two_sessions_concurrently(backend: Backend, spawn_worker: Callable[...,
     for sid in (s1, s2):
         assert queue.session_counters(backend.r, sid, backend.prefix)["processed"] == 40
         assert [seq for _, seq, _ in order_log(backend, sid)] == list(range(40))
+        lags = queue.recent_lags(backend.r, sid, backend.prefix)  # one upload-to-placement lag per frame
+        assert len(lags) == 40 and all(0.0 <= v < 300.0 for v in lags)
 
 
 def test_crashed_worker_session_is_taken_over(backend: Backend, spawn_worker: Callable[..., Any]) -> None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 from services.core.scan_quality import WARN_FRACTION, frames_warning, scan_warnings, summarize_frames
 from services.core.session_reconstruction import PathRow
 
@@ -51,3 +53,16 @@ def test_session_warnings_failed_and_reprocess() -> None:
     assert codes == ["processing_failed", "frames_lost", "reprocess_running"]
     assert scan_warnings(None, "done") == []
     assert summarize_frames([]).registered_fraction == 0.0 and frames_warning(summarize_frames([])) is None
+
+
+def test_live_lag_summary_and_warning() -> None:
+    from services.core.scan_quality import LAG_WARNING_S, live_lag, scan_warnings
+
+    assert live_lag([]) is None
+    lag = live_lag([1.0, 2.0, 3.0, 4.0, 10.0])
+    assert lag is not None and lag.p50_s == 3.0 and lag.frames == 5
+    assert lag.p95_s == pytest.approx(8.8)  # linear interpolation between 4 and 10 (tolerance: float rounding)
+    codes = [w["code"] for w in scan_warnings(None, "processing", lag=lag)]
+    assert codes == ["falling_behind"] and lag.p95_s > LAG_WARNING_S
+    assert scan_warnings(None, "done", lag=lag) == []  # a finished session is not behind
+    assert scan_warnings(None, "processing", lag=live_lag([1.0, 2.0])) == []

@@ -17,6 +17,7 @@ from dataclasses import replace
 from services.core.registrar import STATUS_OK
 from services.core.results_docs import canvas_extent_mm, empty_revisions, image_meta
 from services.core.session_reconstruction import PathRow
+from services.store.results_store import LIVE_VERSION
 from services.store.version_state import VersionState
 from workers.config import Context
 from workers.publisher import Publisher
@@ -85,6 +86,7 @@ class Flusher:
         fence = held.lease.token
         pub.write_state(sid, v, VersionState(held.cursor, fence, final, lost=held.lost, rejected=held.rejected))
         self.record_counters(held, pending.seqs)
+        self.record_lags(held, pending.seqs)
         if before_event is not None:
             before_event()
         pub.results_event(sid, doc, tiles_event, rows, pending.seqs, pending.path_reset or final)
@@ -93,6 +95,16 @@ class Flusher:
         pending.dirty = False
         held.clocks.flushed = time.monotonic()
         held.clocks.flush_interval = max(cfg.flush_every_s, 2.0 * (held.clocks.flushed - now))
+
+    def record_lags(self, held: HeldSession, seqs: list[int]) -> None:
+        """Record each newly published frame's lag: now minus its upload's commit time (s; the live version only)."""
+        if held.version != LIVE_VERSION or not seqs:
+            return
+        now = time.time()
+        records = (self.ctx.store.get_frame(held.sid, seq) for seq in sorted(set(seqs)))
+        self.publisher.record_lags(
+            held.sid, held.version, [now - rec.received_at for rec in records if rec is not None]
+        )
 
     def record_counters(self, held: HeldSession, seqs: list[int]) -> None:
         """Count the frames `seqs` that have a registration result (idempotent per seq)."""
