@@ -1,0 +1,165 @@
+"""Several probes at once (issue 15): does one small machine keep up with N probes at 10 frames/s each?
+
+    .venv/bin/python bench/probes.py [--probes 1,3] [--frames 336] [--rate 10] [--workers 2] [--scenario raster]
+
+Starts the service once as `veinmosaic serve` does (api.launcher.Service: API + --workers workers, embedded Redis
+unless REDIS_URL is set, then under a private key prefix deleted afterwards) and, for each N of --probes in turn,
+uploads N sessions at once, each a simulated scan (different seeds) paced at --rate frames/s on its own clock
+with bench/live.py's client (forces interleaved ahead of each frame, every upload's 2xx timed, the session state
+polled). Per N it prints, per session and in total: processed frames/s, lag p50/p95 from each upload's 2xx to a
+poll seeing it processed, the time from the last upload to status done, and the CPU seconds per frame and peak
+resident memory of the API and of each worker process over the run (psutil). The first N (1 by default) is the
+baseline the others are compared with in the same run. Targets (issue 15): 3 probes, every session done within
+5 s of its last upload and lag p95 <= 2 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import secrets
+import signal
+import sys
+import tempfile
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import psutil
+import redis
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from live import Row, first_frames, run  # bench/live.py: one paced session and its figures
+
+from api.launcher import Service, free_port
+from services.core.simulation.scenarios import SCENARIOS, simulate
+from services.settings import get_settings
+from services.store.scan_folder import write_scan_folder
+
+DONE_TARGET_S = 5.0
+LAG_P95_TARGET_S = 2.0
+
+
+class Usage:
+    """CPU seconds and peak RSS of the service's processes, sampled every 0.5 s while running."""
+
+    def __init__(self, service: Service) -> None:
+        self.procs = {p.pid: psutil.Process(p.pid) for p in service.processes}
+        self.cpu0 = {pid: self._cpu(p) for pid, p in self.procs.items()}
+        self.peak = dict.fromkeys(self.procs, 0.0)
+        self.halt = threading.Event()
+        self.thread = threading.Thread(target=self._sample, daemon=True)
+        self.thread.start()
+
+    @staticmethod
+    def _cpu(p: psutil.Process) -> float:
+        with contextlib.suppress(psutil.Error):
+            t = p.cpu_times()
+            return t.user + t.system
+        return 0.0
+
+    def _sample(self) -> None:
+        while not self.halt.wait(0.5):
+            for pid, p in self.procs.items():
+                with contextlib.suppress(psutil.Error):
+                    self.peak[pid] = max(self.peak[pid], p.memory_info().rss / 2**20)
+
+    def stop(self) -> dict[int, tuple[float, float]]:
+        """Return {pid: (CPU s used since start, peak RSS MB)}."""
+        self.halt.set()
+        self.thread.join(2.0)
+        return {pid: (self._cpu(p) - self.cpu0[pid], self.peak[pid]) for pid, p in self.procs.items()}
+
+
+def run_probes(service: Service, key: str, scans: list[tuple[Path, object]], args: argparse.Namespace) -> list[Row]:
+    """Upload every scan at once into its own session; return each session's figures."""
+    with ThreadPoolExecutor(max_workers=len(scans)) as pool:
+        futures = [
+            pool.submit(run, service, key, folder, scan, args.rate, f"probe {k + 1}/{len(scans)}", args)
+            for k, (folder, scan) in enumerate(scans)
+        ]
+        return [f.result() for f in futures]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Start the service, run each number of probes, print the table; return 0."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--probes", default="1,3", help="numbers of simultaneous probes, the first is the baseline")
+    p.add_argument("--scenario", default="raster", choices=[s for s in SCENARIOS if s != "calib"])
+    p.add_argument("--frames", type=int, default=336, help="upload each scan's first N frames")
+    p.add_argument("--rate", type=float, default=10.0, help="upload rate per probe, frames/s")
+    p.add_argument("--workers", type=int, default=2, help="worker processes")
+    p.add_argument("--poll", type=float, default=0.2, help="seconds between each session's state polls")
+    p.add_argument("--timeout", type=float, default=300.0, help="seconds allowed after the uploads' schedule")
+    p.add_argument("--frames-csv", type=Path, default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    counts = [int(v) for v in args.probes.split(",")]
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    key = "bench-" + secrets.token_urlsafe(12)
+    redis_url = get_settings().redis_url
+    prefix = f"vmbench:{secrets.token_hex(6)}:"
+    env = {"VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view"]}), "VEINMOSAIC_LOG_LEVEL": "WARNING"}
+    if redis_url:
+        env["VEINMOSAIC_REDIS_PREFIX"] = prefix
+    results: list[tuple[int, list[Row], dict[int, tuple[float, float]], list[str]]] = []
+    with tempfile.TemporaryDirectory(prefix="vm-probes-", ignore_cleanup_errors=True) as tmp:
+        scans = []
+        for seed in range(1, max(counts) + 1):
+            print(f"simulating {args.scenario} seed {seed} ...", file=sys.stderr)
+            scan = first_frames(simulate(args.scenario, seed), args.frames)
+            folder = Path(tmp) / f"scan{seed}"
+            write_scan_folder(scan, folder)
+            scans.append((folder, scan))
+        service = Service(
+            Path(tmp) / "data", port=free_port(), workers=args.workers, redis_url=redis_url, extra_env=env
+        )
+        try:
+            service.start()
+            names = ["api", *(f"worker {k + 1}" for k in range(args.workers))]
+            for n in counts:
+                usage = Usage(service)
+                rows = run_probes(service, key, scans[:n], args)
+                results.append((n, rows, usage.stop(), names))
+                time.sleep(2.0)  # let the workers go idle between runs
+        finally:
+            service.stop()
+            if redis_url:
+                with contextlib.closing(redis.Redis.from_url(redis_url)) as r:
+                    for k in r.scan_iter(match=f"{prefix}*", count=1000):
+                        r.delete(k)
+    print(f"\n{args.scenario}, {args.frames} frames per probe at {args.rate:g} frames/s; {args.workers} workers\n")
+    head = ["probes", "session", "proc f/s", "lag p50 s", "lag p95 s", "done after last upload s", "placed %"]
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    base_rate = None
+    for n, rows, _, _ in results:
+        total = sum(r.proc_rate for r in rows if np.isfinite(r.proc_rate))
+        base_rate = base_rate or total
+        for k, r in enumerate(rows):
+            p50, p95 = (np.percentile(r.lag, q) for q in (50, 95)) if r.lag.size else (np.nan, np.nan)
+            print(
+                f"| {n} | {k + 1} | {r.proc_rate:.2f} | {p50:.2f} | {p95:.2f} | {r.done_s:.1f} "
+                f"| {100 * r.registered:.1f} |"
+            )
+        print(f"| {n} | all | {total:.2f} ({total / base_rate:.2f}x) | | | | |")
+    print("\n| probes | process | CPU s/frame | peak MB |")
+    print("|---|---|---|---|")
+    for n, rows, use, names in results:
+        frames = sum(r.frames for r in rows)
+        for name, (cpu, peak) in zip(names, use.values(), strict=False):
+            print(f"| {n} | {name} | {cpu / frames:.3f} | {peak:.0f} |")
+    last = results[-1][1]
+    done_ok = all(r.done_s <= DONE_TARGET_S for r in last)
+    lag_ok = all(r.lag.size and np.percentile(r.lag, 95) <= LAG_P95_TARGET_S for r in last)
+    print(f"\n{results[-1][0]} probes: every session done within {DONE_TARGET_S:g} s: {'yes' if done_ok else 'no'}; ")
+    print(f"lag p95 <= {LAG_P95_TARGET_S:g} s: {'yes' if lag_ok else 'no'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
