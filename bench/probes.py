@@ -96,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2, help="worker processes")
     p.add_argument("--poll", type=float, default=0.2, help="seconds between each session's state polls")
     p.add_argument("--timeout", type=float, default=300.0, help="seconds allowed after the uploads' schedule")
+    p.add_argument("--worker-config", default=None, help='VEINMOSAIC_WORKER_CONFIG, e.g. {"image_every_s": 10}')
     p.add_argument("--frames-csv", type=Path, default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     counts = [int(v) for v in args.probes.split(",")]
@@ -106,6 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     env = {"VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view"]}), "VEINMOSAIC_LOG_LEVEL": "WARNING"}
     if redis_url:
         env["VEINMOSAIC_REDIS_PREFIX"] = prefix
+    if args.worker_config:
+        env["VEINMOSAIC_WORKER_CONFIG"] = args.worker_config
     results: list[tuple[int, list[Row], dict[int, tuple[float, float]], list[str]]] = []
     with tempfile.TemporaryDirectory(prefix="vm-probes-", ignore_cleanup_errors=True) as tmp:
         scans = []
@@ -132,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
                 with contextlib.closing(redis.Redis.from_url(redis_url)) as r:
                     for k in r.scan_iter(match=f"{prefix}*", count=1000):
                         r.delete(k)
-    print(f"\n{args.scenario}, {args.frames} frames per probe at {args.rate:g} frames/s; {args.workers} workers\n")
+    config = f", worker config {args.worker_config}" if args.worker_config else ""
+    print(f"\n{args.scenario}, {args.frames} frames per probe at {args.rate:g} f/s; {args.workers} workers{config}\n")
     head = ["probes", "session", "proc f/s", "lag p50 s", "lag p95 s", "done after last upload s", "placed %"]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
