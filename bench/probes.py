@@ -49,7 +49,8 @@ class Usage:
     """CPU seconds and peak RSS of the service's processes, sampled every 0.5 s while running."""
 
     def __init__(self, service: Service) -> None:
-        self.procs = {p.pid: psutil.Process(p.pid) for p in service.processes}
+        self.names = {pid: name for name, pid in service.pids().items()}  # api, worker-1, ...
+        self.procs = {pid: psutil.Process(pid) for pid in self.names}
         self.cpu0 = {pid: self._cpu(p) for pid, p in self.procs.items()}
         self.peak = dict.fromkeys(self.procs, 0.0)
         self.halt = threading.Event()
@@ -69,11 +70,11 @@ class Usage:
                 with contextlib.suppress(psutil.Error):
                     self.peak[pid] = max(self.peak[pid], p.memory_info().rss / 2**20)
 
-    def stop(self) -> dict[int, tuple[float, float]]:
-        """Return {pid: (CPU s used since start, peak RSS MB)}."""
+    def stop(self) -> dict[str, tuple[float, float]]:
+        """Return {process name: (CPU s used since start, peak RSS MB)}."""
         self.halt.set()
         self.thread.join(2.0)
-        return {pid: (self._cpu(p) - self.cpu0[pid], self.peak[pid]) for pid, p in self.procs.items()}
+        return {self.names[pid]: (self._cpu(p) - self.cpu0[pid], self.peak[pid]) for pid, p in self.procs.items()}
 
 
 def run_probes(service: Service, key: str, scans: list[tuple[Path, object]], args: argparse.Namespace) -> list[Row]:
@@ -109,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         env["VEINMOSAIC_REDIS_PREFIX"] = prefix
     if args.worker_config:
         env["VEINMOSAIC_WORKER_CONFIG"] = args.worker_config
-    results: list[tuple[int, list[Row], dict[int, tuple[float, float]], list[str]]] = []
+    results: list[tuple[int, list[Row], dict[str, tuple[float, float]]]] = []
     with tempfile.TemporaryDirectory(prefix="vm-probes-", ignore_cleanup_errors=True) as tmp:
         scans = []
         for seed in range(1, max(counts) + 1):
@@ -123,11 +124,10 @@ def main(argv: list[str] | None = None) -> int:
         )
         try:
             service.start()
-            names = ["api", *(f"worker {k + 1}" for k in range(args.workers))]
             for n in counts:
                 usage = Usage(service)
                 rows = run_probes(service, key, scans[:n], args)
-                results.append((n, rows, usage.stop(), names))
+                results.append((n, rows, usage.stop()))
                 time.sleep(2.0)  # let the workers go idle between runs
         finally:
             service.stop()
@@ -141,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     base_rate = None
-    for n, rows, _, _ in results:
+    for n, rows, _ in results:
         total = sum(r.proc_rate for r in rows if np.isfinite(r.proc_rate))
         base_rate = base_rate or total
         for k, r in enumerate(rows):
@@ -153,10 +153,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {n} | all | {total:.2f} ({total / base_rate:.2f}x) | | | | |")
     print("\n| probes | process | CPU s/frame | peak MB |")
     print("|---|---|---|---|")
-    for n, rows, use, names in results:
+    for n, rows, use in results:
         frames = sum(r.frames for r in rows)
-        for name, (cpu, peak) in zip(names, use.values(), strict=False):
+        for name, (cpu, peak) in sorted(use.items()):
             print(f"| {n} | {name} | {cpu / frames:.3f} | {peak:.0f} |")
+        workers = sum(cpu for name, (cpu, _) in use.items() if name.startswith("worker"))
+        print(f"| {n} | all workers | {workers / frames:.3f} | |")
     last = results[-1][1]
     done_ok = all(r.done_s <= DONE_TARGET_S for r in last)
     lag_ok = all(r.lag.size and np.percentile(r.lag, 95) <= LAG_P95_TARGET_S for r in last)
