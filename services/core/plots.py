@@ -862,22 +862,3 @@ def render_sheet(fig: Figure) -> tuple[bytes, bytes]:
     fig.savefig(png, format="png", dpi=fig.dpi)
     fig.savefig(pdf, format="pdf", metadata={"Title": SHEET_TITLE, "Creator": "veinmosaic"})
     return png.getvalue(), pdf.getvalue()
-
-
-def session_sheet(
-    mosaic: MosaicImage,
-    estimate_mm: np.ndarray,
-    registered: np.ndarray,
-    reference_mm: np.ndarray | None,
-    report: AccuracyReport | None,
-    frames: FrameSummary,
-    warnings: Sequence[Mapping[str, str]],
-    identity: SheetIdentity,
-    angles: Mapping[str, Any] | None = None,
-    tissue: Mapping[str, Any] | None = None,
-) -> tuple[bytes, bytes]:
-    """Return the one-page report (build_sheet_figure) as (PNG bytes, PDF bytes), A4 portrait."""
-    fig = build_sheet_figure(
-        mosaic, estimate_mm, registered, reference_mm, report, frames, warnings, identity, angles, tissue
-    )
-    return render_sheet(fig)

@@ -24,7 +24,13 @@ import numpy as np
 
 from services.core.evaluation import AccuracyReport, evaluate_angles, evaluate_path
 from services.core.mosaic import MosaicImage
-from services.core.plots import SheetIdentity, plot_error_along_scan, plot_paths_over_mosaic, session_sheet
+from services.core.plots import (
+    SheetIdentity,
+    build_sheet_figure,
+    plot_error_along_scan,
+    plot_paths_over_mosaic,
+    render_sheet,
+)
 from services.core.scan_quality import FrameSummary, scan_warnings, summarize_frames
 from services.core.session_reconstruction import PathRow
 
@@ -107,11 +113,11 @@ def build_session_report(
         images["errors.png"] = plot_error_along_scan(accuracy)
         plots.update({"paths": "paths.png", "errors": "errors.png"})
     if mosaic is not None and sheet:
-        png, pdf = session_sheet(
+        png, pdf = render_sheet(build_sheet_figure(
             mosaic, estimate, registered, reference_mm, accuracy, frames, doc["warnings"],
             identity if identity is not None else SheetIdentity(session=""),
             angles=doc.get("angles"), tissue=doc.get("tissue"),
-        )  # fmt: skip
+        ))  # fmt: skip
         images["sheet.png"], images["sheet.pdf"] = png, pdf
         plots.update({"sheet": "sheet.png", "sheet_pdf": "sheet.pdf"})
     doc["plots"] = plots
