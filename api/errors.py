@@ -29,6 +29,7 @@ from services.core.calibration import CalibrationError
 from services.core.image_header import BadImageError
 from services.core.method_options import without_values
 from services.core.study import StudyContextError
+from services.jobs.reprocess import QueueFullError
 from services.store.results_report import BadReferenceError, NoPathYetError, NothingToCompareError
 from services.store.session_export import NotFinishedError
 from services.store.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
@@ -123,7 +124,12 @@ SERVICE_ERRORS: dict[type[Exception], tuple[int, str, str | None]] = {
     NothingToCompareError: (422, "nothing_to_compare", None),
     NoPathYetError: (409, "not_ready", None),
     StudyContextError: (422, "invalid_study", None),
-    NotFinishedError: (404, "not_ready", None),  # its message names the field, never the value
+    NotFinishedError: (404, "not_ready", None),
+    QueueFullError: (
+        503,
+        "queue_full",
+        "the job queue is full; retry later",
+    ),  # its message names the field, never the value
     redis.ConnectionError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
     redis.TimeoutError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
 }

@@ -16,7 +16,7 @@ from fastapi import APIRouter, Depends, status
 
 from api.auth import Principal, require_scope, visible_session
 from api.deps import AppSettings, IngestPrincipal, IngestSession, RedisClient, Store
-from api.errors import Conflict, NotFound, ServiceUnavailable, Validation
+from api.errors import Conflict, NotFound, Validation
 from api.schemas import BatchAccepted, BatchReprocessRequest, BatchState, JobAccepted, JobState, ReprocessRequest
 from services.core import method_options
 from services.core.calibration import Calibration, CalibrationError
@@ -55,10 +55,17 @@ def _enqueue(
     options: dict[str, Any],
     batch: str = "",
 ) -> list[str]:
-    if jobs.queue_full(r, settings.redis_prefix, len(sessions), settings.queue_max_depth):
-        raise ServiceUnavailable("the job queue is full; retry later", settings.retry_after_s, code="queue_full")
-    owner = principal.fingerprint or ""
-    return jobs.enqueue_jobs(r, settings.redis_prefix, owner, sessions, options, batch=batch, ledger=store.jobs)
+    owner = principal.fingerprint or ""  # QueueFullError: 503 queue_full (api/errors.py)
+    return jobs.enqueue_jobs(
+        r,
+        settings.redis_prefix,
+        owner,
+        sessions,
+        options,
+        batch=batch,
+        ledger=store.jobs,
+        max_depth=settings.queue_max_depth,
+    )
 
 
 def _may_see(principal: Principal, owner: str) -> bool:

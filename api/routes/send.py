@@ -13,7 +13,7 @@ import logging
 from fastapi import APIRouter, status
 
 from api.deps import AppSettings, IngestPrincipal, IngestSession, RedisClient, Store
-from api.errors import Conflict, ServiceUnavailable, Validation
+from api.errors import Conflict, Validation
 from api.schemas import JobAccepted, SendRequest
 from services.jobs import reprocess as jobs
 
@@ -36,11 +36,16 @@ def send_session(
         raise Validation(f"destination: not a configured PACS destination ({configured})", code="unknown_destination")
     if meta.status == "failed":
         raise Conflict("the session failed: it has no results to send", code="session_failed")
-    if jobs.queue_full(r, settings.redis_prefix, 1, settings.queue_max_depth):
-        raise ServiceUnavailable("the job queue is full; retry later", settings.retry_after_s, code="queue_full")
     options = {"destination": body.destination}
-    (job_id,) = jobs.enqueue_jobs(
-        r, settings.redis_prefix, principal.fingerprint or "", [meta.id], options, ledger=store.jobs, kind="send"
+    (job_id,) = jobs.enqueue_jobs(  # QueueFullError: 503 queue_full (api/errors.py)
+        r,
+        settings.redis_prefix,
+        principal.fingerprint or "",
+        [meta.id],
+        options,
+        ledger=store.jobs,
+        kind="send",
+        max_depth=settings.queue_max_depth,
     )
     log.info("send queued", extra={"session": meta.id})
     return JobAccepted(job=job_id, session=meta.id, status_url=f"/v1/jobs/{job_id}")

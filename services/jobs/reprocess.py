@@ -58,6 +58,10 @@ def queue_full(r: redis.Redis, prefix: str, adding: int, max_depth: int) -> bool
     return int(r.xlen(queue.jobs_stream(prefix))) + adding > max_depth
 
 
+class QueueFullError(RuntimeError):
+    """The job stream holds max_depth entries already: nothing was queued (the API answers 503 queue_full)."""
+
+
 def enqueue_jobs(
     r: redis.Redis,
     prefix: str,
@@ -67,12 +71,16 @@ def enqueue_jobs(
     batch: str = "",
     ledger: Ledger | None = None,
     kind: str = "reprocess",
+    max_depth: int | None = None,
 ) -> list[str]:
     """Write one job hash per session and its stream entry (one MULTI), then record each job durably in the
     ledger (the 202's promise: the reconciler re-enqueues a recorded job Redis lost); return the job ids.
 
-    If the durable record fails (a full disk), the jobs are taken off Redis again and the OSError is raised.
+    With max_depth, QueueFullError (nothing queued) when the jobs would take the stream beyond it. If the durable
+    record fails (a full disk), the jobs are taken off Redis again and the OSError is raised.
     """
+    if max_depth is not None and queue_full(r, prefix, len(sessions), max_depth):
+        raise QueueFullError("the job queue is full; retry later")
     now = time.time()
     ids = [new_id() for _ in sessions]
     pipe = r.pipeline(transaction=True)

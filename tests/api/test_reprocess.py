@@ -155,3 +155,16 @@ def test_batch_reprocess(client: TestClient) -> None:
         r.hset(queue.job_key(job, prefix), mapping={"state": "done", "done": 1, "total": 1})
     done = client.get(batch["status_url"], headers=INGEST).json()
     assert done["state"] == "done" and all(j["progress"] == 1.0 for j in done["jobs"])
+
+
+def test_a_full_job_queue_is_503_for_reprocess_and_send_and_queues_nothing(make_client: Any) -> None:
+    """enqueue_jobs refuses past queue_max_depth (QueueFullError -> 503 queue_full with Retry-After, api/errors.py)."""
+    client = make_client(queue_max_depth=1, retry_after_s=7, pacs_destinations={"web": {"dicomweb": "http://pacs/dw"}})
+    sid = finished_session(client)
+    assert client.post(f"/v1/sessions/{sid}/reprocess", json={}, headers=INGEST).status_code == 202
+    for path, body in ((f"/v1/sessions/{sid}/reprocess", {}), (f"/v1/sessions/{sid}/send", {"destination": "web"})):
+        resp = client.post(path, json=body, headers=INGEST)
+        assert resp.status_code == 503 and resp.headers["Retry-After"] == "7", resp.text
+        assert _error(resp)["code"] == "queue_full"
+    assert len(jobs_on_stream(client)) == 1
+    assert len(client.app.state.store.jobs.open_jobs()) == 1  # type: ignore[attr-defined]
