@@ -48,8 +48,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     """Reconstruct a scan folder and write path, mosaic, layers, plots and report (see services.store.results_io)."""
-    from services.core.dicom_export import scan_digest
     from services.core.methods import method_options
+    from services.core.outputs.dicom_export import scan_digest
     from services.core.pipeline import reconstruct
     from services.store.results_io import write_reconstruction
     from services.store.scan_folder import read_scan_folder
@@ -116,7 +116,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
-STUDY_OPTIONS = (  # `veinmosaic export` options -> services.core.study fields (spec §5 `study`)
+STUDY_OPTIONS = (  # `veinmosaic export` options -> services.core.inputs.study fields (spec §5 `study`)
     "patient_id",
     "patient_name",
     "patient_birth_date",
@@ -147,8 +147,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     """Write a reconstruct output folder's layers (and its one-page report) as DICOM files of one study."""
     from datetime import UTC, datetime
 
-    from services.core.dicom_export import STUDY_OBJECTS, ExportInfo, export_study
-    from services.core.study import parse_study
+    from services.core.inputs.study import parse_study
+    from services.core.outputs.dicom_export import STUDY_OBJECTS, ExportInfo, export_study
     from services.store.results_io import read_results_mosaic
 
     results = Path(args.results)
@@ -395,7 +395,7 @@ def _write_scaled_maps(data_dir: Path, sid: str, out: Path) -> None:
     force.png and coverage.png are the viewer's layers as served (colours without a scale); these are the maps a
     person reads, drawn from the finished layers in the demo's own data dir (the API serves no scaled map).
     """
-    from services.core.plots import plot_coverage_map, plot_force_map
+    from services.core.outputs.plots import plot_coverage_map, plot_force_map
     from services.store.results_store import ResultsStore
 
     rs = ResultsStore(data_dir)
@@ -587,7 +587,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the veinmosaic command line; return the exit code."""
-    from services.core.calibration import CalibrationError
+    from services.core.inputs.calibration import CalibrationError
     from services.store.scan_folder import ScanFormatError
 
     args = build_parser().parse_args(argv)

@@ -25,10 +25,10 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from services.core.calibration import CalibrationError
-from services.core.image_header import BadImageError
+from services.core.inputs.calibration import CalibrationError
+from services.core.inputs.image_header import BadImageError
+from services.core.inputs.study import StudyContextError
 from services.core.method_options import without_values
-from services.core.study import StudyContextError
 from services.jobs.reprocess import QueueFullError
 from services.store.results_report import BadReferenceError, NoPathYetError, NothingToCompareError
 from services.store.session_export import NotFinishedError

@@ -6,9 +6,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt
 
+from services.core.inputs.study import STUDY_FIELDS, StudyContext, parse_study
 from services.core.method_options import MethodOverrides
 from services.core.methods import METHOD_NAMES
-from services.core.study import STUDY_FIELDS, StudyContext, parse_study
 from services.store.storage import MAX_SEQ
 
 # A JSON number that is finite: NaN/Infinity literals (which Python's json accepts) are rejected, and so are
@@ -57,7 +57,7 @@ CameraMatrix = tuple[tuple[Positive, Zero, Finite], tuple[Zero, Positive, Finite
 
 
 class CalibrationDoc(Strict):
-    """calibration.json (spec §3) as the API accepts it; services.core.calibration.parse_calibration checks the same."""
+    """calibration.json (spec §3) as the API accepts it; core.physics.calibration.parse_calibration checks the same."""
 
     image_size: tuple[Side, Side] = Field(description="frame width, height in pixels")
     camera_matrix: CameraMatrix = Field(description="[[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels")
@@ -84,7 +84,7 @@ def _study_field(name: str, description: str, **constraints: Any) -> Any:
 
 
 class StudyDoc(Strict):
-    """The study context (spec §5): patient data, every field optional; services.core.study.parse_study checks it."""
+    """The study context (spec §5): patient data, every field optional; core.inputs.study.parse_study checks it."""
 
     patient_id: str | None = _study_field("patient_id", "the hospital's patient id")
     patient_name: str | None = _study_field("patient_name", "DICOM person name, 'Family^Given'")

@@ -36,11 +36,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tqdm import tqdm
 
-from services.core.evaluation import evaluate_angles, evaluate_path
+from services.core.inputs.scan import Scan
 from services.core.methods import method_options
+from services.core.outputs.evaluation import evaluate_angles, evaluate_path
+from services.core.outputs.session_report import path_angles_deg
 from services.core.pipeline import reconstruct
-from services.core.scan import Scan
-from services.core.session_report import path_angles_deg
 from services.core.simulation.renderer import TISSUE_LAWS
 from services.core.simulation.scenarios import simulate
 from services.core.simulation.variants import FAINT_CONTRAST, ImagingVariant, scenario_imaging

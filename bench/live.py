@@ -40,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from api.client import ApiError, VeinmosaicClient, upload_scan_folder
 from api.launcher import Service, free_port
-from services.core.scan import Scan
+from services.core.inputs.scan import Scan
 from services.core.simulation.scenarios import SCENARIOS, simulate
 from services.settings import get_settings
 from services.store.scan_folder import write_scan_folder

@@ -16,10 +16,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from services.core.inputs.scan import Scan, in_memory_loader
 from services.core.methods import method_options
-from services.core.mosaic import PLANES, TILE_PX
+from services.core.mosaic.canvas import PLANES, TILE_PX
 from services.core.pipeline import frame_forces, prepare_scan_frame, reconstruct, window_radius_mm, window_setup
-from services.core.scan import Scan, in_memory_loader
 from services.core.session_reconstruction import SessionReconstruction
 from services.core.simulation.scenarios import simulate
 

@@ -14,7 +14,7 @@ from typing import Annotated, Literal
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from services.core.image_header import DEFAULT_MAX_FRAME_SIDE
+from services.core.inputs.image_header import DEFAULT_MAX_FRAME_SIDE
 from services.core.methods import METHOD_NAMES
 from services.pacs.destinations import Destination, destinations_from_doc, parse_destinations
 
@@ -79,7 +79,7 @@ class Settings(BaseSettings):
     max_force_samples: int = Field(default=100_000, gt=0)
     # every other body (JSON, reference.csv), counted while it is read; 8 MiB holds 100k force rows
     max_json_bytes: int = Field(default=8 * 1024 * 1024, gt=0)
-    # frames (and calibrations' image_size) at most this many pixels a side; see services/core/image_header.py
+    # frames (and calibrations' image_size) at most this many pixels a side; see services/core/inputs/image_header.py
     max_frame_side: int = Field(default=DEFAULT_MAX_FRAME_SIDE, ge=16, le=16384)
     max_session_span_s: float = Field(default=86_400.0, gt=0)  # timestamps within this of the session's first
     min_free_mb: int = Field(default=200, ge=0)  # /readyz is 503 while the data volume has less free space

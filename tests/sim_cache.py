@@ -13,9 +13,9 @@ from functools import cache
 
 import numpy as np
 
+from services.core.inputs.scan import Scan, in_memory_loader
 from services.core.methods import method_options
 from services.core.pipeline import Reconstruction, reconstruct
-from services.core.scan import Scan, in_memory_loader
 from services.core.simulation.scenarios import simulate
 
 

@@ -1,4 +1,4 @@
-"""A Scan (services.core.scan) over a session's stored raw uploads, for reprocessing with the offline pipeline."""
+"""A Scan (services.core.inputs.scan) over a session's stored raw uploads, for reprocessing offline."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from services.core.calibration import Calibration
-from services.core.scan import Scan
+from services.core.inputs.calibration import Calibration
+from services.core.inputs.scan import Scan
 from services.store.storage import SessionStore
 
 

@@ -17,7 +17,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from api.deps import Store, ViewPrincipal, ViewSession
 from api.results_access import Results, VersionQuery, served_version
-from services.core.dicom_export import STUDY_OBJECTS
+from services.core.outputs.dicom_export import STUDY_OBJECTS
 from services.store.session_export import session_objects, session_sheet
 
 router = APIRouter(prefix="/v1/sessions", tags=["export"])

@@ -22,7 +22,7 @@ from api.errors import (
     UnsupportedMediaType,
 )
 from api.schemas import ForceBatch, ForcesAccepted, FrameAccepted, FrameMeta
-from services.core.image_header import check_frame_file, sniff_image
+from services.core.inputs.image_header import check_frame_file, sniff_image
 from services.jobs import queue
 
 router = APIRouter(prefix="/v1/sessions", tags=["ingest"])

@@ -24,7 +24,7 @@ from prometheus_client.exposition import choose_encoder
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric, SummaryMetricFamily
 
 from api.deps import AppSettings, RedisClient
-from services.core.scan_quality import LAG_WARNING_S, live_lag
+from services.core.outputs.scan_quality import LAG_WARNING_S, live_lag
 from services.jobs import queue
 
 router = APIRouter(tags=["health"])

@@ -1,7 +1,7 @@
 """The accuracy report (spec §4): POST a reference track, GET the report and its plots.
 
 The report of a results version is built and written by services.store.results_report (the reprocess stage calls
-the same function); its "plots" are links to GET .../plots/{name}.png?v=<v> (services.core.session_report).
+the same function) with its plots named by file; `served` turns them into links to GET .../plots/{name}.png?v=<v>.
 """
 
 from __future__ import annotations
@@ -29,6 +29,12 @@ REFERENCE_TYPES = {"text/csv", "text/plain", "application/csv", "application/oct
 
 def _frame_seqs(store: SessionStore, sid: str) -> list[int]:
     return [f.seq for f in store.list_frames(sid)]
+
+
+def served(doc: dict[str, Any], sid: str, v: int) -> dict[str, Any]:
+    """Return a version's report as served: its "plots" as links to this API's plot route for version v."""
+    plots = {name: f"/v1/sessions/{sid}/plots/{name}.png?v={int(v)}" for name in doc.get("plots", {})}
+    return {**doc, "plots": plots}
 
 
 def _report(store: SessionStore, rs: ResultsStore, sid: str, v: int, reference: str) -> dict[str, Any]:
@@ -68,7 +74,7 @@ async def post_reference(
         raise Conflict("no path yet: post the reference after frames have been processed", code="not_ready")
     doc = await run_in_threadpool(_store_and_report, store, rs, meta.id, version, text)
     log.info("reference evaluated", extra={"session": meta.id})
-    return JSONResponse(doc, headers={"X-Results-Version": str(version)})
+    return JSONResponse(served(doc, meta.id, version), headers={"X-Results-Version": str(version)})
 
 
 def _fresh_report(store: SessionStore, rs: ResultsStore, sid: str, v: int, reference: str) -> dict[str, Any]:
@@ -88,7 +94,7 @@ async def get_report(meta: ViewSession, store: Store, rs: Results, v: VersionQue
     if version is None:
         raise NotFound("no report: no frame has been processed yet", code="not_ready")
     doc = await run_in_threadpool(_fresh_report, store, rs, meta.id, version, reference)
-    return JSONResponse(doc, headers=version_headers(version))
+    return JSONResponse(served(doc, meta.id, version), headers=version_headers(version))
 
 
 @router.get("/{session_id}/plots/{name}.png", response_class=Response, responses={200: {"content": {"image/png": {}}}})

@@ -19,7 +19,7 @@ from api.deps import AppSettings, IngestPrincipal, IngestSession, RedisClient, S
 from api.errors import Conflict, NotFound, Validation
 from api.schemas import BatchAccepted, BatchReprocessRequest, BatchState, JobAccepted, JobState, ReprocessRequest
 from services.core import method_options
-from services.core.calibration import Calibration, CalibrationError
+from services.core.inputs.calibration import Calibration, CalibrationError
 from services.jobs import reprocess as jobs
 from services.store.storage import SessionMeta, SessionStore
 

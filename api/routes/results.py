@@ -15,8 +15,8 @@ from api.caching import IMMUTABLE, NO_CACHE, cached_bytes, conditional, file_res
 from api.deps import AppSettings, RedisClient, ViewSession, incr
 from api.errors import NotFound
 from api.results_access import Results, VersionQuery, resolve_version, served_mosaic, served_version
-from services.core.deepzoom import DziGeometry, blank_png
-from services.core.results_docs import path_rows_from_json
+from services.core.mosaic.deepzoom import DziGeometry, blank_png
+from services.core.outputs.results_docs import path_rows_from_json
 from services.store.results_io import path_csv
 
 router = APIRouter(prefix="/v1/sessions", tags=["results"])

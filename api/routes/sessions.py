@@ -19,8 +19,8 @@ from api.deps import (
 from api.errors import Validation
 from api.results_access import get_results, reprocess_running, resolve_version, session_extent
 from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
-from services.core.calibration import CalibrationError, parse_calibration
-from services.core.scan_quality import live_lag, scan_warnings, summarize_frames
+from services.core.inputs.calibration import CalibrationError, parse_calibration
+from services.core.outputs.scan_quality import live_lag, scan_warnings, summarize_frames
 from services.jobs import queue
 from services.jobs import reprocess as jobs
 

@@ -16,11 +16,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from services.core.calibration import Calibration
-from services.core.features import detect_features
-from services.core.force_model import interpolate_forces, load_state
-from services.core.scan import Scan
-from services.core.vein_enhancement import enhance_veins
+from services.core.inputs.calibration import Calibration
+from services.core.inputs.scan import Scan
+from services.core.physics.force_model import interpolate_forces, load_state
+from services.core.registration.features import detect_features
+from services.core.registration.vein_enhancement import enhance_veins
 
 # Frame selection for the modulus fit (values from the task brief).
 NORMAL_TILT_DEG = 0.05  # "pressed normally": |theta_x|, |theta_y| below this

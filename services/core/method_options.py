@@ -12,9 +12,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationError, create_model
 
-from services.core.calibration import Calibration, CalibrationError
-from services.core.features import FEATURE_KINDS
+from services.core.inputs.calibration import Calibration, CalibrationError
 from services.core.methods import METHOD_NAMES, REGISTRATION_KINDS, MethodOptions, method_options
+from services.core.registration.features import FEATURE_KINDS
 
 USER_KEYS = ("method", "method_options", "calibration")
 SYSTEM_KEYS = ("source", "job")  # written by the workers into options.json

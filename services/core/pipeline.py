@@ -11,16 +11,21 @@ from typing import Any
 
 import numpy as np
 
-from services.core.calibration import Calibration
-from services.core.compliance import ComplianceFit
-from services.core.force_model import interpolate_forces
-from services.core.frame_prep import PreparedFrame, estimate_flat_field, estimate_window_mask, prepare_frame
+from services.core.inputs.calibration import Calibration
+from services.core.inputs.scan import Scan
 from services.core.methods import MethodOptions
-from services.core.mosaic import MosaicImage
-from services.core.registrar import STATUS_OK
-from services.core.registration import Similarity
-from services.core.scan import Scan
+from services.core.mosaic.canvas import MosaicImage
+from services.core.physics.compliance import ComplianceFit
+from services.core.physics.force_model import interpolate_forces
+from services.core.registration.frame_prep import (
+    PreparedFrame,
+    estimate_flat_field,
+    estimate_window_mask,
+    prepare_frame,
+)
+from services.core.registration.registrar import STATUS_OK
 from services.core.session_reconstruction import PATH_COLUMNS, PathRow, SessionReconstruction
+from services.core.similarity import Similarity
 
 __all__ = ["PATH_COLUMNS", "PathRow", "Reconstruction", "reconstruct"]
 

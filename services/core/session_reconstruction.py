@@ -14,13 +14,14 @@ from typing import Any
 
 import numpy as np
 
-from services.core.calibration import Calibration
-from services.core.compliance import ComplianceFit, fit_compliance
-from services.core.frame_prep import PreparedFrame, load_map_n
-from services.core.kept_frame import KeptFrame, keep_frame
+from services.core.inputs.calibration import Calibration
 from services.core.methods import MethodOptions
-from services.core.mosaic import FrameLayers, MosaicImage, SparseCanvas, blend_weight
-from services.core.registrar import (
+from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, blend_weight
+from services.core.physics.compliance import ComplianceFit, fit_compliance
+from services.core.physics.tissue_model import tilt_angles_rad
+from services.core.registration.frame_prep import PreparedFrame, load_map_n
+from services.core.registration.kept_frame import KeptFrame, keep_frame
+from services.core.registration.registrar import (
     REASON_BAD_FRAME,
     REASON_MISSING,
     STATUS_LOST,
@@ -29,8 +30,7 @@ from services.core.registrar import (
     FrameResult,
     Registrar,
 )
-from services.core.registration import Similarity
-from services.core.tissue_model import tilt_angles_rad
+from services.core.similarity import Similarity
 
 PATH_COLUMNS = (
     "seq",
@@ -63,7 +63,7 @@ class PathRow:
     stretch: float
     inliers: int
     status: str
-    reason: str = ""  # why a frame is lost or rejected (services.core.registrar.REASONS); "" when ok
+    reason: str = ""  # why a frame is lost or rejected (services.core.registration.registrar.REASONS); "" when ok
 
 
 def path_rows_json(rows: Sequence[PathRow]) -> list[dict[str, Any]]:
@@ -212,7 +212,7 @@ class SessionReconstruction:
         """Return what the scan taught about the tissue and the probe (mosaic.json and report.json "tissue").
 
         The calibration's priors, the fitted view model (effective kappa with its 68 % range, tissue anisotropy,
-        services.core.tissue_model) once fitted, and the compliance fit (E in kPa, gauge) once finished.
+        services.core.physics.tissue_model) once fitted, and the compliance fit (E in kPa, gauge) once finished.
         """
         calib = self.calibration
         doc: dict[str, Any] = {

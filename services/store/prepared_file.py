@@ -9,9 +9,9 @@ import io
 
 import numpy as np
 
-from services.core.features import Features
-from services.core.force_model import LoadState
-from services.core.frame_prep import PreparedFrame
+from services.core.physics.force_model import LoadState
+from services.core.registration.features import Features
+from services.core.registration.frame_prep import PreparedFrame
 from services.store.file_formats import check_format, npz_bytes
 
 PREPARED_FORMAT = 1

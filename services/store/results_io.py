@@ -20,11 +20,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
-from services.core.mosaic import MosaicImage, force_to_color
+from services.core.mosaic.canvas import MosaicImage, force_to_color
+from services.core.mosaic.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
+from services.core.outputs.plots import SheetIdentity, plot_coverage_map, plot_force_map
+from services.core.outputs.session_report import SessionReport, build_session_report
 from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
-from services.core.plots import SheetIdentity, plot_coverage_map, plot_force_map
-from services.core.session_report import SessionReport, build_session_report
 
 
 def _cell(value: Any) -> str:
@@ -53,8 +53,8 @@ def write_reconstruction(
 ) -> SessionReport:
     """Write every output of a reconstruction to out_dir (see OUTPUTS); return its SessionReport.
 
-    reference: the (N, 2) or (N, 5) reference track (services.core.session_report.build_session_report).
-    scan_digest: the scan's content digest (services.core.dicom_export.scan_digest), recorded in mosaic.json:
+    reference: the (N, 2) or (N, 5) reference track (services.core.outputs.session_report.build_session_report).
+    scan_digest: the scan's content digest (services.core.outputs.dicom_export.scan_digest), recorded in mosaic.json:
     the key the DICOM export's UIDs derive from.
     label: what the one-page report names the scan by (e.g. the scan folder's name; default: out_dir's name).
     """

@@ -1,7 +1,7 @@
 """Write the report of a results version (report.json, paths.png, errors.png) from what the version stores.
 
-The one adapter over `services.core.session_report.version_report`: the reprocess stage calls it when a version is
-complete, the API when a reference is posted or the served report is stale, so both write the same document
+The one adapter over `services.core.outputs.session_report.version_report`: the reprocess stage calls it when a
+version is complete, the API when a reference is posted or the served report is stale, so both write the same document
 from the same inputs (the version's path.json, mosaic layers, mosaic.json and options, the session's
 reference.csv aligned to every frame seq of the session).
 """
@@ -14,10 +14,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.reference import parse_reference_csv
-from services.core.results_docs import path_rows_from_json
+from services.core.inputs.reference import parse_reference_csv
+from services.core.outputs.results_docs import path_rows_from_json
+from services.core.outputs.session_report import Backdrop, version_report
 from services.core.session_reconstruction import PathRow
-from services.core.session_report import Backdrop, version_report
 from services.store.results_store import ResultsStore
 
 

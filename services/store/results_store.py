@@ -33,10 +33,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.frame_prep import PreparedFrame
-from services.core.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
-from services.core.mosaic import MosaicImage, force_to_color
-from services.core.results_docs import LAYERS
+from services.core.mosaic.canvas import MosaicImage, force_to_color
+from services.core.mosaic.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
+from services.core.outputs.results_docs import LAYERS
+from services.core.registration.frame_prep import PreparedFrame
 from services.core.session_reconstruction import PathRow, path_rows_json
 from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, replace_bytes, write_once
 from services.store.file_formats import npz_bytes

@@ -12,9 +12,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.calibration import Calibration, CalibrationError, parse_calibration
-from services.core.reference import ReferenceFormatError, parse_reference_csv, reference_csv
-from services.core.scan import Scan
+from services.core.inputs.calibration import Calibration, CalibrationError, parse_calibration
+from services.core.inputs.reference import ReferenceFormatError, parse_reference_csv, reference_csv
+from services.core.inputs.scan import Scan
 
 FRAME_EXTENSIONS = ("png", "tif", "tiff")
 FRAMES_HEADER = ("seq", "t_s")
@@ -172,7 +172,7 @@ def _read_stream(folder: Path, name: str, header: tuple[str, ...], min_rows: int
 
 
 def _read_reference(folder: Path, seq: np.ndarray) -> np.ndarray:
-    """Return the reference track (N, 5) of the folder's reference.csv (services.core.reference)."""
+    """Return the reference track (N, 5) of the folder's reference.csv (services.core.inputs.reference)."""
     try:
         return parse_reference_csv(_read_text(folder, "reference.csv"), [int(s) for s in seq])
     except ReferenceFormatError as e:

@@ -30,9 +30,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from services.core.calibration import Calibration, parse_calibration
-from services.core.image_header import check_header, read_header
-from services.core.study import StudyContext, parse_study
+from services.core.inputs.calibration import Calibration, parse_calibration
+from services.core.inputs.image_header import check_header, read_header
+from services.core.inputs.study import StudyContext, parse_study
 from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, try_lock
 
 SessionStatus = Literal["receiving", "processing", "done", "failed"]

@@ -172,7 +172,7 @@ def test_export_writes_dicom_that_reads_back(outputs: Path, tmp_path: Path, caps
     from pydicom.pixels import apply_rescale
 
     from services.store.results_io import read_results_mosaic
-    from tests.services.core.test_dicom_export import dciodvfy
+    from tests.services.core.outputs.test_dicom_export import dciodvfy
 
     out = tmp_path / "dicom"
     args = ["export", str(outputs), "--out", str(out), "--acquired", "2025-03-04T10:20:30", "--study-key", "s1"]
@@ -213,7 +213,7 @@ def test_export_writes_dicom_that_reads_back(outputs: Path, tmp_path: Path, caps
 def test_export_uids_come_from_the_scan_not_the_folder(outputs: Path, scan_dir: Path, tmp_path: Path) -> None:
     from pydicom import dcmread
 
-    from services.core.dicom_export import scan_digest
+    from services.core.outputs.dicom_export import scan_digest
     from services.store.scan_folder import read_scan_folder
 
     meta = json.loads((outputs / "mosaic.json").read_text())

@@ -18,7 +18,7 @@ import api.cli as cli
 import api.client
 import services.core.simulation.scenarios
 import services.store.scan_folder
-from services.core.mosaic import MosaicImage
+from services.core.mosaic.canvas import MosaicImage
 from services.store.results_store import ResultsStore
 
 SID = "0123456789abcdef0123456789abcdef"

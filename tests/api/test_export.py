@@ -23,13 +23,13 @@ from pydicom import dcmread
 from pydicom.pixels import apply_rescale
 
 from api.auth import make_viewer_token
-from services.core.dicom_export import ENCAPSULATED_PDF, SC_IMAGE, study_uid
-from services.core.mosaic import MosaicImage
+from services.core.inputs.study import parse_study
+from services.core.mosaic.canvas import MosaicImage
+from services.core.outputs.dicom_export import ENCAPSULATED_PDF, SC_IMAGE, study_uid
 from services.core.session_reconstruction import PathRow
-from services.core.study import parse_study
 from services.store.results_store import ResultsStore
 from services.store.version_state import VersionState
-from tests.services.core.test_dicom_export import dciodvfy
+from tests.services.core.outputs.test_dicom_export import dciodvfy
 
 PX_PER_MM = 8.0
 H, W = 120, 200  # px: 15 x 25 mm

@@ -297,7 +297,7 @@ def test_invalid_calibration_is_422_without_echoing_values(client: TestClient) -
 
 
 def test_worker_option_parser_never_echoes_keys_or_values() -> None:
-    from services.core.calibration import default_calibration
+    from services.core.inputs.calibration import default_calibration
     from services.core.method_options import validate_options
 
     for doc in (
@@ -325,8 +325,8 @@ def test_worker_sets_decoder_limits_and_refuses_an_oversize_frame_from_its_heade
     from PIL import Image
 
     import workers.main as worker_main
-    from services.core.calibration import default_calibration
-    from services.core.image_header import BadImageError
+    from services.core.inputs.calibration import default_calibration
+    from services.core.inputs.image_header import BadImageError
     from services.store.storage import SessionStore
 
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", Image.MAX_IMAGE_PIXELS)  # restored afterwards

@@ -20,12 +20,12 @@ from api_helpers import INGEST, auth, upload
 from fastapi.testclient import TestClient
 
 from api.auth import make_viewer_token
-from services.core.deepzoom import DziGeometry, TilePyramid
-from services.core.evaluation import evaluate_path
+from services.core.inputs.scan import Scan
 from services.core.methods import method_options
-from services.core.mosaic import force_to_color
+from services.core.mosaic.canvas import force_to_color
+from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
+from services.core.outputs.evaluation import evaluate_path
 from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
-from services.core.scan import Scan
 from services.core.session_reconstruction import PATH_COLUMNS, PathRow, SessionReconstruction, path_rows_json
 from services.store.results_store import LAYERS, ResultsStore
 from tests.sim_cache import simulated

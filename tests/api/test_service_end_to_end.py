@@ -17,7 +17,7 @@ import pytest
 
 from api.client import VeinmosaicClient
 from api.launcher import Service, free_port
-from services.core.scan import Scan
+from services.core.inputs.scan import Scan
 from services.jobs import queue
 from services.jobs.redis_backend import connect, read_embedded_url
 from services.store.scan_folder import frame_name, read_scan_folder, write_scan_folder

@@ -20,7 +20,7 @@ from browser_service import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, browser_service
 
 from api.client import FORCE_LEAD_S, VeinmosaicClient
 from api.launcher import Service
-from services.core.scan import Scan
+from services.core.inputs.scan import Scan
 from tests.sim_cache import simulated
 
 pytestmark = pytest.mark.slow

@@ -22,11 +22,11 @@ from browser_service import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, browser_service
 
 from api.client import VeinmosaicClient
 from api.launcher import Service
-from services.core.deepzoom import DziGeometry, TilePyramid
-from services.core.mosaic import FrameLayers, SparseCanvas, blend_weight
-from services.core.registration import Similarity
-from services.core.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json
+from services.core.mosaic.canvas import FrameLayers, SparseCanvas, blend_weight
+from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
+from services.core.outputs.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json
 from services.core.session_reconstruction import PathRow
+from services.core.similarity import Similarity
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
 from services.store.version_state import VersionState

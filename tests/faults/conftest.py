@@ -22,7 +22,7 @@ import pytest
 import redis
 
 from api.launcher import free_port, serve_command, service_env, start_process, stop_processes
-from services.core.scan import Scan
+from services.core.inputs.scan import Scan
 from services.jobs import queue
 from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.storage import SessionStore

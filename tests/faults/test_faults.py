@@ -25,7 +25,7 @@ import redis
 
 from api.client import VeinmosaicClient
 from api.launcher import stop_processes, wait_until_ready
-from services.core.scan import Scan
+from services.core.inputs.scan import Scan
 from services.core.simulation.scenarios import simulate
 from services.jobs import queue
 from services.jobs.redis_backend import read_embedded_url

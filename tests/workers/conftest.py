@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import redis
 
-from services.core.scan import Scan
+from services.core.inputs.scan import Scan
 from services.jobs import queue
 from services.jobs.redis_backend import close, connect, read_embedded_url
 from services.store.storage import SessionStore

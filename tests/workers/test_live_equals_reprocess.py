@@ -1,7 +1,7 @@
 """One owner per contract: a live session and a reprocess of the same scan, run by a real worker process over a
 real Redis, are served the same mosaic.json fields, report fields and session extent by the API.
 
-Both sides build mosaic.json with services.core.results_docs.mosaic_json, the extent with canvas_extent_mm and the
+Both sides build mosaic.json with core.outputs.results_docs.mosaic_json, the extent with canvas_extent_mm and the
 report with services.store.results_report.write_version_report; the live run and the offline pipeline feed the same
 prepared frames to the same deterministic registration, so their values agree to floating-point noise.
 """
@@ -18,7 +18,6 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from services.core.session_report import plot_links
 from services.core.simulation.scenarios import simulate
 from services.jobs import reprocess as jobs
 from services.settings import Settings
@@ -136,7 +135,8 @@ def test_live_and_reprocess_serve_the_same_documents(
     assert (x1 - x0) * k == pytest.approx(mosaic1["width"]) and (y1 - y0) * k == pytest.approx(mosaic1["height"])
 
     assert_same(without(report1, PER_VERSION_REPORT), without(report2, PER_VERSION_REPORT), "report")
-    assert report1["plots"] == plot_links(sid, 1) and report2["plots"] == plot_links(sid, 2)
+    for v, report in ((1, report1), (2, report2)):  # the API links each version's own plots
+        assert report["plots"] == {n: f"/v1/sessions/{sid}/plots/{n}.png?v={v}" for n in ("paths", "errors")}
     assert report2["mosaic_version"] == mosaic2["version"] and report1["mosaic_version"] == mosaic1["version"]
     for v in (1, 2):
         plot = api.get(f"/v1/sessions/{sid}/plots/paths.png?v={v}", headers=HEADERS)

@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from services.core.inputs.scan import Scan
 from services.core.pipeline import Reconstruction
-from services.core.scan import Scan
 from services.jobs import queue
 from services.jobs import reprocess as jobs
 from services.store.results_store import ResultsStore

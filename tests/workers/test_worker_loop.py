@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.core.calibration import default_calibration
+from services.core.inputs.calibration import default_calibration
 from services.core.method_options import parse_options, validate_options
 from services.jobs import queue
 from services.jobs import reprocess as jobs

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.core.force_model import interpolate_forces
-from services.core.frame_prep import prepare_frame
+from services.core.physics.force_model import interpolate_forces
 from services.core.pipeline import MASK_SAMPLE_FRAMES, window_setup_of
+from services.core.registration.frame_prep import prepare_frame
 from services.jobs import queue
 from services.store.session_version import SessionVersion
 from services.store.storage import SessionMeta, SessionNotFoundError

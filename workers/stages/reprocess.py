@@ -20,11 +20,11 @@ from typing import Any
 
 import numpy as np
 
-from services.core.compliance import ComplianceFit
-from services.core.deepzoom import DziGeometry, TilePyramid
-from services.core.mosaic import PLANES, TILE_PX, MosaicImage, SparseCanvas
+from services.core.mosaic.canvas import PLANES, TILE_PX, MosaicImage, SparseCanvas
+from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
+from services.core.outputs.results_docs import canvas_extent_mm, empty_revisions
+from services.core.physics.compliance import ComplianceFit
 from services.core.pipeline import reconstruct
-from services.core.results_docs import canvas_extent_mm, empty_revisions
 from services.core.session_reconstruction import PathRow
 from services.jobs import queue
 from services.jobs import reprocess as jobs

@@ -7,10 +7,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.core.calibration import Calibration
-from services.core.camera import px_to_mm, undistort_points_px
-from services.core.force_model import LoadState, local_load_n
-from services.core.rectification import pixel_grid
+from services.core.inputs.calibration import Calibration
+from services.core.physics.camera import px_to_mm, undistort_points_px
+from services.core.physics.force_model import LoadState, local_load_n
+from services.core.physics.rectification import pixel_grid
 from services.core.simulation.probe_path import rotation
 from services.core.simulation.vein_texture import World
 

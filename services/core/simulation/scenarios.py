@@ -7,9 +7,9 @@ import dataclasses
 import cv2
 import numpy as np
 
-from services.core.calibration import Calibration
-from services.core.force_model import LoadState
-from services.core.scan import Scan, in_memory_loader
+from services.core.inputs.calibration import Calibration
+from services.core.inputs.scan import Scan, in_memory_loader
+from services.core.physics.force_model import LoadState
 from services.core.simulation.probe_path import (
     ProbeMotion,
     calibration_motion,

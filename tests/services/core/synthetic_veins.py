@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.core.registration import Similarity
+from services.core.similarity import Similarity
 
 H, W = 480, 640  # the probe's frame size (pixels)
 PX_PER_MM = 8.0

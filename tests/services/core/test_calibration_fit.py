@@ -8,7 +8,6 @@ import cv2
 import numpy as np
 import pytest
 
-from services.core.calibration import default_calibration
 from services.core.calibration_fit import (
     calibrate_scan,
     fit_hooke,
@@ -17,7 +16,8 @@ from services.core.calibration_fit import (
     measure_scales,
     measure_similarities,
 )
-from services.core.scan import Scan, in_memory_loader
+from services.core.inputs.calibration import default_calibration
+from services.core.inputs.scan import Scan, in_memory_loader
 
 NU, AREA = 0.5, 0.0048
 W, H = 400, 320

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from services.core.evaluation import AccuracyReport, evaluate_path
+from services.core.inputs.scan import Scan
 from services.core.methods import method_options
+from services.core.outputs.evaluation import AccuracyReport, evaluate_path
 from services.core.pipeline import PATH_COLUMNS, Reconstruction, reconstruct
-from services.core.scan import Scan
 from tests.sim_cache import simulated
 from tests.tolerances import TOL
 

@@ -10,12 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from services.core.frame_prep import PreparedFrame
 from services.core.methods import method_options
-from services.core.mosaic import FrameLayers, SparseCanvas
+from services.core.mosaic.canvas import FrameLayers, SparseCanvas
 from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
-from services.core.registration import Similarity
+from services.core.registration.frame_prep import PreparedFrame
 from services.core.session_reconstruction import SessionReconstruction
+from services.core.similarity import Similarity
 from tests.sim_cache import simulated
 
 # Measured on the realistic short scan, seed 1 (smooth skin: the veins are the only structure, so sensor noise

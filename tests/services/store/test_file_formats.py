@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.core.calibration import default_calibration
+from services.core.inputs.calibration import default_calibration
 from services.store.file_formats import UnknownFormatError, npz_bytes
 from services.store.prepared_file import PREPARED_FORMAT, prepared_from_bytes, prepared_to_bytes
 from services.store.results_store import ResultsStore

@@ -12,10 +12,10 @@ import cv2
 import numpy as np
 import pytest
 
-from services.core.mosaic import MosaicImage
+from services.core.mosaic.canvas import MosaicImage
 from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
-from services.core.registration import IDENTITY, Similarity
 from services.core.session_reconstruction import path_rows_json
+from services.core.similarity import IDENTITY, Similarity
 from services.store.results_io import path_csv, read_results_mosaic, write_reconstruction
 
 NAN = math.nan

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.core.calibration import default_calibration
-from services.core.features import Features
-from services.core.force_model import LoadState
-from services.core.frame_prep import PreparedFrame
+from services.core.inputs.calibration import default_calibration
+from services.core.physics.force_model import LoadState
+from services.core.registration.features import Features
+from services.core.registration.frame_prep import PreparedFrame
 from services.core.session_reconstruction import PathRow
 from services.store.durable import write_once
 from services.store.prepared_file import prepared_from_bytes, prepared_to_bytes

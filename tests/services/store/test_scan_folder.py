@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from services.core.calibration import default_calibration
-from services.core.scan import Scan, in_memory_loader
+from services.core.inputs.calibration import default_calibration
+from services.core.inputs.scan import Scan, in_memory_loader
 from services.store.scan_folder import ScanFormatError, read_scan_folder, write_scan_folder
 
 W, H = 48, 32

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from services.core.calibration import default_calibration
-from services.core.registrar import STATUS_REJECTED
+from services.core.inputs.calibration import default_calibration
+from services.core.registration.registrar import STATUS_REJECTED
 from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.session_version import SessionVersion, method_of
 from services.store.storage import SessionStore

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.core.calibration import default_calibration
+from services.core.inputs.calibration import default_calibration
 from services.store import storage
 from services.store.durable import atomic_write_bytes
 from services.store.storage import (

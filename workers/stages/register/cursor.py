@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import time
 
-from services.core.frame_prep import PreparedFrame
+from services.core.registration.frame_prep import PreparedFrame
 from services.jobs import queue
 from workers.config import Context
 from workers.stages.register.flush import Flusher

@@ -8,9 +8,9 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-from services.core.calibration import Calibration
-from services.core.deepzoom import DziGeometry, TilePyramid
+from services.core.inputs.calibration import Calibration
 from services.core.methods import MethodOptions
+from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
 from services.core.session_reconstruction import SessionReconstruction
 from services.jobs.leases import Lease
 from services.store.session_version import SessionVersion

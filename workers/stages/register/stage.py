@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import time
 
-from services.core.deepzoom import DziGeometry, TilePyramid
+from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
 from services.core.pipeline import window_radius_mm
 from services.core.session_reconstruction import SessionReconstruction
 from services.jobs.leases import Lease

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.core.calibration import default_calibration
-from services.core.force_model import load_state
+from services.core.inputs.calibration import default_calibration
+from services.core.physics.force_model import load_state
 from services.core.simulation.probe_path import (
     MIN_SENSOR_FORCE_N,
     calibration_motion,

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from services.core.camera import distort_points_px
-from services.core.force_model import LoadState
+from services.core.physics.camera import distort_points_px
+from services.core.physics.force_model import LoadState
 from services.core.simulation.probe_path import rotation
 from services.core.simulation.renderer import (
     DARK_LEVEL,

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from services.core.force_model import LoadState, interpolate_forces, load_state
-from services.core.scan import Scan
+from services.core.inputs.scan import Scan
+from services.core.physics.force_model import LoadState, interpolate_forces, load_state
 from services.core.simulation.probe_path import MIN_SENSOR_FORCE_N, sensor_forces
 from services.core.simulation.renderer import DARK_LEVEL
 from services.core.simulation.scenarios import (
@@ -22,7 +22,7 @@ from services.core.simulation.scenarios import (
     nominal_calibration,
     simulate,
 )
-from tests.services.core.test_rectification import rectify_image
+from tests.services.core.physics.test_rectification import rectify_image
 
 SEED = 11
 

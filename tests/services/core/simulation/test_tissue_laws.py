@@ -14,10 +14,10 @@ import math
 import numpy as np
 import pytest
 
-from services.core.evaluation import evaluate_angles, evaluate_path
 from services.core.methods import method_options
+from services.core.outputs.evaluation import evaluate_angles, evaluate_path
+from services.core.outputs.session_report import path_angles_deg
 from services.core.pipeline import reconstruct
-from services.core.session_report import path_angles_deg
 from services.core.simulation.scenarios import TRUE_KAPPA_N_PER_MM, simulate
 
 TOL = {  # law: (max path RMSE mm, max tilt RMS deg per axis, max relative kappa error)

@@ -1,0 +1,1 @@
+"""The mosaic: the canvas of weighted sums, its layer images and its Deep Zoom pyramid."""

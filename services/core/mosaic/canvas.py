@@ -1,0 +1,163 @@
+"""The mosaic canvas: sparse tiles of weighted sums (vein intensity, force, coverage) in frame 0's axes.
+
+Each tile holds four float32 planes: sum(w I), sum(w), sum(w F), sum(mask). Pasting is linear, so a frame
+whose pose changes is moved exactly by pasting it again with weight -1 at the old pose and +1 at the new.
+Memory follows the area scanned: only touched tiles exist.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from services.core.similarity import Similarity
+
+TILE_PX = 256
+PLANES = 4  # weighted intensity, weight, weighted force, coverage
+FORCE_FULL_SCALE_N = 30.0
+
+
+@dataclass(frozen=True)
+class FrameLayers:
+    """What one rectified frame contributes: intensity 0..1, blend weight, local load (N), all (H, W) float32."""
+
+    intensity: np.ndarray
+    weight: np.ndarray
+    force_n: np.ndarray
+    centre_px: tuple[float, float]
+    px_per_mm: float
+
+
+@dataclass(frozen=True)
+class MosaicImage:
+    """A rendered mosaic: vein image (uint8), force (N, float32, NaN uncovered), coverage, and geometry."""
+
+    vein: np.ndarray
+    force_n: np.ndarray
+    coverage: np.ndarray
+    px_per_mm: float
+    origin_px: tuple[float, float]
+
+    def meta(self) -> dict[str, object]:
+        """Return mosaic.json (spec §4): px_per_mm, origin_px (frame 0's centre), width, height."""
+        h, w = self.vein.shape
+        return {
+            "px_per_mm": self.px_per_mm,
+            "origin_px": [float(self.origin_px[0]), float(self.origin_px[1])],
+            "width": int(w),
+            "height": int(h),
+            "force_full_scale_n": FORCE_FULL_SCALE_N,
+        }
+
+
+def blend_weight(mask: np.ndarray, ramp_px: float = 40.0, centre_sigma_frac: float = 0.45) -> np.ndarray:
+    """Return the blend weight (H, W) float32: a smooth ramp from the window edge times a centre preference.
+
+    The ramp removes seams; the centre preference makes each mosaic pixel come mostly from the frames that
+    saw it nearest their centre (least rectification error), which keeps vessels sharp without ghosting.
+    """
+    inside = (mask > 0).astype(np.uint8)
+    dist = cv2.distanceTransform(inside, cv2.DIST_L2, 5)
+    weight = np.minimum(dist * np.float32(1.0 / ramp_px), np.float32(1.0))
+    weight *= weight
+    h, w = mask.shape
+    sigma = centre_sigma_frac * min(h, w)
+    # the Gaussian centre preference is separable: two 1-D profiles instead of a full grid
+    gx = np.exp(-((np.arange(w, dtype=np.float32) - w / 2) ** 2) / (2 * sigma**2)).astype(np.float32)
+    gy = np.exp(-((np.arange(h, dtype=np.float32) - h / 2) ** 2) / (2 * sigma**2)).astype(np.float32)
+    weight *= gy[:, None]
+    weight *= gx[None, :]
+    return weight
+
+
+@dataclass
+class SparseCanvas:
+    """A mosaic canvas in mm of frame 0 at px_per_mm, stored as sparse TILE_PX tiles keyed by (col, row)."""
+
+    px_per_mm: float
+    tiles: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
+
+    def frame_to_canvas(self, pose: Similarity | np.ndarray, layers: FrameLayers) -> np.ndarray:
+        """Return the 2x3 affine from frame pixels to canvas pixels (canvas (0, 0) = frame 0's centre).
+
+        pose: frame mm (about its centre) -> mosaic mm, a similarity or a 2x3 affine.
+        """
+        m = pose.matrix() if isinstance(pose, Similarity) else np.asarray(pose, np.float64)
+        k = self.px_per_mm / layers.px_per_mm
+        cx, cy = layers.centre_px
+        # canvas = px_per_mm * (L (u - c) / frame px_per_mm + t)
+        linear = m[:, :2] * k
+        offset = m[:, 2] * self.px_per_mm - linear @ np.array([cx, cy])
+        return np.hstack([linear, offset[:, None]])
+
+    def footprint_tiles(self, affine: np.ndarray, shape: tuple[int, int]) -> list[tuple[int, int]]:
+        """Return the tile keys a frame of shape (H, W) covers under the frame->canvas affine."""
+        h, w = shape
+        corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float) @ affine.T
+        c0, r0 = np.floor(corners.min(axis=0) / TILE_PX).astype(int)
+        c1, r1 = np.floor(corners.max(axis=0) / TILE_PX).astype(int)
+        return [(c, r) for r in range(r0, r1 + 1) for c in range(c0, c1 + 1)]
+
+    def paste(self, layers: FrameLayers, pose: Similarity | np.ndarray, sign: float = 1.0) -> list[tuple[int, int]]:
+        """Add (sign=+1) or remove (sign=-1) a frame at a pose; return the tile keys it touched."""
+        affine = self.frame_to_canvas(pose, layers)
+        w = layers.weight
+        src = np.dstack([layers.intensity * w, w, layers.force_n * w, (w > 0).astype(np.float32)]).astype(np.float32)
+        touched = []
+        for key in self.footprint_tiles(affine, w.shape):
+            shift = affine.copy()
+            shift[0, 2] -= key[0] * TILE_PX
+            shift[1, 2] -= key[1] * TILE_PX
+            patch = cv2.warpAffine(
+                src, shift, (TILE_PX, TILE_PX), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+            )
+            if not np.any(patch[..., 1]):
+                continue
+            tile = self.tiles.get(key)
+            if tile is None:
+                if sign < 0:
+                    continue
+                tile = np.zeros((TILE_PX, TILE_PX, PLANES), np.float32)
+                self.tiles[key] = tile
+            tile += sign * patch
+            touched.append(key)
+        return touched
+
+    def extent_tiles(self) -> tuple[int, int, int, int] | None:
+        """Return (col0, row0, col1, row1) inclusive of the tiles present, or None when empty."""
+        if not self.tiles:
+            return None
+        keys = np.array(list(self.tiles))
+        return int(keys[:, 0].min()), int(keys[:, 1].min()), int(keys[:, 0].max()), int(keys[:, 1].max())
+
+    def render(self, min_weight: float = 1e-3) -> MosaicImage:
+        """Return the whole mosaic cropped to covered pixels, with frame 0's centre at origin_px."""
+        ext = self.extent_tiles()
+        if ext is None:
+            z = np.zeros((1, 1), np.float32)
+            return MosaicImage(z.astype(np.uint8), z * np.nan, z, self.px_per_mm, (0.0, 0.0))
+        c0, r0, c1, r1 = ext
+        big = np.zeros(((r1 - r0 + 1) * TILE_PX, (c1 - c0 + 1) * TILE_PX, PLANES), np.float32)
+        for (c, r), tile in self.tiles.items():
+            big[(r - r0) * TILE_PX : (r - r0 + 1) * TILE_PX, (c - c0) * TILE_PX : (c - c0 + 1) * TILE_PX] = tile
+        covered = big[..., 1] > min_weight
+        ys, xs = np.nonzero(covered)
+        y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+        big, covered = big[y0:y1, x0:x1], covered[y0:y1, x0:x1]
+        den = np.where(covered, big[..., 1], 1.0)
+        vein = np.where(covered, np.clip(big[..., 0] / den, 0, 1) * 255.0 + 0.5, 0).astype(np.uint8)
+        force = np.where(covered, big[..., 2] / den, np.nan).astype(np.float32)
+        coverage = np.where(covered, big[..., 3], 0).astype(np.float32)
+        origin = (float(-c0 * TILE_PX - x0), float(-r0 * TILE_PX - y0))
+        return MosaicImage(vein, force, coverage, self.px_per_mm, origin)
+
+
+def force_to_color(force_n: np.ndarray, full_scale_n: float = FORCE_FULL_SCALE_N) -> np.ndarray:
+    """Return a BGR uint8 image of the force layer (TURBO colour map over 0..full_scale N, black uncovered)."""
+    valid = np.isfinite(force_n)
+    level = np.clip(np.nan_to_num(force_n) / full_scale_n, 0, 1) * 255.0
+    color = cv2.applyColorMap(level.astype(np.uint8), cv2.COLORMAP_TURBO)
+    color[~valid] = 0
+    return color

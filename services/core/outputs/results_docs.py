@@ -1,0 +1,174 @@
+"""The one builder of each document of a results version: mosaic.json, the session extent, path rows.
+
+Pure functions (no I/O): the live register stage, the reprocess stage and the API routes all call them, so a
+live session and a reprocess of the same scan publish the same fields computed the same way.
+
+The session extent is the bounding box, in mm on frame 0's axes, of the mosaic's covered pixels (blend
+weight > MIN_WEIGHT): exactly the bounds of the mosaic image a viewer shows (`SparseCanvas.render` crops to
+these pixels). It is computed from the canvas the tiles are cut from, so it is the same live (every flush,
+without rendering) and after a reprocess (the canvas made from the rendered mosaic). The older live
+estimate, placed frame centres +- the radius of a circle with the window's area, was wrong three ways: the
+window is not a circle, a frame's footprint grows and shrinks with its stretch and the compliance gauge, and
+blurred frames are placed but not stitched.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from services.core.mosaic.canvas import FORCE_FULL_SCALE_N, TILE_PX, SparseCanvas
+from services.core.mosaic.deepzoom import MIN_WEIGHT, DziGeometry
+from services.core.physics.compliance import ComplianceFit
+from services.core.registration.registrar import REASON_BAD_FRAME, STATUS_LOST, STATUS_OK, STATUS_REJECTED
+from services.core.session_reconstruction import PATH_COLUMNS, PathRow
+
+LAYERS = ("vein", "force")
+IMAGE_KEYS = ("px_per_mm", "origin_px", "width", "height", "force_full_scale_n")
+_FLOAT_COLUMNS = frozenset({"t_s", "x_mm", "y_mm", "yaw_deg", "fz_n", "tilt_x_deg", "tilt_y_deg", "stretch"})
+
+Revisions = dict[str, dict[str, int]]
+
+
+# ----- path rows --------------------------------------------------------------------------------------------------
+def path_row_from_json(d: Mapping[str, Any]) -> PathRow:
+    """Return the PathRow of one path.json dict (null numbers become NaN)."""
+    values: dict[str, Any] = {}
+    for c in PATH_COLUMNS:
+        v = d.get(c)
+        if c in _FLOAT_COLUMNS:
+            v = math.nan if v is None else float(v)
+        values[c] = v
+    values["seq"] = int(values["seq"])
+    values["inliers"] = int(values["inliers"] or 0)
+    values["status"] = str(values["status"])
+    values["reason"] = str(values.get("reason") or "")
+    return PathRow(**values)
+
+
+def path_rows_from_json(docs: Iterable[Mapping[str, Any]]) -> list[PathRow]:
+    """Return the PathRows of path.json dicts, sorted by seq."""
+    return sorted((path_row_from_json(d) for d in docs), key=lambda r: r.seq)
+
+
+def rejected_row(seq: int, t_s: float = math.nan, reason: str = REASON_BAD_FRAME) -> PathRow:
+    """Return the path row of a frame that could not be processed (status rejected, no pose)."""
+    nan = math.nan
+    return PathRow(int(seq), float(t_s), nan, nan, nan, nan, nan, nan, nan, 0, STATUS_REJECTED, reason)
+
+
+def frame_counts(rows: Sequence[PathRow]) -> dict[str, int]:
+    """Return {"processed", "ok", "lost", "rejected"}: frame counts of path rows."""
+    c = Counter(r.status for r in rows)
+    return {"processed": len(rows), "ok": c[STATUS_OK], "lost": c[STATUS_LOST], "rejected": c[STATUS_REJECTED]}
+
+
+def _num(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def path_tail(rows: Sequence[PathRow], seqs: Iterable[int]) -> list[list[Any]]:
+    """Return the event's path tail: [seq, x_mm or None, y_mm or None, status] of the rows of `seqs`, by seq."""
+    by_seq = {r.seq: r for r in rows}
+    return [[s, _num(by_seq[s].x_mm), _num(by_seq[s].y_mm), by_seq[s].status] for s in sorted(set(seqs)) if s in by_seq]
+
+
+# ----- the session extent -----------------------------------------------------------------------------------------
+def canvas_extent_mm(canvas: SparseCanvas, min_weight: float = MIN_WEIGHT) -> list[float] | None:
+    """Return the session extent [xmin, ymin, xmax, ymax] in mm (frame 0's axes) of a canvas, None when empty.
+
+    The box of the covered pixels' edges (canvas pixel (0, 0) is frame 0's centre), as `render` crops them.
+    """
+    lo = np.array([np.inf, np.inf])
+    hi = -lo
+    for (c, r), tile in canvas.tiles.items():
+        covered = tile[..., 1] > min_weight
+        if not covered.any():
+            continue
+        rows = np.flatnonzero(covered.any(axis=1))
+        cols = np.flatnonzero(covered.any(axis=0))
+        x0, y0 = c * TILE_PX, r * TILE_PX
+        lo = np.minimum(lo, (x0 + cols[0], y0 + rows[0]))
+        hi = np.maximum(hi, (x0 + cols[-1] + 1, y0 + rows[-1] + 1))
+    if not np.isfinite(lo).all():
+        return None
+    k = canvas.px_per_mm
+    return [float(lo[0] / k), float(lo[1] / k), float(hi[0] / k), float(hi[1] / k)]
+
+
+def extent_view(extent_mm: Sequence[float] | None) -> dict[str, float] | None:
+    """Return GET /v1/sessions/{id}'s extent: {x,y}_{min,max}_mm and width/height mm, or None."""
+    if not extent_mm or len(extent_mm) != 4:
+        return None
+    x0, y0, x1, y1 = (float(e) for e in extent_mm)
+    return {"xmin_mm": x0, "ymin_mm": y0, "xmax_mm": x1, "ymax_mm": y1, "width_mm": x1 - x0, "height_mm": y1 - y0}
+
+
+# ----- mosaic.json --------------------------------------------------------------------------------------------
+def empty_image_meta(px_per_mm: float) -> dict[str, Any]:
+    """Return the image part of mosaic.json before (or without) any rendered mosaic: 0 x 0 px."""
+    return {
+        "px_per_mm": float(px_per_mm),
+        "origin_px": [0.0, 0.0],
+        "width": 0,
+        "height": 0,
+        "force_full_scale_n": FORCE_FULL_SCALE_N,
+    }
+
+
+def image_meta(doc: Mapping[str, Any] | None, px_per_mm: float) -> dict[str, Any]:
+    """Return the image part of a mosaic.json (IMAGE_KEYS), the empty one when it has none yet."""
+    if not doc or not doc.get("width"):
+        return empty_image_meta(px_per_mm)
+    return {k: doc[k] for k in IMAGE_KEYS if k in doc}
+
+
+def empty_revisions() -> Revisions:
+    """Return the revisions of a version with no tile yet: {layer: {}}."""
+    return {layer: {} for layer in LAYERS}
+
+
+def mosaic_json(
+    image: Mapping[str, Any],
+    *,
+    version: int,
+    results_version: int,
+    revisions: Revisions,
+    geometry: DziGeometry,
+    extent_mm: list[float] | None,
+    rows: Sequence[PathRow],
+    status: str,
+    method: str,
+    compliance: ComplianceFit | None = None,
+    tissue: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Return mosaic.json (spec §4 plus what the viewer needs), the one shape every producer writes.
+
+    image: the rendered mosaic's meta (MosaicImage.meta(), or `image_meta`/`empty_image_meta`); version: the
+    mosaic's change counter; revisions: {layer: {"level/col_row": revision}}; extent_mm: the session extent;
+    rows: the path (frame counts); status: receiving, processing or done; compliance: the fit once finished;
+    tissue: what the scan taught of the tissue and the probe (SessionReconstruction.learned_model).
+    """
+    doc: dict[str, Any] = {k: image[k] for k in IMAGE_KEYS if k in image}
+    doc.update(
+        {
+            "version": int(version),
+            "results_version": int(results_version),
+            "revisions": revisions,
+            "dzi": geometry.to_dict(),
+            "extent_mm": extent_mm,
+            "frames": frame_counts(rows),
+            "status": status,
+            "method": method,
+        }
+    )
+    if compliance is not None:
+        doc["compliance_per_n"] = compliance.compliance_per_n
+        doc["gauge"] = compliance.gauge
+    if tissue is not None:
+        doc["tissue"] = dict(tissue)
+    return doc

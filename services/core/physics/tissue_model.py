@@ -1,0 +1,212 @@
+"""The probe's true tilt, learned from the scan: an effective kappa fitted from every match's affine evidence.
+
+Spec §2 gives the tilt as theta = asin(dF / (2 kappa S)) and says kappa is a per-patient unknown: the
+calibration's 18 N/mm (one phantom's) makes a hand's force differences hundredths of a degree, while a
+hand-held probe tilts by degrees (on ../shared/scans the tracker's tilts follow the force differences with
+an effective kappa of 0.13-0.17 N/mm, correlation >= 0.997). A tilted view is an affine stretch of the surface,
+1/cos(theta) along the tilt direction (the paper's model, the reason for its A-SIFT): observed mm = D undeformed
+mm about the window centre. Two frames tilted differently are related by an affine, not a similarity, and
+the part of each pairwise affine that no similarity explains measures kappa:
+
+    C_ij(kappa) = D_i(kappa)^-1 A_ij D_j(kappa)     (A_ij: the match's affine, frame j mm -> frame i mm)
+
+is a similarity at the true kappa. fit_kappa finds the kappa that makes every C_ij most similar (MAP, a wide
+log-normal prior on the calibration's kappa, Cauchy-robust); corrected_relative returns C_ij's similarity, the
+edge the pose graph then uses, so the path and the mosaic are in undeformed millimetres, frame 0's included.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+from services.core.similarity import Similarity
+
+KAPPA_BOUNDS_N_PER_MM = (0.01, 100.0)  # the search range: tilts of tens of degrees down to none
+PRIOR_LOG_SIGMA = 3.0  # the calibration's kappa is a weak prior: e^3 = 20x either way is one sigma
+AFFINE_FLOOR = 1e-3  # non-similarity noise floor per edge (0.1 %: deformation no model here captures)
+MIN_AFFINE_EDGES = 8  # fewer edges with affine evidence: kappa stays at the prior
+CAUCHY_SCALE = 3.0  # robust scale, in units of an edge's sigma
+ANISOTROPY_PRIOR = 0.25  # the tissue's x/y compliance differs by a quarter either way at one sigma
+MIN_COS_TILT = 0.25  # a view tilted beyond 75 deg is no view: the stretch is capped there (4x)
+
+
+@dataclass(frozen=True)
+class AffineEvidence:
+    """One match's full affine (2x3, frame j mm -> frame i mm) and its non-similarity sigma (dimensionless)."""
+
+    i: int
+    j: int
+    affine: np.ndarray
+    sigma: float
+
+
+@dataclass(frozen=True)
+class ViewModel:
+    """How a frame's view departs from the undeformed surface: the probe's tilt and the tissue's anisotropy.
+
+    kappa_n_per_mm: the effective kappa of spec §2's tilt formula; anisotropy: the tissue stretching
+    (1 + anisotropy) times the nominal compliance along the frame's x axis and (1 - anisotropy) along y, which
+    the radial rectification (isotropic, spec §2) leaves as diag(1 + e, 1 - e), e = anisotropy c F_Z.
+    """
+
+    kappa_n_per_mm: float
+    anisotropy: float = 0.0
+    compliance_per_n: float = 0.0
+    separation_mm: tuple[float, float] = (53.0, 53.0)
+
+    def views(self, forces_n: np.ndarray) -> np.ndarray:
+        """Return D (..., 2, 2) for sensor forces (..., 4) N: observed (rectified) mm = D undeformed mm."""
+        d = foreshortening(forces_n, self.kappa_n_per_mm, self.separation_mm)
+        e = self.anisotropy * self.compliance_per_n * np.sum(np.asarray(forces_n, np.float64), axis=-1)
+        tissue = np.zeros(d.shape)
+        tissue[..., 0, 0] = 1.0 + e
+        tissue[..., 1, 1] = 1.0 - e
+        return d @ tissue
+
+
+@dataclass(frozen=True)
+class ViewFit:
+    """The fitted view model with 1-sigma uncertainties (log kappa, anisotropy), edges used, residual RMS."""
+
+    model: ViewModel
+    log_kappa_sigma: float
+    anisotropy_sigma: float
+    n_edges: int
+    residual_rms: float
+    residual_rms_nominal: float  # the same residual with the calibration's kappa and no anisotropy
+
+    @property
+    def kappa_n_per_mm(self) -> float:
+        """Return the fitted effective kappa (N/mm)."""
+        return self.model.kappa_n_per_mm
+
+    def to_dict(self) -> dict[str, float | int]:
+        """Return the fit as JSON-able numbers (kappa N/mm with its 68 % range, anisotropy, residuals)."""
+        k = self.model.kappa_n_per_mm
+        return {
+            "kappa_n_per_mm": k,
+            "kappa_low_n_per_mm": k * math.exp(-self.log_kappa_sigma),
+            "kappa_high_n_per_mm": k * math.exp(self.log_kappa_sigma),
+            "anisotropy": self.model.anisotropy,
+            "anisotropy_sigma": self.anisotropy_sigma,
+            "edges": self.n_edges,
+            "affine_residual_rms": self.residual_rms,
+            "affine_residual_rms_nominal": self.residual_rms_nominal,
+        }
+
+
+def tilt_angles_rad(forces_n: np.ndarray, kappa_n_per_mm: float, separation_mm: Sequence[float]) -> np.ndarray:
+    """Return (..., 2) tilts (theta_x, theta_y) in rad of sensor forces (..., 4) N: spec §2 with this kappa."""
+    f = np.asarray(forces_n, np.float64)
+    s_x, s_y = float(separation_mm[0]), float(separation_mm[1])
+    theta_x = np.arcsin(np.clip((f[..., 1] - f[..., 0]) / (2.0 * kappa_n_per_mm * s_y), -1.0, 1.0))
+    theta_y = np.arcsin(np.clip((f[..., 3] - f[..., 2]) / (2.0 * kappa_n_per_mm * s_x), -1.0, 1.0))
+    return np.stack([theta_x, theta_y], axis=-1)
+
+
+def foreshortening(forces_n: np.ndarray, kappa_n_per_mm: float, separation_mm: Sequence[float]) -> np.ndarray:
+    """Return D (..., 2, 2): observed mm = D undeformed mm, a stretch 1/cos(tilt) along the tilt direction.
+
+    The tilted normal u' = Rx(theta_x) Ry(theta_y) [0, 0, 1] (spec §2); its image-plane part (u'_x, u'_y)
+    points along the tilt, and u'_z is the cosine of the whole tilt.
+    """
+    theta = tilt_angles_rad(forces_n, kappa_n_per_mm, separation_mm)
+    sx, cx = np.sin(theta[..., 0]), np.cos(theta[..., 0])
+    sy, cy = np.sin(theta[..., 1]), np.cos(theta[..., 1])
+    n = np.stack([sy, -sx * cy], axis=-1)
+    nz = np.maximum(cx * cy, MIN_COS_TILT)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    g = np.divide(n, norm, out=np.zeros_like(n), where=norm > 1e-12)
+    stretch = (1.0 / nz - 1.0)[..., None, None]
+    return np.eye(2) + stretch * (g[..., :, None] * g[..., None, :])
+
+
+def corrected_affine(affine: np.ndarray, d_i: np.ndarray, d_j: np.ndarray) -> np.ndarray:
+    """Return (..., 2, 3) D_i^-1 [A | t] with D_j applied on the right: the match between undeformed frames."""
+    a = np.asarray(affine, np.float64)
+    inv_i = np.linalg.inv(d_i)
+    linear = inv_i @ a[..., :, :2] @ d_j
+    shift = (inv_i @ a[..., :, 2:3])[..., 0]
+    return np.concatenate([linear, shift[..., None]], axis=-1)
+
+
+def nearest_similarity(affine: np.ndarray) -> Similarity:
+    """Return the similarity nearest (least squares on the linear part) to a 2x3 affine."""
+    m = np.asarray(affine, np.float64)
+    a = complex((m[0, 0] + m[1, 1]) / 2.0, (m[1, 0] - m[0, 1]) / 2.0)
+    return Similarity(a, complex(m[0, 2], m[1, 2]))
+
+
+def corrected_relative(relative: Similarity, affine: np.ndarray | None, d_i: np.ndarray, d_j: np.ndarray) -> Similarity:
+    """Return an edge's relative similarity between undeformed frames (from its affine, else its similarity)."""
+    measured = np.asarray(affine, np.float64) if affine is not None else relative.matrix()
+    return nearest_similarity(corrected_affine(measured, d_i, d_j))
+
+
+def _non_similarity(affines: np.ndarray) -> np.ndarray:
+    """Return (N, 2) the part of each 2x3 affine's linear part no similarity explains, relative to its scale."""
+    m = affines[:, :, :2]
+    scale = np.sqrt(np.abs(np.linalg.det(m)))
+    return np.stack([(m[:, 0, 0] - m[:, 1, 1]) / 2.0, (m[:, 0, 1] + m[:, 1, 0]) / 2.0], axis=1) / scale[:, None]
+
+
+def fit_view_model(
+    evidence: Sequence[AffineEvidence],
+    forces_n: Mapping[int, np.ndarray],
+    separation_mm: Sequence[float],
+    kappa_prior_n_per_mm: float,
+    compliance_per_n: float,
+) -> ViewFit | None:
+    """Return the MAP view model (kappa, anisotropy) that makes every match's corrected affine a similarity.
+
+    Each edge's non-similarity residual counts with its sigma (evidence, with AFFINE_FLOOR added) under a
+    Cauchy loss; log kappa has a Gaussian prior of PRIOR_LOG_SIGMA about the calibration's kappa, the anisotropy
+    one of ANISOTROPY_PRIOR about 0. A coarse scan over log kappa, then a joint search; sigmas from the
+    curvature of the objective. None with fewer than MIN_AFFINE_EDGES edges.
+    """
+    usable = [e for e in evidence if e.i in forces_n and e.j in forces_n]
+    if len(usable) < MIN_AFFINE_EDGES:
+        return None
+    affines = np.stack([e.affine for e in usable])
+    f_i = np.stack([forces_n[e.i] for e in usable])
+    f_j = np.stack([forces_n[e.j] for e in usable])
+    sigma = np.sqrt(np.array([e.sigma for e in usable]) ** 2 + AFFINE_FLOOR**2)
+    prior = math.log(kappa_prior_n_per_mm)
+    sep = (float(separation_mm[0]), float(separation_mm[1]))
+
+    def model(x: np.ndarray) -> ViewModel:
+        return ViewModel(math.exp(x[0]), float(x[1]), compliance_per_n, sep)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        m = model(x)
+        c = corrected_affine(affines, m.views(f_i), m.views(f_j))
+        return np.linalg.norm(_non_similarity(c), axis=1) / sigma
+
+    def objective(x: np.ndarray) -> float:
+        r = residuals(x)
+        data = float(np.sum(np.log1p((r / CAUCHY_SCALE) ** 2))) * CAUCHY_SCALE**2 / 2.0
+        return data + 0.5 * ((x[0] - prior) / PRIOR_LOG_SIGMA) ** 2 + 0.5 * (x[1] / ANISOTROPY_PRIOR) ** 2
+
+    lo, hi = (math.log(b) for b in KAPPA_BOUNDS_N_PER_MM)
+    grid = np.linspace(lo, hi, 41)  # the objective can have a shoulder: a coarse scan, then a joint search
+    start = np.array([grid[int(np.argmin([objective(np.array([g, 0.0])) for g in grid]))], 0.0])
+    x = minimize(objective, start, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-3}).x
+    x = np.array([np.clip(x[0], lo, hi), x[1]])
+    sigmas = []
+    for k, h in enumerate((0.01, 0.01)):
+        step = np.eye(2)[k] * h
+        curvature = (objective(x + step) - 2.0 * objective(x) + objective(x - step)) / h**2
+        sigmas.append(1.0 / math.sqrt(curvature) if curvature > 0 else math.inf)
+    return ViewFit(
+        model=model(x),
+        log_kappa_sigma=sigmas[0],
+        anisotropy_sigma=sigmas[1],
+        n_edges=len(usable),
+        residual_rms=float(np.sqrt(np.mean((residuals(x) * sigma) ** 2))),
+        residual_rms_nominal=float(np.sqrt(np.mean((residuals(np.array([prior, 0.0])) * sigma) ** 2))),
+    )

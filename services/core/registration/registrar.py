@@ -1,0 +1,433 @@
+"""Sequential registration of prepared frames against what is already placed (spec §2 "Pose").
+
+Three strategies share one state machine: `previous` (frame-to-frame chaining, the SfM-like baseline),
+`mosaic` (the paper: match against the features of the mosaic around the predicted position, keep yaw and
+x/y), and `keyframes` (match against several overlapping placed frames, each match an edge of a similarity
+pose graph; loop closures trigger a robust global re-optimisation).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.core.methods import MethodOptions
+from services.core.physics.tissue_model import AffineEvidence, ViewFit, corrected_relative, fit_view_model
+from services.core.registration.direct_alignment import AlignmentImage, DirectFit, align, alignment_image, correlation
+from services.core.registration.features import Features
+from services.core.registration.frame_prep import PreparedFrame
+from services.core.registration.matching import SimilarityFit, estimate_similarity, match_features
+from services.core.registration.pose_graph import Edge, optimise_poses, place_node
+from services.core.similarity import IDENTITY, Similarity
+
+STATUS_OK, STATUS_LOST, STATUS_REJECTED = "ok", "lost", "rejected"
+# Why a frame was not placed (path.csv `reason`, the report, the session state); "" for placed frames.
+REASON_FEW_KEYPOINTS = "few_keypoints"  # too little vein structure detected to match
+REASON_FEW_INLIERS = "few_inliers"  # features matched, but too few agree on one transform
+REASON_LOW_CORRELATION = "low_correlation"  # direct alignment did not reach the acceptance correlation
+REASON_BLUR = "blur"  # a motion-blurred frame that could not be registered
+REASON_IMPLAUSIBLE = "implausible_jump"  # a pose too far from the motion prediction
+REASON_MISSING = "missing"  # the frame never arrived (declared lost by the queue)
+REASON_BAD_FRAME = "bad_frame"  # the frame's content could not be processed (undecodable, wrong size)
+REASONS = (
+    REASON_FEW_KEYPOINTS,
+    REASON_FEW_INLIERS,
+    REASON_LOW_CORRELATION,
+    REASON_BLUR,
+    REASON_IMPLAUSIBLE,
+    REASON_MISSING,
+    REASON_BAD_FRAME,
+)
+LOCAL_REFINE_FROM = 400  # placed frames: below this every refinement is global
+GLOBAL_GROWTH = 1.25  # ... from it, a global pass when the placed frames grew by this factor since the last one
+LOCAL_RADIUS_WINDOWS = 3.0  # a local pass frees the frames within this many window radii of the newest frame
+LOCAL_RECENT = 60  # ... and the newest frames
+MOVED_MM = 0.05  # a refined pose that moves a frame by less than this (0.4 px) does not re-render its tiles
+MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the placed frame's window
+DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
+DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - correlation)
+ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
+
+
+def _vein_scale(pf: PreparedFrame) -> float:
+    """Return the vein map's pixels per full-resolution pixel of a prepared frame."""
+    return pf.vein.shape[1] / pf.image.shape[1]
+
+
+@dataclass(frozen=True)
+class Match:
+    """A frame registered on a placed one: the relative similarity (frame mm -> placed mm) and its evidence."""
+
+    relative: Similarity
+    inliers: int  # 0 for a direct alignment
+    rms: float  # mm
+    affine: np.ndarray | None = None  # the full affine of a feature match (2x3), see SimilarityFit
+    affine_sigma: float = math.inf
+
+
+def feature_match(fit: SimilarityFit) -> Match:
+    """Return the Match of a feature fit (with its full affine)."""
+    return Match(fit.transform, fit.inliers, fit.rms, fit.affine, fit.affine_sigma)
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """The outcome for one frame: status, pose (frame mm -> mosaic mm) or None, evidence, frames moved."""
+
+    index: int
+    status: str
+    pose: Similarity | None
+    inliers: int
+    blurred: bool
+    moved: tuple[int, ...] = ()
+    reason: str = ""  # one of REASONS when status is not ok
+
+
+@dataclass
+class Registrar:
+    """The growing registration state of one session (frames fed in index order)."""
+
+    options: MethodOptions
+    px_per_mm: float
+    window_radius_mm: float
+    centre_px: tuple[float, float]  # the principal point (rectified pixels): direct alignment's centre
+    separation_mm: Sequence[float] = (53.0, 53.0)  # the force sensors' S_X, S_Y (spec §2)
+    kappa_prior_n_per_mm: float = 18.0  # the calibration's kappa: the prior of the fitted one
+    compliance_per_n: float = 0.0  # the calibration's nu / (E A): the tissue anisotropy's unit
+    poses: dict[int, Similarity] = field(default_factory=dict)
+    features: dict[int, Features] = field(default_factory=dict)
+    times: dict[int, float] = field(default_factory=dict)
+    stretches: dict[int, float] = field(default_factory=dict)
+    edges: list[Edge] = field(default_factory=list)
+    sharpness: list[float] = field(default_factory=list)
+    order: list[int] = field(default_factory=list)
+    loops_since_refine: int = 0
+    last_global_refine: int = 0  # placed frames at the last global refinement
+    # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
+    veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
+    forces: dict[int, np.ndarray] = field(default_factory=dict)  # every frame seen: sensor forces F1..F4 (N)
+    view_fit: ViewFit | None = None  # the probe's tilt and tissue anisotropy learned from the edges' affines
+    _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
+    _views: dict[int, np.ndarray] = field(default_factory=dict)  # each frame's view D under the current fit
+
+    @property
+    def ransac_mm(self) -> float:
+        """Return the RANSAC threshold in mm."""
+        return self.options.ransac_px / self.px_per_mm
+
+    def predict(self, t_s: float) -> Similarity | None:
+        """Return the constant-velocity prediction of the pose at time t_s, or None before any frame."""
+        if not self.order:
+            return None
+        last = self.order[-1]
+        p1 = self.poses[last]
+        if len(self.order) < 2:
+            return p1
+        prev = self.order[-2]
+        p0 = self.poses[prev]
+        dt = self.times[last] - self.times[prev]
+        if dt <= 0:
+            return p1
+        k = min((t_s - self.times[last]) / dt, 3.0)
+        return Similarity(p1.a * (p1.a / p0.a) ** k, p1.t + (p1.t - p0.t) * k)
+
+    def _is_blurred(self, pf: PreparedFrame) -> bool:
+        """Return True when the frame is much less sharp than the recent sharp, placed frames."""
+        history = self.sharpness[-30:]
+        if len(history) < 5:
+            return False
+        return pf.sharpness < self.options.blur_ratio * float(np.median(history))
+
+    def _candidates(self, predicted: Similarity, count: int, radius_mm: float) -> list[int]:
+        """Return placed frames near the prediction: the latest first, then the nearest, older ones mixed in."""
+        if not self.order:
+            return []
+        latest = self.order[-1]
+        placed = np.array(self.order)
+        centres = np.array([self.poses[i].t for i in self.order])
+        dist = np.abs(centres - predicted.t)
+        near = placed[dist < radius_mm]
+        near_dist = dist[dist < radius_mm]
+        ranked = [int(i) for i in near[np.argsort(near_dist)] if i != latest]
+        recent = [i for i in ranked if latest - i <= self.options.loop_gap]
+        old = [i for i in ranked if latest - i > self.options.loop_gap]
+        chosen = [latest]
+        # alternate recent and old so a revisit always gets a chance to close the loop
+        while len(chosen) < count and (recent or old):
+            for pool in (old, recent):
+                if pool and len(chosen) < count:
+                    chosen.append(pool.pop(0))
+        return chosen
+
+    def _match(self, pf: PreparedFrame, train: Features, min_inliers: int | None = None) -> SimilarityFit | None:
+        """Return the similarity from the frame's mm to the train features' mm, or None on weak evidence."""
+        same_place = 2.0 / self.px_per_mm
+        iq, it = match_features(pf.features, train, self.options.ratio, same_point=same_place)
+        return estimate_similarity(
+            pf.features.points[iq],
+            train.points[it],
+            self.ransac_mm,
+            seed=pf.index,
+            min_inliers=self.options.min_inliers if min_inliers is None else min_inliers,
+            dedupe_radius=same_place,
+        )
+
+    def _pairwise(self, pf: PreparedFrame, other: int) -> Match | None:
+        fit = self._match(pf, self.features[other])
+        return None if fit is None else feature_match(fit)
+
+    def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity, lost_for: int) -> tuple[Similarity, int] | None:
+        """Match against the mosaic's features around the prediction (the paper's registration)."""
+        near = self._candidates(predicted, 6, 1.6 * self.window_radius_mm * (1 + lost_for))
+        pts = [self.poses[i].apply(self.features[i].points) for i in near]
+        desc = [self.features[i].descriptors for i in near]
+        if not pts:
+            return None
+        train = Features(np.concatenate(pts), np.concatenate(desc), np.zeros(sum(len(p) for p in pts)))
+        fit = self._match(pf, train)
+        return None if fit is None else (fit.transform, fit.inliers)
+
+    def _plausible(self, pose: Similarity, predicted: Similarity, lost_for: int) -> bool:
+        if len(self.order) < 2:  # no velocity yet: anything the window could still overlap
+            return abs(pose.t - predicted.t) < 2 * self.window_radius_mm
+        limit = self.options.max_jump_mm * (1 + lost_for)
+        return abs(pose.t - predicted.t) <= limit and abs(np.angle(pose.a / predicted.a)) <= np.radians(25)
+
+    def add(self, pf: PreparedFrame) -> FrameResult:
+        """Register one prepared frame; return its status, pose and which earlier frames moved."""
+        self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)  # its view, once the model is fitted
+        blurred = self._is_blurred(pf)
+        if not self.order:
+            return self._accept(pf, IDENTITY, [], len(pf.features), blurred)
+        predicted = self.predict(pf.t_s)
+        assert predicted is not None
+        lost_for = pf.index - self.order[-1] - 1
+        kind = self.options.registration
+        if kind == "previous":
+            found = self._pairwise(pf, self.order[-1])
+            if found is None:
+                return self._fail(pf, blurred, REASON_FEW_INLIERS)
+            pose = self.poses[self.order[-1]].compose(found.relative.rigid())
+            return self._accept(pf, pose, [], found.inliers, blurred)
+        if kind == "mosaic":
+            found_m = self._mosaic_match(pf, predicted, lost_for)
+            if found_m is None:
+                return self._fail(pf, blurred, REASON_FEW_INLIERS)
+            pose, n = found_m
+            pose = pose.rigid()
+            reach = 2 * self.window_radius_mm * (1 + lost_for)  # the paper checks no motion model: only overlap
+            if abs(pose.t - self.poses[self.order[-1]].t) > reach:
+                return self._reject(pf, STATUS_REJECTED, blurred, REASON_IMPLAUSIBLE)
+            return self._accept(pf, pose, [], n, blurred)
+        return self._add_keyframes(pf, predicted, lost_for, blurred)
+
+    def _alignment(self, index: int, pf: PreparedFrame | None = None) -> AlignmentImage:
+        """Return the direct-alignment pyramid of a frame (placed ones cached, the latest few only)."""
+        cached = self._pyramids.get(index)
+        if cached is not None:
+            return cached
+        if pf is not None:
+            vein, mask, scale = pf.vein, pf.vein_mask, _vein_scale(pf)
+        else:
+            vein, bits, scale = self.veins[index]
+            mask = (np.unpackbits(bits, count=vein.size).reshape(vein.shape) * np.uint8(255)).astype(np.uint8)
+        pyramid = alignment_image(vein, mask, self.centre_px, self.px_per_mm, scale)
+        self._pyramids[index] = pyramid
+        while len(self._pyramids) > ALIGNMENT_CACHE:
+            del self._pyramids[min(self._pyramids)]
+        return pyramid
+
+    def _direct(self, pf: PreparedFrame, other: int, starts: list[Similarity], recentre: bool) -> DirectFit | None:
+        """Return the best accepted direct alignment of the frame onto a placed one (frame mm -> other's mm)."""
+        moving = self._alignment(pf.index, pf)
+        fixed = self._alignment(other)
+        best: DirectFit | None = None
+        for start in starts:
+            fit = align(fixed, moving, start, recentre=recentre)
+            if fit is None or fit.correlation < self.options.min_correlation or fit.overlap < MIN_DIRECT_OVERLAP:
+                continue
+            if best is None or fit.correlation > best.correlation:
+                best = fit
+        return best
+
+    def _add_keyframes(self, pf: PreparedFrame, predicted: Similarity, lost_for: int, blurred: bool) -> FrameResult:
+        latest = self.order[-1]
+        edges: list[Edge] = []
+        anchor: Similarity | None = None
+        found = self._pairwise(pf, latest)
+        if found is not None and self.options.direct_refine:
+            refined = self._direct(pf, latest, [found.relative], recentre=False)
+            if refined is not None:
+                found = Match(refined.transform, found.inliers, found.rms)
+        if found is None and self.options.direct_fallback:
+            found = self._fallback(pf, latest, predicted)
+        if found is not None:
+            pose = self.poses[latest].compose(found.relative)
+            if abs(pose.t - self.poses[latest].t) < 2 * self.window_radius_mm:  # the frames can overlap
+                anchor = pose
+                edges.append(self._edge(pf, latest, found))
+        centre = anchor if anchor is not None else predicted
+        radius = 1.6 * self.window_radius_mm * (1 + (lost_for if anchor is None else 0))
+        count = self.options.neighbours + (4 if anchor is None else 0)
+        for other in self._candidates(centre, count, radius)[1:]:
+            found = self._pairwise(pf, other)
+            if found is None:
+                continue
+            pose = self.poses[other].compose(found.relative)
+            if anchor is not None and abs(pose.t - anchor.t) > self.options.max_jump_mm / 5:
+                continue  # disagrees with the direct match to the latest frame: a false loop closure
+            if anchor is None and not self._plausible(pose, predicted, lost_for):
+                continue
+            edges.append(self._edge(pf, other, found))
+        if not edges:
+            return self._fail(pf, blurred, self._why_not(pf))
+        pose = place_node(self.poses, self.undeformed(edges), pf.index)
+        total = sum(e.inliers for e in edges)
+        result = self._accept(pf, pose, edges, total, blurred)
+        if any(e.loop for e in edges):
+            self.loops_since_refine += 1
+        if self.options.refine and self.loops_since_refine >= self.options.refine_every:
+            return FrameResult(pf.index, result.status, result.pose, total, blurred, self.refine())
+        return result
+
+    def _fallback(self, pf: PreparedFrame, latest: int, predicted: Similarity) -> Match | None:
+        """Return the best-correlated placement on the latest frame when features fail the inlier rule, or None.
+
+        Candidates: direct alignment of the vein maps from the motion prediction and from "no motion" (a turn),
+        and a feature match with half the minimum inliers or more, both as it is and as a start for direct
+        alignment. Fewer inliers than the rule asks for can still be right (frames under heavy load share fewer
+        keypoints), and vein maps can correlate best slightly off (on a simulated hard scan two frames at 30 N
+        did 1 deg off, where 13 inliers were 0.01 deg off): the vein maps' correlation arbitrates.
+        """
+        to_latest = self.poses[latest].inverse()
+        starts = [to_latest.compose(predicted), Similarity(predicted.a / self.poses[latest].a, 0j)]
+        best = self._direct(pf, latest, starts, recentre=True)
+        weak = self._match(pf, self.features[latest], max(3, self.options.min_inliers // 2))
+        if weak is not None:
+            refined = self._direct(pf, latest, [weak.transform], recentre=False)
+            if refined is not None and (best is None or refined.correlation > best.correlation):
+                best = refined
+            corr, overlap = correlation(self._alignment(latest), self._alignment(pf.index, pf), weak.transform)
+            ok = corr >= self.options.min_correlation and overlap >= MIN_DIRECT_OVERLAP
+            if ok and (best is None or corr >= best.correlation):
+                return feature_match(weak)
+        return None if best is None else Match(best.transform, 0, self._direct_rms(best))
+
+    def _direct_rms(self, fit: DirectFit) -> float:
+        """Return an RMS-equivalent residual (mm) of a direct alignment, for its edge's sigma."""
+        return DIRECT_SIGMA_MM + DIRECT_SIGMA_PER_DECORRELATION_MM * (1.0 - fit.correlation)
+
+    def _why_not(self, pf: PreparedFrame) -> str:
+        """Return why a frame that produced no edge was not placed (few keypoints, low correlation, few inliers)."""
+        if len(pf.features) < self.options.min_inliers:
+            return REASON_FEW_KEYPOINTS
+        return REASON_LOW_CORRELATION if self.options.direct_fallback else REASON_FEW_INLIERS
+
+    def _edge(self, pf: PreparedFrame, other: int, match: Match) -> Edge:
+        """Return the pose-graph edge of a match, its sigma from the evidence and the loads (heavier = looser).
+
+        A feature edge's sigma is its RMS residual over sqrt(inliers); a direct edge (inliers 0) carries an
+        RMS-equivalent from its correlation (see _direct_rms), measured against feature edges on the shared scans.
+        """
+        load = 1.0 + 10.0 * max(pf.stretch, self.stretches[other])
+        rms, inliers = match.rms, match.inliers
+        sigma = (0.01 + (rms / np.sqrt(inliers) if inliers > 0 else rms)) * load
+        loop = self.order[-1] - other > self.options.loop_gap
+        return Edge(
+            other, pf.index, match.relative, sigma, loop, inliers, affine=match.affine, affine_sigma=match.affine_sigma
+        )
+
+    def view(self, index: int) -> np.ndarray:
+        """Return a frame's view D (observed mm = D undeformed mm) under the fitted view model (I before a fit)."""
+        if self.view_fit is None or index not in self.forces:
+            return np.eye(2)
+        cached = self._views.get(index)
+        if cached is None:
+            cached = self.view_fit.model.views(self.forces[index])
+            self._views[index] = cached
+        return cached
+
+    def undeformed(self, edges: list[Edge]) -> list[Edge]:
+        """Return the edges measuring relative poses between undeformed frames (tilt foreshortening removed)."""
+        if self.view_fit is None:
+            return edges
+        return [
+            e.with_relative(corrected_relative(e.relative, e.affine, self.view(e.i), self.view(e.j))) for e in edges
+        ]
+
+    def fit_tilt(self) -> ViewFit | None:
+        """Refit the view model (kappa, anisotropy) from every edge's affine (services.core.physics.tissue_model)."""
+        evidence = [AffineEvidence(e.i, e.j, e.affine, e.affine_sigma) for e in self.edges if e.affine is not None]
+        fit = fit_view_model(
+            evidence, self.forces, self.separation_mm, self.kappa_prior_n_per_mm, self.compliance_per_n
+        )
+        if fit is not None:
+            self.view_fit = fit
+            self._views = {}
+        return self.view_fit
+
+    def refine(self, final: bool = False) -> tuple[int, ...]:
+        """Re-optimise placed poses on the pose graph; return the frames that moved (> MOVED_MM).
+
+        Global (every pose, and the view model refitted) while the scan is short, at the end (final), and
+        whenever the placed frames grew by GLOBAL_GROWTH since the last global pass; in between a local pass
+        around the newest frame (local_refine). So a minutes-long examination costs a bounded amount per loop
+        closure, plus global passes whose total is a constant multiple of the last one (issue 15).
+        """
+        self.loops_since_refine = 0
+        if len(self.order) < 3 or not self.edges:
+            return ()
+        n = len(self.order)
+        if final or n < LOCAL_REFINE_FROM or n >= GLOBAL_GROWTH * self.last_global_refine:
+            self.last_global_refine = n
+            if self.options.fit_tilt:
+                self.fit_tilt()
+            return self._optimise(self.poses, self.edges, {self.order[0]})
+        return self.local_refine()
+
+    def local_refine(self) -> tuple[int, ...]:
+        """Re-optimise the poses near the newest frame (within LOCAL_RADIUS_WINDOWS window radii, and the newest
+        LOCAL_RECENT frames), the frames they share edges with held where they are; return the frames that moved."""
+        newest = self.poses[self.order[-1]].t
+        reach = LOCAL_RADIUS_WINDOWS * self.window_radius_mm
+        active = {i for i in self.order[-LOCAL_RECENT:]}
+        active |= {i for i in self.order if abs(self.poses[i].t - newest) < reach}
+        active.discard(self.order[0])
+        edges = [e for e in self.edges if e.i in active or e.j in active]
+        held = {e.i for e in edges if e.i not in active} | {e.j for e in edges if e.j not in active}
+        if not held:
+            held = {self.order[0]}
+        return self._optimise({i: self.poses[i] for i in active | held}, edges, held)
+
+    def _optimise(self, poses: dict[int, Similarity], edges: list[Edge], held: set[int]) -> tuple[int, ...]:
+        """Optimise `poses` on `edges` (undeformed) with `held` fixed; update them; return the frames that moved."""
+        solution = optimise_poses(poses, self.undeformed(edges), fixed=held)
+        moved = tuple(i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM and i in self.poses)
+        self.poses.update(solution.poses)
+        return moved
+
+    def _accept(
+        self, pf: PreparedFrame, pose: Similarity, edges: list[Edge], inliers: int, blurred: bool
+    ) -> FrameResult:
+        self.poses[pf.index] = pose
+        self.features[pf.index] = pf.features
+        self.times[pf.index] = pf.t_s
+        self.stretches[pf.index] = pf.stretch
+        self.edges.extend(edges)
+        self.order.append(pf.index)
+        self.veins[pf.index] = (pf.vein, np.packbits(pf.vein_mask > 0), _vein_scale(pf))
+        if not blurred:  # only sharp, placed frames set the reference (noise frames would inflate it)
+            self.sharpness.append(pf.sharpness)
+        return FrameResult(pf.index, STATUS_OK, pose, inliers, blurred)
+
+    def _fail(self, pf: PreparedFrame, blurred: bool, reason: str) -> FrameResult:
+        """Return the result of a frame that could not be registered: a blurred one is rejected, else lost."""
+        if blurred:
+            return self._reject(pf, STATUS_REJECTED, blurred, REASON_BLUR)
+        return self._reject(pf, STATUS_LOST, blurred, reason)
+
+    def _reject(self, pf: PreparedFrame, status: str, blurred: bool, reason: str) -> FrameResult:
+        return FrameResult(pf.index, status, None, 0, blurred, reason=reason)

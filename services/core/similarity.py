@@ -1,0 +1,51 @@
+"""The 2-D similarity transform every pose, relative measurement and mosaic placement is expressed in."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """A 2-D similarity p -> a p + t on complex coordinates (x + iy, image axes): a = s e^{i yaw}, t in mm."""
+
+    a: complex
+    t: complex
+
+    @property
+    def yaw_rad(self) -> float:
+        """Return the rotation angle in radians (image axes, R the ordinary 2-D rotation matrix)."""
+        return float(np.angle(self.a))
+
+    @property
+    def scale(self) -> float:
+        """Return the scale factor |a| (dimensionless)."""
+        return float(abs(self.a))
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Return points (..., 2) mapped by the similarity (same units as t)."""
+        z = points[..., 0] + 1j * points[..., 1]
+        w = self.a * z + self.t
+        return np.stack([w.real, w.imag], axis=-1)
+
+    def compose(self, other: Similarity) -> Similarity:
+        """Return self after other: p -> self(other(p))."""
+        return Similarity(self.a * other.a, self.a * other.t + self.t)
+
+    def inverse(self) -> Similarity:
+        """Return the inverse similarity."""
+        return Similarity(1.0 / self.a, -self.t / self.a)
+
+    def rigid(self) -> Similarity:
+        """Return the pose correction of spec §2: yaw and translation only (scale set to 1)."""
+        return Similarity(self.a / abs(self.a), self.t)
+
+    def matrix(self) -> np.ndarray:
+        """Return the 2x3 affine matrix of the similarity."""
+        a, t = self.a, self.t
+        return np.array([[a.real, -a.imag, t.real], [a.imag, a.real, t.imag]])
+
+
+IDENTITY = Similarity(1.0 + 0j, 0j)

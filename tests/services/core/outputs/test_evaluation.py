@@ -1,0 +1,130 @@
+"""Known-answer tests for the path accuracy report (spec §4)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from services.core.outputs.evaluation import evaluate_angles, evaluate_path, reference_path_length_mm
+
+NAN = float("nan")
+
+
+def test_known_answer_small_path() -> None:
+    # Reference: 3-4-5 steps, total length 5 + 5 + 5 = 15 mm.
+    reference = np.array([[0.0, 0.0], [3.0, 4.0], [6.0, 8.0], [9.0, 12.0]])
+    # Errors: 0, 1 (x off by 1), 0, 2 (y off by 2).
+    estimate = np.array([[0.0, 0.0], [4.0, 4.0], [6.0, 8.0], [9.0, 14.0]])
+    report = evaluate_path(estimate, np.ones(4, bool), reference)
+    # Hand-computed, exact in float64 up to rounding (1e-12).
+    assert report.rmse_mm == pytest.approx(math.sqrt((0 + 1 + 0 + 4) / 4), abs=1e-12)
+    assert report.max_error_mm == pytest.approx(2.0, abs=1e-12)
+    assert report.final_drift_mm == pytest.approx(2.0, abs=1e-12)
+    assert report.path_length_mm == pytest.approx(15.0, abs=1e-12)
+    assert report.error_ratio_pct == pytest.approx(100.0 * 2.0 / 15.0, abs=1e-12)
+    assert report.registered_fraction == 1.0
+    assert (report.n_frames, report.n_registered, report.n_with_reference) == (4, 4, 4)
+    np.testing.assert_allclose(report.errors_mm, [0.0, 1.0, 0.0, 2.0], atol=1e-12)
+
+
+def test_unregistered_and_unknown_frames_are_skipped() -> None:
+    reference = np.array([[0.0, 0.0], [1.0, 0.0], [NAN, NAN], [3.0, 0.0], [4.0, 0.0]])
+    estimate = np.array([[0.0, 0.0], [1.0, 0.5], [2.0, 0.0], [NAN, NAN], [4.0, 1.0]])
+    registered = np.array([True, True, True, False, False])
+    report = evaluate_path(estimate, registered, reference)
+    # Compared: frames 0 (err 0) and 1 (err 0.5). Frame 2 has no reference, frames 3-4 are not registered
+    # (frame 4 has an estimate but registered=False wins).
+    assert report.rmse_mm == pytest.approx(math.sqrt(0.25 / 2), abs=1e-12)
+    assert report.max_error_mm == pytest.approx(0.5, abs=1e-12)
+    assert report.final_drift_mm == pytest.approx(0.5, abs=1e-12)  # last compared frame is frame 1
+    # Path length over known reference rows 0, 1, 3, 4: 1 + 2 + 1 = 4 mm (the gap is bridged).
+    assert report.path_length_mm == pytest.approx(4.0, abs=1e-12)
+    assert report.error_ratio_pct == pytest.approx(100 * 0.5 / 4.0, abs=1e-12)
+    assert report.registered_fraction == pytest.approx(3 / 5)
+    assert (report.n_registered, report.n_with_reference, report.n_compared) == (3, 4, 2)
+    assert np.isnan(report.errors_mm[2:]).all()
+
+
+def test_no_alignment_is_applied() -> None:
+    # An estimate offset by a constant (1, 1) must report the offset, not align it away.
+    reference = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])
+    report = evaluate_path(reference + 1.0, np.ones(3, bool), reference)
+    assert report.rmse_mm == pytest.approx(math.sqrt(2.0), abs=1e-12)
+
+
+def test_to_dict_is_json_with_none_for_nan() -> None:
+    reference = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    estimate = np.array([[0.0, 0.0], [NAN, NAN], [2.0, 0.3]])
+    doc = evaluate_path(estimate, np.array([True, False, True]), reference).to_dict()
+    text = json.dumps(doc, allow_nan=False)  # raises if any NaN slipped through
+    assert json.loads(text)["errors_mm"][1] is None
+    assert doc["errors_mm"][2] == pytest.approx(0.3)
+    assert doc["final_drift_mm"] == pytest.approx(0.3)
+
+
+def test_zero_length_path_has_nan_ratio_and_none_in_json() -> None:
+    reference = np.zeros((2, 2))
+    report = evaluate_path(np.zeros((2, 2)), np.ones(2, bool), reference)
+    assert report.path_length_mm == 0.0
+    assert math.isnan(report.error_ratio_pct)
+    assert report.to_dict()["error_ratio_pct"] is None
+
+
+def test_shape_mismatch_raises() -> None:
+    with pytest.raises(ValueError, match="length mismatch"):
+        evaluate_path(np.zeros((3, 2)), np.ones(3, bool), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match=r"\(N, 2\)"):
+        evaluate_path(np.zeros((3, 3)), np.ones(3, bool), np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="registered"):
+        evaluate_path(np.zeros((3, 2)), np.ones((3, 1), bool), np.zeros((3, 2)))
+
+
+def test_nothing_comparable_raises() -> None:
+    reference = np.full((3, 2), NAN)
+    with pytest.raises(ValueError, match="nothing to compare"):
+        evaluate_path(np.zeros((3, 2)), np.ones(3, bool), reference)
+    with pytest.raises(ValueError, match="nothing to compare"):
+        evaluate_path(np.zeros((3, 2)), np.zeros(3, bool), np.zeros((3, 2)))
+
+
+def test_reference_path_length_helper() -> None:
+    assert reference_path_length_mm(np.array([[0.0, 0.0], [3.0, 4.0]])) == pytest.approx(5.0)
+    assert reference_path_length_mm(np.array([[0.0, 0.0]])) == 0.0
+
+
+def test_only_frame_zero_registered_is_not_a_perfect_score() -> None:
+    # frame 0 is the origin of both paths: its zero error says nothing; the figures must not read 0.000 mm
+    reference = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    estimate = np.array([[0.0, 0.0], [NAN, NAN], [NAN, NAN], [NAN, NAN]])
+    report = evaluate_path(estimate, np.array([True, False, False, False]), reference)
+    assert not report.meaningful and math.isnan(report.rmse_mm) and math.isnan(report.final_drift_mm)
+    doc = report.to_dict()
+    assert doc["rmse_mm"] is None and doc["meaningful"] is False and doc["registered_fraction"] == 0.25
+    assert report.summary() == "accuracy not measurable: 1/4 frames registered (25.0 %), 1 compared with the reference"
+
+
+def test_summary_states_the_registered_share() -> None:
+    reference = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    estimate = np.array([[0.0, 0.0], [1.0, 0.1], [NAN, NAN], [3.0, 0.2]])
+    text = evaluate_path(estimate, np.array([True, True, False, True]), reference).summary()
+    assert text.startswith("RMSE ") and "3/4 frames registered (75.0 %)" in text
+    assert "frames not registered are not in these figures" in text
+
+
+def test_angle_errors_known_answer() -> None:
+    # yaw compared on registered frames only and wrapped (359 vs -1 is 0 off); tilts on every frame with both.
+    est = np.array([[0.0, 1.0, 0.0], [359.0, 2.0, 1.0], [10.0, 3.0, NAN], [5.0, 0.0, 0.0]])
+    ref = np.array([[0.0, 0.0, 0.0], [-1.0, 0.0, 1.0], [0.0, 3.0, 2.0], [3.0, 0.0, 0.0]])
+    out = evaluate_angles(est, np.array([True, True, False, True]), ref)
+    assert out["yaw_rmse_deg"] == pytest.approx(math.sqrt((0 + 0 + 4) / 3), abs=1e-9)
+    assert out["yaw_compared"] == 3 and out["yaw_max_error_deg"] == pytest.approx(2.0, abs=1e-9)
+    assert out["tilt_x_rmse_deg"] == pytest.approx(math.sqrt((1 + 4 + 0 + 0) / 4), abs=1e-9)
+    assert out["tilt_y_compared"] == 3 and out["tilt_y_rmse_deg"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_angle_errors_skip_unknown_angles() -> None:
+    est = np.zeros((3, 3))
+    assert evaluate_angles(est, np.ones(3, bool), np.full((3, 3), NAN)) == {}

@@ -1,0 +1,97 @@
+"""The view model (probe tilt, tissue anisotropy) is recovered from pairwise affines; corrections are exact.
+
+Tolerances: affines are made exactly from a known model plus Gaussian noise of 3e-4 on their linear part (what
+~100 inliers at 0.1 px give over a 25 mm window); with 120 edges kappa comes back within 5 % and the anisotropy
+within 0.03 (a few of its fitted sigmas), and at zero noise both to 0.5 %.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.core.physics.tissue_model import (
+    AffineEvidence,
+    ViewModel,
+    corrected_relative,
+    fit_view_model,
+    foreshortening,
+    tilt_angles_rad,
+)
+from services.core.similarity import Similarity
+
+SEP = (53.0, 53.0)
+COMPLIANCE = 0.5 / (16.1e3 * 0.0048)  # the spec's default nu / (E A), 1/N
+
+
+def _scan(truth: ViewModel, noise: float, n: int = 60, seed: int = 3) -> tuple[list[AffineEvidence], dict]:
+    """Return affine evidence of a chain with skips (frame j -> frame i) under `truth`, and the forces."""
+    rng = np.random.default_rng(seed)
+    fz = rng.uniform(3.0, 20.0, n)
+    diff = rng.normal(0.0, 2.5, (n, 2))  # F2 - F1, F4 - F3
+    forces = {k: np.array([fz[k] / 4 - diff[k, 0] / 2, fz[k] / 4 + diff[k, 0] / 2, fz[k] / 4 - diff[k, 1] / 2,
+                           fz[k] / 4 + diff[k, 1] / 2]) for k in range(n)}  # fmt: skip
+    evidence = []
+    for j in range(1, n):
+        for i in (j - 1, max(j - 2, 0)):
+            yaw = rng.normal(0.0, 0.05)
+            s = Similarity(complex(math.cos(yaw), math.sin(yaw)), complex(*rng.normal(0.0, 4.0, 2))).matrix()
+            d_i, d_j = truth.views(forces[i]), truth.views(forces[j])
+            linear = d_i @ s[:, :2] @ np.linalg.inv(d_j) + rng.normal(0.0, noise, (2, 2))
+            evidence.append(AffineEvidence(i, j, np.hstack([linear, d_i @ s[:, 2:]]), sigma=max(noise, 1e-4)))
+    return evidence, forces
+
+
+@pytest.mark.parametrize(("kappa", "anisotropy"), [(0.15, 0.0), (0.3, 0.1), (0.08, -0.15)])
+def test_fit_recovers_kappa_and_anisotropy(kappa: float, anisotropy: float) -> None:
+    truth = ViewModel(kappa, anisotropy, COMPLIANCE, SEP)
+    evidence, forces = _scan(truth, noise=3e-4)
+    fit = fit_view_model(evidence, forces, SEP, kappa_prior_n_per_mm=18.0, compliance_per_n=COMPLIANCE)
+    assert fit is not None
+    assert fit.kappa_n_per_mm == pytest.approx(kappa, rel=0.05)
+    assert fit.model.anisotropy == pytest.approx(anisotropy, abs=0.03)
+    assert fit.residual_rms < 0.5 * fit.residual_rms_nominal  # the model explains what the calibration did not
+    low, high = fit.to_dict()["kappa_low_n_per_mm"], fit.to_dict()["kappa_high_n_per_mm"]
+    assert low < fit.kappa_n_per_mm < high
+
+
+def test_fit_is_exact_without_noise() -> None:
+    truth = ViewModel(0.2, 0.05, COMPLIANCE, SEP)
+    evidence, forces = _scan(truth, noise=0.0)
+    fit = fit_view_model(evidence, forces, SEP, kappa_prior_n_per_mm=18.0, compliance_per_n=COMPLIANCE)
+    assert fit is not None
+    assert fit.kappa_n_per_mm == pytest.approx(0.2, rel=5e-3)
+    assert fit.model.anisotropy == pytest.approx(0.05, abs=5e-3)
+
+
+def test_no_tilt_evidence_keeps_a_stiff_probe() -> None:
+    # equal sensor forces: no tilt, and affines that are similarities: nothing pulls kappa below the prior's range
+    evidence, forces = _scan(ViewModel(1e3, 0.0, COMPLIANCE, SEP), noise=3e-4)
+    fit = fit_view_model(evidence, forces, SEP, kappa_prior_n_per_mm=18.0, compliance_per_n=COMPLIANCE)
+    assert fit is not None and fit.kappa_n_per_mm > 3.0  # tilts under 0.4 deg for these force differences
+
+
+def test_too_little_evidence_gives_no_fit() -> None:
+    evidence, forces = _scan(ViewModel(0.15), noise=3e-4, n=4)
+    assert fit_view_model(evidence, forces, SEP, 18.0, COMPLIANCE) is None
+
+
+def test_foreshortening_stretches_along_the_tilt_only() -> None:
+    forces = np.array([2.0, 4.0, 3.0, 3.0])  # F2 > F1: tilt about x, the view stretches along y
+    theta_x = tilt_angles_rad(forces, 0.1, SEP)[0]
+    assert math.degrees(theta_x) == pytest.approx(math.degrees(math.asin(2.0 / (2 * 0.1 * 53.0))), abs=1e-9)
+    d = foreshortening(forces, 0.1, SEP)
+    np.testing.assert_allclose(d, [[1.0, 0.0], [0.0, 1.0 / math.cos(theta_x)]], atol=1e-12)
+
+
+def test_corrected_relative_undoes_both_views() -> None:
+    truth = ViewModel(0.12, 0.1, COMPLIANCE, SEP)
+    f_i, f_j = np.array([3.0, 5.0, 2.0, 4.0]), np.array([6.0, 3.0, 4.5, 2.0])
+    d_i, d_j = truth.views(f_i), truth.views(f_j)
+    rel = Similarity(1.001 * complex(math.cos(0.2), math.sin(0.2)), 3.0 - 2.0j)
+    m = rel.matrix()
+    observed = np.hstack([d_i @ m[:, :2] @ np.linalg.inv(d_j), d_i @ m[:, 2:]])
+    back = corrected_relative(Similarity(1.0, 0j), observed, d_i, d_j)
+    assert abs(back.a - rel.a) < 1e-12 and abs(back.t - rel.t) < 1e-12

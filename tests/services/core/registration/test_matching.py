@@ -1,0 +1,174 @@
+"""Similarity algebra, RANSAC similarity recovery, A-SIFT duplicate merging and the same-place ratio test."""
+
+from __future__ import annotations
+
+import cmath
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from services.core.registration.features import Features
+from services.core.registration.matching import estimate_similarity, match_features, nearest_descriptors, unique_pairs
+from services.core.similarity import IDENTITY, Similarity
+from tests.tolerances import TOL
+
+# S: scale 2, yaw +90 deg, shift (1, 1) mm: p -> 2i p + (1 + i)
+S = Similarity(2j, 1 + 1j)
+
+
+def test_apply_known_answer() -> None:
+    # (1, 0) -> 2i + 1 + i = 1 + 3i; (0, 1) -> 2i * i + 1 + i = -1 + i
+    out = S.apply(np.array([[1.0, 0.0], [0.0, 1.0]]))
+    np.testing.assert_allclose(out, [[1.0, 3.0], [-1.0, 1.0]], atol=TOL.float64_abs)
+    assert S.scale == pytest.approx(2.0, abs=TOL.float64_abs)
+    assert S.yaw_rad == pytest.approx(math.pi / 2, abs=TOL.float64_abs)
+
+
+def test_yaw_is_the_ordinary_rotation_in_image_axes() -> None:
+    # spec §4: p lands at R(yaw) p with R = [[cos, -sin], [sin, cos]]; check against the matrix form
+    yaw = math.radians(30.0)
+    r = Similarity(cmath.exp(1j * yaw), 0j)
+    p = np.array([[2.0, -1.0]])
+    rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    np.testing.assert_allclose(r.apply(p), p @ rot.T, atol=TOL.float64_abs)
+    np.testing.assert_allclose(r.matrix()[:, :2], rot, atol=TOL.float64_abs)
+
+
+def test_compose_known_answer() -> None:
+    # S after (0.5 p + 3): 2i (0.5 p + 3) + 1 + i = i p + (1 + 7i)
+    c = S.compose(Similarity(0.5 + 0j, 3 + 0j))
+    assert c.a == pytest.approx(1j, abs=TOL.float64_abs)
+    assert c.t == pytest.approx(1 + 7j, abs=TOL.float64_abs)
+    p = np.array([[0.3, -2.0], [5.0, 1.5]])
+    np.testing.assert_allclose(c.apply(p), S.apply(Similarity(0.5 + 0j, 3 + 0j).apply(p)), atol=TOL.float64_abs)
+
+
+def test_inverse_known_answer_and_round_trip() -> None:
+    # S^-1: q -> (q - (1 + i)) / 2i = -0.5i q + (-0.5 + 0.5i)
+    inv = S.inverse()
+    assert inv.a == pytest.approx(-0.5j, abs=TOL.float64_abs)
+    assert inv.t == pytest.approx(-0.5 + 0.5j, abs=TOL.float64_abs)
+    both = S.compose(inv)
+    assert both.a == pytest.approx(IDENTITY.a, abs=TOL.float64_abs)
+    assert both.t == pytest.approx(IDENTITY.t, abs=TOL.float64_abs)
+
+
+def test_rigid_keeps_yaw_and_translation_only() -> None:
+    r = S.rigid()
+    assert r.a == pytest.approx(1j, abs=TOL.float64_abs)  # scale 2 dropped, yaw 90 deg kept
+    assert r.t == S.t
+    np.testing.assert_allclose(r.matrix(), [[0.0, -1.0, 1.0], [1.0, 0.0, 1.0]], atol=TOL.float64_abs)
+
+
+def _synthetic_matches(seed: int, n: int = 200, outlier_frac: float = 0.3, noise: float = 0.01):
+    rng = np.random.default_rng(seed)
+    truth = Similarity(1.03 * cmath.exp(1j * math.radians(12.0)), 4.0 - 2.5j)
+    src = rng.uniform(-20, 20, (n, 2))
+    dst = truth.apply(src) + rng.normal(0, noise, (n, 2))
+    outliers = rng.permutation(n)[: int(outlier_frac * n)]
+    dst[outliers] = rng.uniform(-25, 25, (len(outliers), 2))
+    is_out = np.zeros(n, bool)
+    is_out[outliers] = True
+    return truth, src, dst, is_out
+
+
+def test_estimate_similarity_recovers_known_transform_with_outliers() -> None:
+    truth, src, dst, is_out = _synthetic_matches(seed=7)
+    fit = estimate_similarity(src, dst, threshold=0.1, seed=3)
+    assert fit is not None
+    # 140 inliers with 0.01 mm noise over a +-20 mm spread: the LS similarity is good to ~1e-4 in a and
+    # ~1e-3 mm in t; 1e-3 / 5e-3 mm leave a margin and still catch a wrong model or a lost refinement
+    assert abs(fit.transform.a - truth.a) < 1e-3
+    assert abs(fit.transform.t - truth.t) < 5e-3
+    assert fit.inliers >= 135  # 140 true inliers; a few random outliers may fall within 0.1 mm
+    assert not np.any(fit.inlier_mask & is_out & (np.hypot(*(truth.apply(src) - dst).T) > 0.1))
+    assert fit.rms < 0.03  # ~ sqrt(2) * 0.01 mm noise
+    again = estimate_similarity(src, dst, threshold=0.1, seed=3)
+    assert again is not None and again.transform == fit.transform  # seeded: identical
+
+
+def test_estimate_similarity_returns_none_without_enough_inliers() -> None:
+    rng = np.random.default_rng(1)
+    src, dst = rng.uniform(-20, 20, (40, 2)), rng.uniform(-20, 20, (40, 2))  # pure outliers
+    assert estimate_similarity(src, dst, threshold=0.05, seed=0, min_inliers=8) is None
+    assert estimate_similarity(src[:5], dst[:5], threshold=0.05, min_inliers=8) is None
+
+
+def test_unique_pairs_merges_repeated_matches() -> None:
+    rng = np.random.default_rng(2)
+    src = rng.uniform(0, 400, (50, 2))
+    dst = src + np.array([30.0, -12.0])
+    # 20 A-SIFT duplicates: the same match seen in another view, both ends moved by < 1 px
+    dup = rng.choice(50, 20, replace=False)
+    jitter = rng.uniform(-0.9, 0.9, (20, 2))
+    src_all = np.vstack([src, src[dup] + jitter])
+    dst_all = np.vstack([dst, dst[dup] + jitter[::-1]])
+    keep = unique_pairs(src_all, dst_all, radius=2.0)
+    assert keep.sum() == 50
+    assert np.all(keep[:50])  # the first of each group is the one kept
+    # same source point, different destinations (> radius apart): two distinct matches, both kept
+    keep2 = unique_pairs(np.array([[5.0, 5.0], [5.5, 5.0]]), np.array([[0.0, 0.0], [10.0, 0.0]]), 2.0)
+    assert keep2.tolist() == [True, True]
+
+
+def test_inlier_count_is_honest_after_dedupe() -> None:
+    rng = np.random.default_rng(4)
+    truth = Similarity(cmath.exp(0.2j), 1.0 + 0.5j)
+    src = rng.uniform(-20, 20, (30, 2))
+    src_all = np.vstack([src, src, src + rng.uniform(-0.05, 0.05, (30, 2))])  # each point seen 3x
+    dst_all = truth.apply(src_all)
+    plain = estimate_similarity(src_all, dst_all, threshold=0.05, seed=0)
+    honest = estimate_similarity(src_all, dst_all, threshold=0.05, seed=0, dedupe_radius=0.25)
+    assert plain is not None and honest is not None
+    assert plain.inliers == 90
+    assert honest.inliers == 30
+
+
+def _features(points: list[tuple[float, float]], descriptors: np.ndarray) -> Features:
+    return Features(np.array(points, float), descriptors.astype(np.float32), np.ones(len(points)))
+
+
+def test_same_place_duplicate_does_not_veto_its_own_match() -> None:
+    rng = np.random.default_rng(5)
+    d = rng.random((4, 128)) * 100
+    query = _features([(0.0, 0.0)], d[:1] + rng.normal(0, 1, (1, 128)))
+    # train: the query's point twice at the same place (two A-SIFT views), plus two unrelated points
+    train = _features([(50.0, 50.0), (50.5, 50.0), (10.0, 90.0), (80.0, 20.0)], np.vstack([d[0], d[0], d[2:]]))
+    iq, it = match_features(query, train, ratio=0.8, same_point=2.0)
+    assert iq.tolist() == [0]
+    assert it[0] in (0, 1)
+
+
+def test_identical_descriptors_at_different_places_are_ambiguous() -> None:
+    rng = np.random.default_rng(5)
+    d = rng.random((4, 128)) * 100
+    query = _features([(0.0, 0.0)], d[:1] + rng.normal(0, 1, (1, 128)))
+    # the same descriptor at two places 30 px apart: a repeated pattern, rejected by the ratio test
+    train = _features([(50.0, 50.0), (80.0, 50.0), (10.0, 90.0), (80.0, 20.0)], np.vstack([d[0], d[0], d[2:]]))
+    iq, it = match_features(query, train, ratio=0.8, same_point=2.0)
+    assert len(iq) == 0 and len(it) == 0
+
+
+def test_match_features_degenerate_inputs() -> None:
+    d = np.ones((1, 128), np.float32)
+    one = _features([(0.0, 0.0)], d)
+    iq, it = match_features(one, one)  # a single train point: no ratio test possible
+    assert len(iq) == 0 and len(it) == 0
+
+
+@pytest.mark.parametrize("guided", [False, True])
+def test_nearest_descriptors_agree_with_opencv_brute_force(guided: bool) -> None:
+    # the matrix-product search must find OpenCV BFMatcher's k nearest (L2), in order, with the same
+    # distances: float32 expansion |q|^2 + |t|^2 - 2 q.t of SIFT-sized vectors (norms ~500) is good to ~0.01
+    rng = np.random.default_rng(5)
+    train = np.round(rng.uniform(0, 120, (300, 128))).astype(np.float32)
+    query = np.round(np.clip(train[:200] + rng.normal(0, 8, (200, 128)), 0, 255)).astype(np.float32)
+    allowed = (rng.random((200, 300)) < 0.3).astype(np.uint8) if guided else None
+    idx, dist = nearest_descriptors(query, train, 4, allowed)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    knn = matcher.knnMatch(query, train, k=4, mask=allowed) if guided else matcher.knnMatch(query, train, k=4)
+    for row, matches in enumerate(knn):
+        assert [m.trainIdx for m in matches] == list(idx[row, : len(matches)])
+        np.testing.assert_allclose([m.distance for m in matches], dist[row, : len(matches)], atol=0.01)
