@@ -10,6 +10,7 @@ WORKDIR /build
 COPY pyproject.toml setup.py MANIFEST.in README.md package.json package-lock.json ./
 COPY services services
 COPY api api
+COPY cli cli
 COPY workers workers
 COPY --from=viewer /app/node_modules/openseadragon node_modules/openseadragon
 RUN pip install --no-cache-dir . && rm -rf /build

@@ -5,7 +5,7 @@ well-formed JSON that breaks the schema is 422 "validation_error" (with "details
 never echoing the submitted values, which may be patient data).
 
 Storage faults (ENOSPC, EDQUOT: "insufficient_storage"; EIO, EROFS: "storage_unavailable") are 503 with
-Retry-After, not 507: spec §5 lists 503 as the "retry later" answer, every client (api/client.py included)
+Retry-After, not 507: spec §5 lists 503 as the "retry later" answer, every client (cli/client.py included)
 already retries it, and a balancer reading /readyz (503 below the free-space floor) stops sending meanwhile.
 Nothing partial is kept: the store's writers remove their temporary files when a write fails.
 

@@ -28,8 +28,8 @@ import cv2
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from api.launcher import api_command, free_port, service_env, start_process, stop_processes, wait_until_ready  # noqa: E402
 from bench.raw_http import RawHttp, multipart  # noqa: E402
+from cli.launcher import api_command, free_port, service_env, start_process, stop_processes, wait_until_ready  # noqa: E402
 from services.core.simulation.scenarios import simulate  # noqa: E402
 from services.jobs.redis_backend import close, connect  # noqa: E402
 

@@ -1,6 +1,6 @@
 """Peak memory of a real API process, and how fast it refuses hostile input (issue 8).
 
-Starts the API alone (uvicorn subprocess via api.launcher.Service with no workers; Redis at REDIS_URL or the
+Starts the API alone (uvicorn subprocess via cli.launcher.Service with no workers; Redis at REDIS_URL or the
 embedded one), creates a 640x480 session, then sends in turn: PNG bombs (a ~1 kB PNG claiming 30000x30000, and
 one claiming the calibrated size but colour), an oversize frame upload (21 MB declared, over the limit), a
 19 MB frame of garbage (under the limit: read whole, then refused), a 200 MB
@@ -35,7 +35,7 @@ import httpx
 import numpy as np
 import psutil
 
-from api.launcher import Service, free_port
+from cli.launcher import Service, free_port
 
 KEY = f"bench-{uuid.uuid4().hex}"
 W, H = 640, 480

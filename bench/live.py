@@ -2,10 +2,10 @@
 
     .venv/bin/python bench/live.py [--frames 150] [--rate 10] [--baseline-rate 5] [--scenario raster] [--seed 1]
 
-Starts the service as `veinmosaic serve` does (api.launcher.Service: API + --workers workers, an embedded
+Starts the service as `veinmosaic serve` does (cli.launcher.Service: API + --workers workers, an embedded
 Redis unless REDIS_URL is set, then under a private key prefix that is deleted afterwards) on a temporary
 data dir, simulates the scan (640x480 realistic frames) and uploads its first --frames frames with
-api.client.upload_scan_folder: forces interleaved ahead of each frame as the probe sends them, frames paced
+cli.client.upload_scan_folder: forces interleaved ahead of each frame as the probe sends them, frames paced
 on the scan's own clock scaled to a mean of --rate frames/s (0: as fast as the server accepts). Meanwhile it
 polls GET /v1/sessions/{id} every --poll s. Frames are registered in seq order, so frame s counts as
 processed at the first poll with frames_processed > s; its lag is that time minus its upload's 2xx
@@ -38,8 +38,8 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from api.client import ApiError, VeinmosaicClient, upload_scan_folder
-from api.launcher import Service, free_port
+from cli.client import ApiError, VeinmosaicClient, upload_scan_folder
+from cli.launcher import Service, free_port
 from services.core.inputs.scan import Scan
 from services.core.simulation.scenarios import SCENARIOS, simulate
 from services.settings import get_settings
@@ -118,6 +118,7 @@ def first_frames(scan: Scan, n: int) -> Scan:
         imu_t_s=None if keep_i is None else scan.imu_t_s[keep_i],
         imu_tilt_deg=None if keep_i is None or scan.imu_tilt_deg is None else scan.imu_tilt_deg[keep_i],
         reference_mm=None if scan.reference_mm is None else scan.reference_mm[:n],
+        reference_angles_deg=None if scan.reference_angles_deg is None else scan.reference_angles_deg[:n],
         truth={},
     )
 

@@ -35,7 +35,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from api.launcher import (  # noqa: E402
+from bench.raw_http import RawHttp, multipart  # noqa: E402
+from cli.launcher import (  # noqa: E402
     free_port,
     serve_command,
     service_env,
@@ -43,7 +44,6 @@ from api.launcher import (  # noqa: E402
     stop_processes,
     wait_until_ready,
 )
-from bench.raw_http import RawHttp, multipart  # noqa: E402
 from services.core.simulation.scenarios import simulate  # noqa: E402
 
 KEY = "load-test-key"
@@ -77,7 +77,7 @@ class Stats:
 
 
 class Server:
-    """redis-server (AOF) + `python -m api.cli serve` in a temp dir; stopped by stop()."""
+    """redis-server (AOF) + `python -m cli.main serve` in a temp dir; stopped by stop()."""
 
     def __init__(self, workers: int, redis_url: str | None, api_workers: int = 1) -> None:
         self.tmp = Path(tempfile.mkdtemp(prefix="vm-load-"))

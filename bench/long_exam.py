@@ -30,7 +30,7 @@ PEAK_TARGET_MB = 1536.0
 # The child reconstructs through the CLI and reports its own resource use (seconds, kB) on its last line.
 CHILD = """
 import json, resource, sys
-from api.cli import main
+from cli.main import main
 rc = main(sys.argv[1:])
 u = resource.getrusage(resource.RUSAGE_SELF)
 print("RUSAGE " + json.dumps({"rc": rc, "cpu_s": u.ru_utime + u.ru_stime, "maxrss_kb": u.ru_maxrss}))

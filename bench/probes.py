@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/probes.py [--probes 1,3] [--frames 336] [--rate 10] [--workers 2] [--scenario raster]
 
-Starts the service once as `veinmosaic serve` does (api.launcher.Service: API + --workers workers, embedded Redis
+Starts the service once as `veinmosaic serve` does (cli.launcher.Service: API + --workers workers, embedded Redis
 unless REDIS_URL is set, then under a private key prefix deleted afterwards) and, for each N of --probes in turn,
 uploads N sessions at once, each a simulated scan (different seeds) paced at --rate frames/s on its own clock
 with bench/live.py's client (forces interleaved ahead of each frame, every upload's 2xx timed, the session state
@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from live import Row, first_frames, run  # bench/live.py: one paced session and its figures
 
-from api.launcher import Service, free_port
+from cli.launcher import Service, free_port
 from services.core.simulation.scenarios import SCENARIOS, simulate
 from services.settings import get_settings
 from services.store.scan_folder import write_scan_folder

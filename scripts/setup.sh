@@ -23,7 +23,7 @@ step "1/3 upgrading pip"
 step "2/3 installing veinmosaic and its dependencies into .venv (numpy, OpenCV, FastAPI, ...: a few minutes the first time)"
 .venv/bin/python -m pip install --progress-bar on -e ".[test]" 2>&1 \
   | grep -E --line-buffered '^(Collecting|Downloading|Installing|Successfully|ERROR|error)|%' >&2 || true
-.venv/bin/python -c 'import api, services, workers' || { step "the install failed (see above)"; exit 1; }
+.venv/bin/python -c 'import api, cli, services, workers' || { step "the install failed (see above)"; exit 1; }
 if command -v npm >/dev/null 2>&1; then
   step "3/3 installing the viewer's OpenSeadragon (npm ci, pinned in package-lock.json)"
   npm ci --no-audit --no-fund --loglevel=warn >&2

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import yaml
 
-from api.cli import build_parser
+from cli.main import build_parser
 from services.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -2,7 +2,8 @@
 
 The wheel is built from a copy of the project's files (offline: --no-build-isolation with .venv's setuptools),
 installed into a fresh virtual environment whose only other packages are .venv's (a .pth line, no download),
-and the installed app, imported outside the checkout, serves /viewer/{id} and OpenSeadragon with 200. A tree
+and the installed app, imported outside the checkout, serves /viewer/{id} and OpenSeadragon with 200. The wheel
+carries every top-level package (services, api, workers, cli), and its console script `veinmosaic` runs. A tree
 without OpenSeadragon and no npm refuses to build (a wheel without the viewer would answer 503).
 """
 
@@ -25,12 +26,14 @@ pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT_FILES = ("pyproject.toml", "setup.py", "MANIFEST.in", "README.md", "package.json", "package-lock.json")
 OSD = "api/static/vendor/openseadragon"
+PACKAGES = ("services", "api", "workers", "cli")
 
 CHECK = """
 import json, sys
 from pathlib import Path
 from fastapi.testclient import TestClient
 import api
+import cli.main
 from api.app import create_app
 from services.settings import Settings
 
@@ -44,7 +47,8 @@ with TestClient(app) as client:
     osd = client.get("/static/vendor/openseadragon/openseadragon.min.js")
     image = client.get("/static/vendor/openseadragon/images/home_rest.png")
     print(json.dumps({
-        "api": api.__file__, "created": created.status_code, "page": page.status_code, "osd": osd.status_code,
+        "api": api.__file__, "cli": cli.main.__file__, "created": created.status_code, "page": page.status_code,
+        "osd": osd.status_code,
         "osd_is_openseadragon": "OpenSeadragon" in osd.text[:5000], "image": image.status_code,
     }))
 """
@@ -55,7 +59,7 @@ def _copy_project(dest: Path, with_node_modules: bool) -> Path:
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
     for name in PROJECT_FILES:
         shutil.copy(ROOT / name, dest / name)
-    for package in ("api", "services", "workers"):
+    for package in PACKAGES:
         shutil.copytree(ROOT / package, dest / package, ignore=shutil.ignore_patterns("vendor", "__pycache__"))
     if with_node_modules:
         shutil.copytree(ROOT / "node_modules" / "openseadragon", dest / "node_modules" / "openseadragon", ignore=ignore)
@@ -77,6 +81,8 @@ def test_wheel_carries_openseadragon_and_serves_the_viewer(tmp_path: Path) -> No
     names = set(zipfile.ZipFile(wheel).namelist())
     assert {f"{OSD}/openseadragon.min.js", f"{OSD}/images/home_rest.png", f"{OSD}/LICENSE.txt"} <= names
     assert not any(name.startswith("node_modules/") for name in names)
+    assert {f"{package}/__init__.py" for package in PACKAGES} <= names
+    assert {"cli/main.py", "cli/launcher.py", "cli/client.py"} <= names  # the command line is packaged
 
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=60)
@@ -110,8 +116,13 @@ def test_wheel_carries_openseadragon_and_serves_the_viewer(tmp_path: Path) -> No
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
     assert result["api"].startswith(str(venv)), result  # the installed package, not the checkout
+    assert result["cli"].startswith(str(venv)), result
     assert result["created"] == 201 and result["page"] == 200, result
     assert result["osd"] == 200 and result["osd_is_openseadragon"] and result["image"] == 200, result
+    script = [str(venv / "bin" / "veinmosaic"), "--help"]
+    usage = subprocess.run(script, cwd=run_dir, env=env, capture_output=True, text=True, timeout=60, check=False)
+    assert usage.returncode == 0, usage.stderr[-3000:]  # the console script runs cli.main from the wheel
+    assert "serve" in usage.stdout and "upload" in usage.stdout, usage.stdout
 
 
 def test_build_without_openseadragon_or_npm_says_what_to_do(tmp_path: Path) -> None:

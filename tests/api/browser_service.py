@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 from live_server import free_port
 
-from api.launcher import Service
+from cli.launcher import Service
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [

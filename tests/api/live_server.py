@@ -16,7 +16,7 @@ from pathlib import Path
 
 import redis
 
-from api.launcher import api_command, free_port, service_env, start_process, stop_processes, wait_until_ready
+from cli.launcher import api_command, free_port, service_env, start_process, stop_processes, wait_until_ready
 
 __all__ = ["LiveAPI", "free_port", "live_api"]
 

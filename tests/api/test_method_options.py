@@ -6,8 +6,8 @@ from dataclasses import fields
 
 import pytest
 
-from api.cli import _parse_options
 from api.schemas import ReprocessOptions
+from cli.commands_offline import _parse_options
 from services.core.method_options import MethodOverrides, check_overrides, parse_options
 from services.core.methods import MethodOptions
 

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from browser_service import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, browser_service
 
-from api.client import FORCE_LEAD_S, VeinmosaicClient
-from api.launcher import Service
+from cli.client import FORCE_LEAD_S, VeinmosaicClient
+from cli.launcher import Service
 from services.core.inputs.scan import Scan
 from tests.sim_cache import simulated
 

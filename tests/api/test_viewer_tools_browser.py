@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 from browser_service import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, browser_service
 
-from api.client import VeinmosaicClient
-from api.launcher import Service
+from cli.client import VeinmosaicClient
+from cli.launcher import Service
 from services.core.mosaic.canvas import FrameLayers, SparseCanvas, blend_weight
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
 from services.core.outputs.results_docs import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json

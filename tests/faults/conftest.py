@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import redis
 
-from api.launcher import free_port, serve_command, service_env, start_process, stop_processes
+from cli.launcher import free_port, serve_command, service_env, start_process, stop_processes
 from services.core.inputs.scan import Scan
 from services.jobs import queue
 from services.store.results_store import LIVE_VERSION, ResultsStore

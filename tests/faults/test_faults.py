@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 import redis
 
-from api.client import VeinmosaicClient
-from api.launcher import stop_processes, wait_until_ready
+from cli.client import VeinmosaicClient
+from cli.launcher import stop_processes, wait_until_ready
 from services.core.inputs.scan import Scan
 from services.core.simulation.scenarios import simulate
 from services.jobs import queue
@@ -338,7 +338,7 @@ def test_serve_restarts_a_dead_embedded_redis(tmp_path: Path) -> None:
 
 
 def test_restart_backoff_comes_from_the_settings(tmp_path: Path) -> None:
-    from api.launcher import Service
+    from cli.launcher import Service
     from services.settings import Settings
 
     settings = Settings(restart_first_s=0.25, restart_max_s=1.0, healthy_after_s=5.0, api_workers=3)

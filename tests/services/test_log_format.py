@@ -1,4 +1,4 @@
-"""The hand-written JSON log format keeps only whitelisted fields (why it is not python-json-logger: README)."""
+"""The hand-written JSON log format keeps only whitelisted fields (why it is not python-json-logger: docs/design.md)."""
 
 from __future__ import annotations
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from api.cli import _settings_for
-from api.cli import build_parser as cli_parser
+from cli.commands_service import _settings_for
+from cli.main import build_parser as cli_parser
 from services.settings import Settings, WorkerSettings
 from workers.config import WorkerConfig
 from workers.main import build_parser as worker_parser

@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from api.client import ApiError, VeinmosaicClient, upload_scan_folder
-from api.launcher import Service, free_port
+from cli.client import ApiError, VeinmosaicClient, upload_scan_folder
+from cli.launcher import Service, free_port
 from services.store.audit import AuditLog
 from services.store.scan_folder import write_scan_folder
 from tests.pacs_server import Orthanc

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from api.client import VeinmosaicClient
-from api.launcher import Service, free_port
+from cli.client import VeinmosaicClient
+from cli.launcher import Service, free_port
 from services.core.inputs.scan import Scan
 from services.jobs import queue
 from services.jobs.redis_backend import connect, read_embedded_url

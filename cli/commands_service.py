@@ -1,4 +1,4 @@
-"""The `veinmosaic` command line: a thin shell over services/ (and, for serving, over api/ and workers/)."""
+"""The commands of the running service: serve, worker, upload and demo (over HTTP), and send (to a PACS)."""
 
 from __future__ import annotations
 
@@ -8,181 +8,17 @@ import json
 import os
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from tqdm import tqdm
 
+from cli import output
+
 if TYPE_CHECKING:
-    from api.launcher import Service
+    from cli.launcher import Service
     from services.settings import Settings
-
-
-def _sized(bar: tqdm) -> Callable[[int, int], None]:
-    """Return a progress callback (done, total) that drives a tqdm bar."""
-
-    def update(done: int, total: int) -> None:
-        bar.total = total
-        bar.n = done
-        bar.refresh()
-
-    return update
-
-
-def _bar(desc: str, total: int = 0) -> tqdm:
-    return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, dynamic_ncols=True)
-
-
-def cmd_simulate(args: argparse.Namespace) -> int:
-    """Write a simulated scan folder (spec §3) with reference.csv."""
-    from services.core.simulation.scenarios import simulate
-    from services.store.scan_folder import write_scan_folder
-
-    scan = simulate(args.scenario, args.seed, tissue=args.tissue, frames=args.frames)
-    write_scan_folder(scan, args.out)
-    length = scan.truth.get("path_length_mm", float("nan"))
-    print(f"wrote {len(scan)} frames ({args.scenario}, seed {args.seed}, path {length:.0f} mm) to {args.out}")
-    return 0
-
-
-def cmd_reconstruct(args: argparse.Namespace) -> int:
-    """Reconstruct a scan folder and write path, mosaic, layers, plots and report (see services.store.results_io)."""
-    from services.core.methods import method_options
-    from services.core.outputs.dicom_export import scan_digest
-    from services.core.pipeline import reconstruct
-    from services.store.results_io import write_reconstruction
-    from services.store.scan_folder import read_scan_folder
-
-    scan = read_scan_folder(args.scan)
-    options = method_options(args.method).with_overrides(_parse_options(args.option))
-    with _bar(f"reconstruct ({args.method})", len(scan)) as bar:
-        recon = reconstruct(scan, options, progress=_sized(bar))
-    report = write_reconstruction(
-        recon, args.out, scan.reference_track, scan_digest=scan_digest(scan), label=Path(args.scan).resolve().name
-    )
-    f = report.frames
-    print(
-        f"{f.n_ok}/{f.n_frames} frames registered ({100 * f.registered_fraction:.1f} %; {f.n_lost} lost, "
-        f"{f.n_rejected} rejected) in {recon.seconds:.1f} s; outputs in {args.out}"
-    )
-    if report.accuracy is not None:
-        print(report.accuracy.summary())
-    if "angles" in report.doc:
-        a = report.doc["angles"]
-        print(
-            ", ".join(
-                f"{k.removesuffix('_rmse_deg')} RMS error {v:.2f} deg" for k, v in a.items() if k.endswith("_rmse_deg")
-            )
-        )
-    _print_warnings(report.warnings)
-    print(f"one-page report: {Path(args.out) / 'sheet.pdf'}")
-    return 0
-
-
-def _print_warnings(warnings: list[dict[str, str]]) -> None:
-    """Print each warning on its own line, to stdout (it is part of the result) and flagged WARNING."""
-    for w in warnings:
-        print(f"WARNING: {w['message']}")
-
-
-def _parse_options(pairs: list[str]) -> dict[str, object]:
-    """Return method overrides from KEY=VALUE strings, validated (and converted) by the one options model."""
-    from services.core.method_options import check_overrides
-
-    out: dict[str, object] = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep or not key:
-            raise ValueError(f"--option {pair!r}: expected KEY=VALUE")
-        out[key] = value
-    try:
-        return check_overrides(out, lax=True)
-    except ValueError as exc:
-        raise ValueError(f"--option: {exc}") from None
-
-
-def cmd_calibrate(args: argparse.Namespace) -> int:
-    """Fit E and kappa from a calibration scan; print the fits and write an updated calibration.json."""
-    from services.core.calibration_fit import calibrate_scan, format_calibration_report
-    from services.store.scan_folder import read_scan_folder
-
-    scan = read_scan_folder(args.scan)
-    result = calibrate_scan(scan)
-    print(format_calibration_report(result))
-    out = Path(args.out) if args.out else Path(args.scan) / "calibration.json"
-    out.write_text(json.dumps(result.calibration.to_dict(), indent=2))
-    print(f"wrote {out}")
-    return 0
-
-
-STUDY_OPTIONS = (  # `veinmosaic export` options -> services.core.inputs.study fields (spec §5 `study`)
-    "patient_id",
-    "patient_name",
-    "patient_birth_date",
-    "patient_sex",
-    "accession_number",
-    "laterality",
-    "referring_physician",
-    "study_description",
-)
-
-
-def _results_key(results: Path) -> tuple[str, str]:
-    """Return (UID key, what it is) of a results folder: its scan's content digest, else its results' content."""
-    import hashlib
-
-    meta = json.loads((results / "mosaic.json").read_text())
-    digest = meta.get("scan_digest")
-    if isinstance(digest, str) and digest:
-        return f"scan:{digest}", "the scan's content"
-    h = hashlib.sha256(b"veinmosaic results v1\0")  # a folder written before scan digests: its own content
-    for name in ("layers.npz", "mosaic.png", "path.csv", "mosaic.json"):
-        if (results / name).is_file():
-            h.update(name.encode() + b"\0" + (results / name).read_bytes())
-    return f"results:{h.hexdigest()}", "the results' content (folder written before scan digests)"
-
-
-def cmd_export(args: argparse.Namespace) -> int:
-    """Write a reconstruct output folder's layers (and its one-page report) as DICOM files of one study."""
-    from datetime import UTC, datetime
-
-    from services.core.inputs.study import parse_study
-    from services.core.outputs.dicom_export import STUDY_OBJECTS, ExportInfo, export_study
-    from services.store.results_io import read_results_mosaic
-
-    results = Path(args.results)
-    study = parse_study({name: getattr(args, name) or None for name in STUDY_OPTIONS})  # names a bad field only
-    mosaic = read_results_mosaic(results)
-    acquired = datetime.fromisoformat(args.acquired) if args.acquired else None
-    if acquired is not None and acquired.tzinfo is None:
-        acquired = acquired.replace(tzinfo=UTC)
-    meta = json.loads((results / "mosaic.json").read_text())
-    key, source = (args.study_key, "--study-key") if args.study_key else _results_key(results)
-    info = ExportInfo(
-        key=key,
-        study=study,
-        acquired=acquired,
-        exported=datetime.now(UTC),
-        method=str(meta.get("method") or ""),
-    )
-    wanted = list(dict.fromkeys(args.layer or STUDY_OBJECTS))
-    sheet = results / "sheet.pdf"
-    pdf = sheet.read_bytes() if "report" in wanted and sheet.is_file() else None
-    if pdf is None and "report" in wanted:
-        if args.layer:
-            raise ValueError(f"{results}: no sheet.pdf, the one-page report, to export")
-        wanted.remove("report")
-    out = Path(args.out) if args.out else results / "dicom"
-    out.mkdir(parents=True, exist_ok=True)
-    for name, data in export_study(mosaic, info, pdf, only=wanted).items():
-        target = out / f"{name}.dcm"
-        target.write_bytes(data)
-        print(f"wrote {target}")
-    print(f"UIDs derived from {source}" + (" and the study context" if study is not None else ""))
-    if study is None:
-        print("no patient identity given (no study context): the patient and order attributes are present and empty")
-    return 0
 
 
 def cmd_send(args: argparse.Namespace) -> int:
@@ -236,7 +72,7 @@ def _settings_for(args: argparse.Namespace) -> Settings:
 
 
 def _service(args: argparse.Namespace, settings: Settings, extra_env: dict[str, str] | None = None) -> Service:
-    from api.launcher import Service
+    from cli.launcher import Service
 
     return Service(
         data_dir=args.data_dir,
@@ -263,7 +99,7 @@ def worker_argv() -> list[str]:
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
-    """Become one worker process against the configured Redis and storage (exec: api never imports workers)."""
+    """Become one worker process against the configured Redis and storage (exec: cli never imports workers)."""
     argv = worker_argv()
     os.execv(argv[0], argv)
     return 0  # not reached
@@ -271,21 +107,21 @@ def cmd_worker(args: argparse.Namespace) -> int:
 
 def cmd_upload(args: argparse.Namespace) -> int:
     """Upload a scan folder to a running server, as a hospital system would."""
-    from api.client import VeinmosaicClient, upload_scan_folder
+    from cli.client import VeinmosaicClient, upload_scan_folder
 
     client = VeinmosaicClient(args.url, args.key)
 
     def started(created: dict) -> None:
         print(f"session {created['id']}; viewer: {args.url.rstrip('/')}{created.get('viewer_url', '')}")
 
-    with _bar("upload") as bar:
+    with output.bar("upload") as bar:
         sid = upload_scan_folder(
-            client, args.scan, label=args.label, realtime=args.realtime, progress=_sized(bar), on_session=started
+            client, args.scan, label=args.label, realtime=args.realtime, progress=output.sized(bar), on_session=started
         )
     if args.wait:
         state = client.wait_done(sid, timeout_s=args.timeout)
         print(json.dumps(state, indent=2))
-        _print_warnings(state.get("warnings", []))
+        output.print_warnings(state.get("warnings", []))
     return 0
 
 
@@ -305,12 +141,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
-    import os
     import secrets
 
     import httpx
 
-    from api.client import VeinmosaicClient, upload_scan_folder
+    from cli.client import VeinmosaicClient, upload_scan_folder
+    from cli.launcher import free_port
     from services.core.simulation.scenarios import simulate
     from services.store.scan_folder import write_scan_folder
 
@@ -318,7 +154,7 @@ def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
     keys = json.loads(os.environ.get("VEINMOSAIC_API_KEYS") or "{}")
     keys[key] = ["ingest", "view", "admin"]
     if args.port == 0:
-        args.port = _free_port(args.host)
+        args.port = free_port(args.host)
     # the demo's own output is the story; the service logs only warnings (JSON lines on stderr)
     service = _service(args, settings, {"VEINMOSAIC_API_KEYS": json.dumps(keys), "VEINMOSAIC_LOG_LEVEL": "WARNING"})
     out = Path(args.out)
@@ -337,11 +173,11 @@ def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
             tqdm.write("   open the live viewer (this link is valid while the demo serves):")
             tqdm.write(viewer["url"])
 
-        with _bar("3/4 upload", len(scan)) as bar:
+        with output.bar("3/4 upload", len(scan)) as bar:
             sid = upload_scan_folder(
-                client, scan_dir, label="demo", realtime=args.realtime, progress=_sized(bar), on_session=started
+                client, scan_dir, label="demo", realtime=args.realtime, progress=output.sized(bar), on_session=started
             )
-        with _bar("4/4 processing", len(scan)) as bar:
+        with output.bar("4/4 processing", len(scan)) as bar:
 
             def shown(state: dict) -> None:
                 bar.n = int(state.get("frames_processed", 0))
@@ -376,7 +212,7 @@ def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
             + (f", {100 * registered:.1f} % registered" if registered is not None else "")
         )
         print(f"accuracy vs the simulator's ground truth: {report.get('accuracy_summary', '')}")
-        _print_warnings(state.get("warnings", []))
+        output.print_warnings(state.get("warnings", []))
         print(f"images, scaled force and coverage maps, one-page report (sheet.pdf) and DICOM files in {out.resolve()}")
         print("viewer:")
         print(viewer.get("url", "(no session)"))
@@ -411,26 +247,6 @@ def _write_scaled_maps(data_dir: Path, sid: str, out: Path) -> None:
     (out / "coverage_map.png").write_bytes(plot_coverage_map(mosaic.coverage, mosaic.px_per_mm, mosaic.origin_px))
 
 
-def _free_port(host: str) -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
-
-
-class _Help(argparse.ArgumentDefaultsHelpFormatter):
-    """Help that shows every option's default (and keeps the description's line breaks)."""
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        text = action.help or ""
-        if action.default is None or action.default is argparse.SUPPRESS or action.default is False:
-            return text
-        if action.default in ([], "") or "(default" in text or not action.option_strings:
-            return text
-        return text + " (default: %(default)s)"
-
-
 def _add_service_args(p: argparse.ArgumentParser, port: int | None, data_dir_help: str) -> None:
     """Add --host, --port, --workers, --data-dir; left out, they come from the settings (services.settings)."""
     from services.settings import Settings
@@ -452,76 +268,8 @@ def _add_service_args(p: argparse.ArgumentParser, port: int | None, data_dir_hel
     p.add_argument("--data-dir", type=Path, default=None, help=data_dir_help)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Return the argument parser of the veinmosaic command."""
-    parser = argparse.ArgumentParser(prog="veinmosaic", description=__doc__, formatter_class=_Help)
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
-    def command(name: str, help_text: str) -> argparse.ArgumentParser:
-        return sub.add_parser(name, help=help_text, description=help_text, formatter_class=_Help)
-
-    p = command("simulate", "write a simulated scan folder (spec §3) with reference.csv and truth.json")
-    p.add_argument(
-        "--scenario",
-        default="short",
-        choices=["raster", "revisit", "hard", "short", "calib", "exam"],
-        help="kind of scan (exam: a minutes-long examination, passes over one area)",
-    )
-    p.add_argument("--seed", type=int, default=1, help="random seed (same seed, same scan)")
-    p.add_argument("--frames", type=int, default=None, help="an exam's frames (default 2400: 4 min at 10 frames/s)")
-    p.add_argument(
-        "--tissue",
-        default=None,
-        choices=["linear", "stiffening", "power"],
-        help="a patient's tissue law with a hand's tilts (default: the calibration phantom)",
-    )
-    p.add_argument("--out", required=True, type=Path, help="scan folder to write (required)")
-    p.set_defaults(func=cmd_simulate)
-
-    p = command("reconstruct", "reconstruct a scan folder offline: path, mosaic, layers, plots, report")
-    p.add_argument("scan", type=Path, help="scan folder (spec §3)")
-    p.add_argument("--out", required=True, type=Path, help="output folder (required)")
-    p.add_argument("--method", default="best", choices=["sift-chain", "paper", "best"], help="registration method")
-    p.add_argument(
-        "--option",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a method option, repeatable, e.g. features=asift (full ASIFT) or refine=false (default: none)",
-    )
-    p.set_defaults(func=cmd_reconstruct)
-
-    p = command("export", "write a reconstruct output folder's mosaic, force map and coverage as DICOM")
-    p.add_argument("results", type=Path, help="a folder written by `veinmosaic reconstruct`")
-    p.add_argument("--out", type=Path, default=None, help="folder for the .dcm files (default: RESULTS/dicom)")
-    p.add_argument(
-        "--layer", action="append", choices=["vein", "force", "coverage", "report"], help="object to export, "
-        "repeatable (default: the three layers, and the report when RESULTS/sheet.pdf exists)"
-    )  # fmt: skip
-    p.add_argument(
-        "--acquired", default=None, help="acquisition date-time, ISO 8601, UTC unless it has an offset (default: empty)"
-    )
-    p.add_argument(
-        "--study-key",
-        default=None,
-        help="key the UIDs derive from (default: the digest of the scan's content that reconstruct recorded)",
-    )
-    study_help = {
-        "patient_id": "PatientID",
-        "patient_name": "PatientName, as 'Family^Given'",
-        "patient_birth_date": "PatientBirthDate, YYYY-MM-DD",
-        "patient_sex": "PatientSex: M, F or O",
-        "accession_number": "AccessionNumber of the order",
-        "laterality": "Laterality: L or R, which breast",
-        "referring_physician": "ReferringPhysicianName, as 'Family^Given'",
-        "study_description": "StudyDescription",
-    }
-    for name in STUDY_OPTIONS:
-        p.add_argument(
-            f"--{name.replace('_', '-')}", default="", help=f"study context: DICOM {study_help[name]} (default: empty)"
-        )
-    p.set_defaults(func=cmd_export)
-
+def add_commands(command: Callable[[str, str], argparse.ArgumentParser]) -> None:
+    """Add send, serve, worker, upload and demo to the parser (`command(name, help)` adds one)."""
     p = command("send", "send a results folder's DICOM files (*.dcm, e.g. from `veinmosaic export`) to a PACS")
     p.add_argument("results", type=Path, help="folder searched for *.dcm files (with its subfolders)")
     p.add_argument(
@@ -536,11 +284,6 @@ def build_parser() -> argparse.ArgumentParser:
         "--timeout", type=float, default=None, help="seconds per network step (default: VEINMOSAIC_PACS_TIMEOUT_S)"
     )
     p.set_defaults(func=cmd_send)
-
-    p = command("calibrate", "fit E and kappa from a calibration scan; write the updated calibration.json")
-    p.add_argument("scan", type=Path, help="calibration scan folder (with imu.csv for kappa)")
-    p.add_argument("--out", type=Path, default=None, help="where to write (default: SCAN/calibration.json)")
-    p.set_defaults(func=cmd_calibrate)
 
     p = command("serve", "run the API and workers (an embedded Redis when REDIS_URL is unset) until Ctrl-C")
     _add_service_args(p, None, "uploads and results (default: VEINMOSAIC_DATA_DIR, else ./data)")
@@ -582,21 +325,3 @@ def build_parser() -> argparse.ArgumentParser:
         help="keep serving (and the viewer link working) after the demo until Ctrl-C (default: stop at the end)",
     )
     p.set_defaults(func=cmd_demo)
-    return parser
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the veinmosaic command line; return the exit code."""
-    from services.core.inputs.calibration import CalibrationError
-    from services.store.scan_folder import ScanFormatError
-
-    args = build_parser().parse_args(argv)
-    try:
-        return int(args.func(args))
-    except (ScanFormatError, CalibrationError, ValueError) as exc:
-        print(f"veinmosaic: error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

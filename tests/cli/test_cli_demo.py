@@ -14,10 +14,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-import api.cli as cli
-import api.client
+import cli.client
+import cli.commands_service
 import services.core.simulation.scenarios
 import services.store.scan_folder
+from cli.main import main
 from services.core.mosaic.canvas import MosaicImage
 from services.store.results_store import ResultsStore
 
@@ -95,22 +96,22 @@ def demo(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> dict[str, Any]:
     """Replace the service, the simulator and the client; run in tmp_path; return the fakes' log."""
     log: dict[str, Any] = {}
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(cli, "_service", lambda args, settings, extra_env=None: FakeService(args, log))
+    monkeypatch.setattr(cli.commands_service, "_service", lambda args, settings, extra_env=None: FakeService(args, log))
     monkeypatch.setattr(services.core.simulation.scenarios, "simulate", lambda name, seed: FakeScan())
     monkeypatch.setattr(
         services.store.scan_folder,
         "write_scan_folder",
         lambda s, d: (Path(d).mkdir(parents=True), (Path(d) / "reference.csv").write_text("seq,x_mm,y_mm\n")),
     )
-    monkeypatch.setattr(api.client, "VeinmosaicClient", FakeClient)
-    monkeypatch.setattr(api.client, "upload_scan_folder", _upload)
+    monkeypatch.setattr(cli.client, "VeinmosaicClient", FakeClient)
+    monkeypatch.setattr(cli.client, "upload_scan_folder", _upload)
     return log
 
 
 def test_demo_prints_the_viewer_url_alone_and_says_it_stops(
     demo: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert cli.main(["demo", "--out", str(tmp_path / "out")]) == 0
+    assert main(["demo", "--out", str(tmp_path / "out")]) == 0
     lines = capsys.readouterr().out.splitlines()
     url = "http://127.0.0.1:5999" + VIEWER
     assert lines.count(url) == 2, lines  # once when the session starts, once at the end: each alone on its line
@@ -123,11 +124,11 @@ def test_demo_prints_the_viewer_url_alone_and_says_it_stops(
 
 
 def test_demo_leaves_no_data_behind(demo: dict[str, Any], tmp_path: Path) -> None:
-    assert cli.main(["demo", "--out", str(tmp_path / "out")]) == 0
+    assert main(["demo", "--out", str(tmp_path / "out")]) == 0
     assert demo["existed_while_serving"]
     assert not demo["data_dir"].exists()  # the temporary data dir is deleted with what the run wrote in it
     assert not (tmp_path / "data").exists()  # and nothing went to ./data
-    assert cli.main(["demo", "--out", str(tmp_path / "out")]) == 0  # a second run: still nothing left
+    assert main(["demo", "--out", str(tmp_path / "out")]) == 0  # a second run: still nothing left
     assert not demo["data_dir"].exists() and not (tmp_path / "data").exists()
 
 
@@ -135,7 +136,7 @@ def test_demo_data_dir_is_kept_and_reused_when_named(
     demo: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     named = tmp_path / "mydata"
-    assert cli.main(["demo", "--data-dir", str(named), "--out", str(tmp_path / "out")]) == 0
+    assert main(["demo", "--data-dir", str(named), "--out", str(tmp_path / "out")]) == 0
     assert demo["data_dir"] == named and (named / "sessions" / "frames.bin").is_file()
     assert f"data in {named}, kept" in capsys.readouterr().out
 
@@ -143,7 +144,7 @@ def test_demo_data_dir_is_kept_and_reused_when_named(
 def test_demo_hold_says_it_keeps_serving(
     demo: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert cli.main(["demo", "--hold", "--out", str(tmp_path / "out")]) == 0
+    assert main(["demo", "--hold", "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert "--hold: serving until Ctrl-C" in out and demo["held"]
     assert "stops the service" not in out
@@ -154,11 +155,11 @@ def test_demo_says_when_a_download_fails(
 ) -> None:
     def refuse(self: FakeClient, method: str, url: str) -> Any:
         if "sheet.pdf" in url:
-            raise api.client.ApiError(404, "not_ready", "no finished mosaic yet")
+            raise cli.client.ApiError(404, "not_ready", "no finished mosaic yet")
         return SimpleNamespace(content=url.encode())
 
     monkeypatch.setattr(FakeClient, "request", refuse)
-    assert cli.main(["demo", "--out", str(tmp_path / "out")]) == 0
+    assert main(["demo", "--out", str(tmp_path / "out")]) == 0
     assert "could not fetch sheet.pdf: HTTP 404 not_ready" in capsys.readouterr().out  # said, not skipped silently
     assert not (tmp_path / "out" / "sheet.pdf").exists() and (tmp_path / "out" / "sheet.png").is_file()
 
@@ -167,7 +168,7 @@ def test_demo_writes_the_force_and_coverage_maps_with_their_scales(
     demo: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     named, out = tmp_path / "mydata", tmp_path / "out"
-    assert cli.main(["demo", "--data-dir", str(named), "--out", str(out)]) == 0  # no finished layers yet: said
+    assert main(["demo", "--data-dir", str(named), "--out", str(out)]) == 0  # no finished layers yet: said
     assert "could not draw force_map.png and coverage_map.png" in capsys.readouterr().out
     assert not (out / "force_map.png").exists()
     coverage = np.tile(np.arange(40, dtype=np.float32) % 30, (24, 1))  # 0 (never scanned) to 29 frames
@@ -176,7 +177,7 @@ def test_demo_writes_the_force_and_coverage_maps_with_their_scales(
     rs = ResultsStore(named)  # the finished results a worker leaves in the demo's data dir
     rs.ensure_version(SID, 1, {"method": "best"})
     rs.write_mosaic_images(SID, 1, MosaicImage(np.zeros((24, 40), np.uint8), force, coverage, 8.0, (5.0, 12.0)))
-    assert cli.main(["demo", "--data-dir", str(named), "--out", str(out)]) == 0
+    assert main(["demo", "--data-dir", str(named), "--out", str(out)]) == 0
     for name in ("force_map.png", "coverage_map.png"):  # the maps in mm with colour bars (N; frames)
         assert (out / name).read_bytes().startswith(b"\x89PNG"), name
     assert (out / "force.png").read_bytes() == f"/v1/sessions/{SID}/mosaic.png?layer=force".encode()  # as served

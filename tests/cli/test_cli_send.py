@@ -11,7 +11,7 @@ import pytest
 from pydicom import dcmread
 from pydicom.uid import generate_uid
 
-from api.cli import main
+from cli.main import main
 from tests.pacs_server import Orthanc, free_port
 from tests.services.pacs.dicom_objects import PATIENT_ID, PATIENT_NAME, secondary_capture
 

@@ -1,4 +1,4 @@
-"""api.client retries (tenacity): 503/429 honour Retry-After, dropped connections back off, no other 4xx is retried."""
+"""cli.client retries (tenacity): 503/429 honour Retry-After, dropped connections back off, no other 4xx is retried."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from email.utils import format_datetime
 import httpx
 import pytest
 
-from api.client import ApiError, VeinmosaicClient, retry_after_s
+from cli.client import ApiError, VeinmosaicClient, retry_after_s
 
 Handler = Callable[[httpx.Request], httpx.Response]
 

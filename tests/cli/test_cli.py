@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from api.cli import main
+from cli.main import main
 from services.core.pipeline import PATH_COLUMNS
 from tests.tolerances import TOL
 
@@ -125,7 +125,7 @@ def test_calibrate_fits_and_writes_calibration(tmp_path: Path, capsys: pytest.Ca
 def test_console_entry_point_runs(scan_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "scan"
     proc = subprocess.run(
-        [sys.executable, "-m", "api.cli", "simulate", "--scenario", "short", "--seed", "1", "--out", str(out)],
+        [sys.executable, "-m", "cli.main", "simulate", "--scenario", "short", "--seed", "1", "--out", str(out)],
         cwd=tmp_path,
         capture_output=True,
         text=True,
@@ -138,7 +138,7 @@ def test_console_entry_point_runs(scan_dir: Path, tmp_path: Path) -> None:
     for name in ("frames.csv", "forces.csv", "reference.csv"):
         assert (out / name).read_bytes() == (scan_dir / name).read_bytes()
     usage = subprocess.run(
-        [sys.executable, "-m", "api.cli", "reconstruct"], capture_output=True, text=True, timeout=60, check=False
+        [sys.executable, "-m", "cli.main", "reconstruct"], capture_output=True, text=True, timeout=60, check=False
     )
     assert usage.returncode == 2 and "--out" in usage.stderr
 
@@ -146,7 +146,7 @@ def test_console_entry_point_runs(scan_dir: Path, tmp_path: Path) -> None:
 def test_every_option_has_help_and_shows_its_default() -> None:
     import argparse
 
-    from api.cli import build_parser
+    from cli.main import build_parser
 
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
@@ -258,11 +258,11 @@ def test_export_of_a_non_results_folder_exits_2(tmp_path: Path, capsys: pytest.C
 
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="reads /proc/<pid>/cmdline (Linux)")
 def test_worker_command_becomes_a_worker_process(tmp_path: Path) -> None:
-    # `veinmosaic worker` execs `python -m workers.main` (the api package never imports workers): the same
+    # `veinmosaic worker` execs `python -m workers.main` (the cli package never imports workers): the same
     # process turns into a worker, which keeps running against the embedded or configured Redis until stopped
     env = {k: v for k, v in os.environ.items() if k != "REDIS_URL"}  # its own embedded Redis, in its data dir
     env["VEINMOSAIC_DATA_DIR"] = str(tmp_path / "data")
-    proc = subprocess.Popen([sys.executable, "-m", "api.cli", "worker"], cwd=tmp_path, env=env)
+    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "worker"], cwd=tmp_path, env=env)
     try:
         deadline = time.monotonic() + 30
         cmdline = b""
@@ -271,7 +271,7 @@ def test_worker_command_becomes_a_worker_process(tmp_path: Path) -> None:
             if b"workers.main" in cmdline:
                 break
             time.sleep(0.1)
-        assert b"workers.main" in cmdline and b"api.cli" not in cmdline
+        assert b"workers.main" in cmdline and b"cli.main" not in cmdline
         time.sleep(1.0)
         assert proc.poll() is None, "the worker exited instead of serving"
     finally:
