@@ -26,7 +26,7 @@ from api.openapi_links import add_links
 from api.routes import ROUTERS
 from api.routes.audit import router as audit_router
 from api.routes.viewer import mount_static
-from services.core.inputs.image_header import set_decoder_limits
+from services.decoder_limits import set_decoder_limits
 from services.jobs import queue
 from services.jobs.redis_backend import close, connect
 from services.log_format import configure_json_logging, request_id_var

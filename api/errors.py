@@ -30,9 +30,9 @@ from services.core.inputs.image_header import BadImageError
 from services.core.inputs.study import StudyContextError
 from services.core.method_options import without_values
 from services.jobs.reprocess import QueueFullError
-from services.store.results_report import BadReferenceError, NoPathYetError, NothingToCompareError
 from services.store.session_export import NotFinishedError
 from services.store.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
+from services.store.stored_report import BadReferenceError, NoPathYetError, NothingToCompareError
 
 log = logging.getLogger("veinmosaic.api")
 

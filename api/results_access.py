@@ -12,7 +12,7 @@ from typing import Annotated, Any
 from fastapi import Depends, Query, Request
 
 from api.errors import NotFound
-from services.core.outputs.results_docs import extent_view
+from services.core.outputs.documents import extent_view
 from services.store.results_store import ResultsStore
 
 VersionQuery = Annotated[int | None, Query(alias="v", ge=1, le=1_000_000, description="results version")]

@@ -23,11 +23,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    """Reconstruct a scan folder and write path, mosaic, layers, plots and report (see services.store.results_io)."""
+    """Reconstruct a scan folder and write path, mosaic, layers, plots and report (see services.store.output_folder)."""
     from services.core.methods import method_options
     from services.core.outputs.dicom_export import scan_digest
     from services.core.pipeline import reconstruct
-    from services.store.results_io import write_reconstruction
+    from services.store.output_folder import write_reconstruction
     from services.store.scan_folder import read_scan_folder
 
     scan = read_scan_folder(args.scan)
@@ -119,7 +119,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     from services.core.inputs.study import parse_study
     from services.core.outputs.dicom_export import STUDY_OBJECTS, ExportInfo, export_study
-    from services.store.results_io import read_results_mosaic
+    from services.store.output_folder import read_results_mosaic
 
     results = Path(args.results)
     study = parse_study({name: getattr(args, name) or None for name in STUDY_OPTIONS})  # names a bad field only

@@ -31,7 +31,8 @@ from typing import Any
 
 import redis
 
-from services.core.inputs.image_header import DEFAULT_MAX_FRAME_SIDE, set_decoder_limits
+from services.core.inputs.image_header import DEFAULT_MAX_FRAME_SIDE
+from services.decoder_limits import set_decoder_limits
 from services.jobs import dead_letters, delayed, queue
 from services.jobs import reprocess as jobs
 from services.jobs.redis_backend import close, connect

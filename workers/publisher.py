@@ -2,7 +2,7 @@
 
 The live register stage and the reprocess stage decide WHAT to publish (which tiles changed, whether the
 images are due, the status); this module is the one place that writes it, in the one order readers rely on:
-path.json, tiles, images, mosaic.json (services.core.outputs.results_docs.mosaic_json), state.json; then the frame
+path.json, tiles, images, mosaic.json (services.core.outputs.documents.mosaic_json), state.json; then the frame
 counters and the event on the session's stream. Fencing (the lease check before a write) stays with the
 register stage, which calls the publisher only while it holds the session.
 """
@@ -16,7 +16,7 @@ from typing import Any
 
 from services.core.mosaic.canvas import MosaicImage
 from services.core.mosaic.deepzoom import TilePyramid
-from services.core.outputs.results_docs import LAYERS, mosaic_json, path_tail
+from services.core.outputs.documents import LAYERS, mosaic_json, path_tail
 from services.core.session_reconstruction import PathRow
 from services.jobs import queue
 from services.jobs import reprocess as jobs
@@ -113,7 +113,7 @@ class Publisher:
         return mosaic.meta()
 
     def write_mosaic_json(self, sid: str, v: int, image: Mapping[str, Any], **fields: Any) -> dict[str, Any]:
-        """Write mosaic.json of version v and return it: results_docs.mosaic_json(image, results_version=v,
+        """Write mosaic.json of version v and return it: documents.mosaic_json(image, results_version=v,
         **fields), the one shape every producer writes (version, revisions, geometry, extent_mm, rows, status,
         method, compliance)."""
         doc = mosaic_json(image, results_version=v, **fields)

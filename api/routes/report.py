@@ -1,6 +1,6 @@
 """The accuracy report (spec §4): POST a reference track, GET the report and its plots.
 
-The report of a results version is built and written by services.store.results_report (the reprocess stage calls
+The report of a results version is built and written by services.store.stored_report (the reprocess stage calls
 the same function) with its plots named by file; `served` turns them into links to GET .../plots/{name}.png?v=<v>.
 """
 
@@ -17,9 +17,9 @@ from api.caching import file_response, version_headers
 from api.deps import AppSettings, IngestSession, Store, ViewSession, read_body
 from api.errors import Conflict, NotFound, UnsupportedMediaType, Validation
 from api.results_access import Results, VersionQuery, resolve_version, served_version
-from services.store.results_report import parse_reference, report_is_stale, write_version_report
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
+from services.store.stored_report import parse_reference, report_is_stale, write_version_report
 
 router = APIRouter(prefix="/v1/sessions", tags=["results"])
 log = logging.getLogger("veinmosaic.api")

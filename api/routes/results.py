@@ -1,7 +1,7 @@
 """Results of a session (spec §4, §5): path, mosaic.json, whole images and Deep Zoom tiles.
 
 Which version is served: api.results_access; caching and ETags: api.caching; the documents themselves are
-built by services (results_docs, deepzoom) and only read here.
+built by services (documents, deepzoom) and only read here.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from api.deps import AppSettings, RedisClient, ViewSession, incr
 from api.errors import NotFound
 from api.results_access import Results, VersionQuery, resolve_version, served_mosaic, served_version
 from services.core.mosaic.deepzoom import DziGeometry, blank_png
-from services.core.outputs.results_docs import path_rows_from_json
-from services.store.results_io import path_csv
+from services.core.outputs.documents import path_rows_from_json
+from services.store.output_folder import path_csv
 
 router = APIRouter(prefix="/v1/sessions", tags=["results"])
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from services.core.mosaic.canvas import MosaicImage, force_to_color
 from services.core.mosaic.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
-from services.core.outputs.results_docs import LAYERS
+from services.core.outputs.documents import LAYERS
 from services.core.registration.frame_prep import PreparedFrame
 from services.core.session_reconstruction import PathRow, path_rows_json
 from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, replace_bytes, write_once

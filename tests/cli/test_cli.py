@@ -171,7 +171,7 @@ def test_export_writes_dicom_that_reads_back(outputs: Path, tmp_path: Path, caps
     from pydicom import dcmread
     from pydicom.pixels import apply_rescale
 
-    from services.store.results_io import read_results_mosaic
+    from services.store.output_folder import read_results_mosaic
     from tests.services.core.outputs.test_dicom_export import dciodvfy
 
     out = tmp_path / "dicom"

@@ -1,8 +1,8 @@
 """One owner per contract: a live session and a reprocess of the same scan, run by a real worker process over a
 real Redis, are served the same mosaic.json fields, report fields and session extent by the API.
 
-Both sides build mosaic.json with core.outputs.results_docs.mosaic_json, the extent with canvas_extent_mm and the
-report with services.store.results_report.write_version_report; the live run and the offline pipeline feed the same
+Both sides build mosaic.json with core.outputs.documents.mosaic_json, the extent with canvas_extent_mm and the
+report with services.store.stored_report.write_version_report; the live run and the offline pipeline feed the same
 prepared frames to the same deterministic registration, so their values agree to floating-point noise.
 """
 

@@ -22,15 +22,15 @@ import numpy as np
 
 from services.core.mosaic.canvas import PLANES, TILE_PX, MosaicImage, SparseCanvas
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
-from services.core.outputs.results_docs import canvas_extent_mm, empty_revisions
+from services.core.outputs.documents import canvas_extent_mm, empty_revisions
 from services.core.physics.compliance import ComplianceFit
 from services.core.pipeline import reconstruct
 from services.core.session_reconstruction import PathRow
 from services.jobs import queue
 from services.jobs import reprocess as jobs
-from services.store.results_report import write_version_report
 from services.store.session_version import method_of
 from services.store.storage import SessionNotFoundError
+from services.store.stored_report import write_version_report
 from services.store.version_state import VersionState
 from workers.config import Context
 from workers.faults import is_transient

@@ -3,8 +3,8 @@
 A PNG/TIFF/JPEG states its size and pixel format in its header (PNG IHDR, TIFF IFD, JPEG SOF). Pillow
 parses that header without decoding the pixels (`Image.open` is lazy), so a small file that claims a huge
 image is refused in microseconds and costs no memory. Decoding itself stays with OpenCV (what the pipeline
-uses). OpenCV's own pixel cap (OPENCV_IO_MAX_IMAGE_PIXELS, read once when cv2 loads) is set in
-services/__init__.py; `set_decoder_limits` sets Pillow's (Image.MAX_IMAGE_PIXELS) from the frame size cap.
+uses). The decoders' process-wide pixel caps are set by the shells, not here: OpenCV's in services/__init__.py,
+Pillow's by services/decoder_limits.py.
 """
 
 from __future__ import annotations
@@ -44,11 +44,6 @@ class ImageHeader:
     def grayscale(self) -> bool:
         """Return True for a single-channel 1/8/16-bit image."""
         return self.mode in GRAYSCALE_MODES
-
-
-def set_decoder_limits(max_frame_side: int) -> None:
-    """Cap Pillow's decodes at a max_frame_side square (OpenCV's cap is set when `services` is imported)."""
-    Image.MAX_IMAGE_PIXELS = int(max_frame_side) ** 2
 
 
 def read_header(data: bytes) -> ImageHeader:

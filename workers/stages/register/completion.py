@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 
 from services.core.mosaic.deepzoom import DziGeometry
-from services.core.outputs.results_docs import empty_image_meta, empty_revisions
+from services.core.outputs.documents import empty_image_meta, empty_revisions
 from services.jobs.leases import Lease
 from services.store.results_store import LIVE_VERSION
 from services.store.session_version import SessionVersion

@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 
-from services.core.outputs.results_docs import canvas_extent_mm, empty_revisions, image_meta
+from services.core.outputs.documents import canvas_extent_mm, empty_revisions, image_meta
 from services.core.registration.registrar import STATUS_OK
 from services.core.session_reconstruction import PathRow
 from services.store.results_store import LIVE_VERSION

@@ -16,7 +16,7 @@ from services.core.mosaic.canvas import MosaicImage
 from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
 from services.core.session_reconstruction import path_rows_json
 from services.core.similarity import IDENTITY, Similarity
-from services.store.results_io import path_csv, read_results_mosaic, write_reconstruction
+from services.store.output_folder import path_csv, read_results_mosaic, write_reconstruction
 
 NAN = math.nan
 
