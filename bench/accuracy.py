@@ -9,8 +9,8 @@
 Every (scan, method) prints: registered %, RMSE mm (over the registered frames only: read it with the
 registered %), final drift mm, error ratio %, s/frame (wall time of the whole offline pipeline), and the worse
 axis's tilt RMS error in degrees where the reference has tilts (the shared scans, the tissue-* cells).
-Cells tissue-linear, tissue-stiffening, tissue-power: a patient as on the shared scans (a hand's tilt, a tissue
-law of that shape with x/y anisotropy), not an imaging look.
+Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe: a patient as on the shared scans (a hand's tilt,
+a tissue law of that shape with x/y anisotropy), not an imaging look.
 
 Usage: python bench/accuracy.py [--quick] [--methods best,sift-chain,paper] [--scenarios raster,revisit,hard]
        [--cells default,faint,...] [--seeds 1,2] [--shared DIR | --no-shared] [--json OUT]

@@ -169,7 +169,7 @@ def add_commands(command: Callable[[str, str], argparse.ArgumentParser]) -> None
     p.add_argument(
         "--tissue",
         default=None,
-        choices=["linear", "stiffening", "power"],
+        choices=["linear", "stiffening", "power", "toe"],
         help="a patient's tissue law with a hand's tilts (default: the calibration phantom)",
     )
     p.add_argument("--out", required=True, type=Path, help="scan folder to write (required)")

@@ -71,5 +71,26 @@ class Tolerances:
     direct_yaw_deg: float = 0.15
     direct_scale: float = 0.006
 
+    # The compliance fit's strain law (services/core/physics/compliance.py) on per-frame scales made from a known
+    # law, 300 frames over 2-26 N (the shared scans' load range) with 0.2 % log-normal scale noise (their scatter
+    # about the fit is 0.08-0.21 %). A stiffening law eps = c F / (1 + F / 40 N), least squares: measured worst
+    # 3.0 % strain error at 5-20 N over 20 seeds (0.3 % at 1-20 N on the test's seed) and 0.10 % gauge error;
+    # with the default 5 % prior on the secant compliance at the mean load (where this tissue is 23 % stiffer
+    # than nominal, 6 % softer at no load) 5.0 % (2.2 % on the test's seed) and 0.28 % (0.17 %). The linear law's
+    # gauge is 1.2-1.4 % off there, so either budget fails without the stiffening term.
+    law_strain_rel: float = 0.06
+    law_gauge_ls_rel: float = 0.002
+    law_gauge_prior_rel: float = 0.004
+    # Laws of other shapes than the fit's (normalised at 10 N as the simulator's): the stiffening fit's gauge
+    # error as a fraction of the linear fit's. Measured worst over 20 seeds 0.54 for a power law F^0.8 (its
+    # infinite slope at no load is half captured; 0.48-0.50 on the test's 3 seeds) and 0.14 for Fung's
+    # logarithmic toe, F_e = 12 N (0.08-0.10).
+    law_power_gauge_ratio: float = 0.65
+    law_toe_gauge_ratio: float = 0.25
+    # The fraction of 300 least-squares fits whose truth lies within the reported 68 % half-width (Laplace,
+    # from the posterior's curvature): measured 0.64-0.68 for c, s and the gauge (binomial sd 0.027); the band
+    # catches a half-width 1.5x too wide (0.87 expected) or too narrow (0.50).
+    law_coverage_68: tuple[float, float] = (0.55, 0.8)
+
 
 TOL = Tolerances()

@@ -58,7 +58,7 @@ def _frame(seq: int) -> FrameLayers:
     cv2.ellipse(mask, (w // 2, h // 2), (w // 2 - 4, h // 2 - 4), 0, 0, 360, 255, -1)
     weight = blend_weight(mask, ramp_px=10)
     force = np.full((h, w), 4.0 + 0.5 * seq, np.float32)
-    return FrameLayers(0.3 + 0.4 * veins, weight, force, (w / 2, h / 2), PX_PER_MM)
+    return FrameLayers.of(0.3 + 0.4 * veins, weight, force, (w / 2, h / 2), PX_PER_MM)
 
 
 def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:

@@ -21,13 +21,38 @@ FORCE_FULL_SCALE_N = 30.0
 
 @dataclass(frozen=True)
 class FrameLayers:
-    """What one rectified frame contributes: intensity 0..1, blend weight, local load (N), all (H, W) float32."""
+    """What one rectified frame contributes, as the (H, W, 4) float32 planes it adds to the canvas tiles.
 
-    intensity: np.ndarray
-    weight: np.ndarray
-    force_n: np.ndarray
+    planes: w I, w, w F, coverage (w > 0), with intensity I 0..1, blend weight w and local load F in N; built
+    once per frame (`of`) and reused for every paste of it.
+    """
+
+    planes: np.ndarray
     centre_px: tuple[float, float]
     px_per_mm: float
+
+    @classmethod
+    def of(
+        cls,
+        intensity: np.ndarray,
+        weight: np.ndarray,
+        force_n: np.ndarray,
+        centre_px: tuple[float, float],
+        px_per_mm: float,
+    ) -> FrameLayers:
+        """Return the layers of a frame from its intensity 0..1, blend weight and local load (N), all (H, W)."""
+        w = np.asarray(weight, np.float32)
+        planes = np.empty((*w.shape, PLANES), np.float32)
+        np.multiply(intensity, w, out=planes[..., 0], casting="unsafe")
+        planes[..., 1] = w
+        np.multiply(force_n, w, out=planes[..., 2], casting="unsafe")
+        planes[..., 3] = w > 0
+        return cls(planes, centre_px, px_per_mm)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Return the frame's (H, W) in pixels."""
+        return self.planes.shape[:2]
 
 
 @dataclass(frozen=True)
@@ -103,10 +128,9 @@ class SparseCanvas:
     def paste(self, layers: FrameLayers, pose: Similarity | np.ndarray, sign: float = 1.0) -> list[tuple[int, int]]:
         """Add (sign=+1) or remove (sign=-1) a frame at a pose; return the tile keys it touched."""
         affine = self.frame_to_canvas(pose, layers)
-        w = layers.weight
-        src = np.dstack([layers.intensity * w, w, layers.force_n * w, (w > 0).astype(np.float32)]).astype(np.float32)
+        src = layers.planes
         touched = []
-        for key in self.footprint_tiles(affine, w.shape):
+        for key in self.footprint_tiles(affine, layers.shape):
             shift = affine.copy()
             shift[0, 2] -= key[0] * TILE_PX
             shift[1, 2] -= key[1] * TILE_PX
@@ -121,7 +145,10 @@ class SparseCanvas:
                     continue
                 tile = np.zeros((TILE_PX, TILE_PX, PLANES), np.float32)
                 self.tiles[key] = tile
-            tile += sign * patch
+            if sign > 0:
+                tile += patch
+            else:
+                tile -= patch
             touched.append(key)
         return touched
 

@@ -23,7 +23,7 @@ VIGNETTE_FALLOFF = 0.12  # illumination drops by this fraction at the window's e
 FULL_SCALE_DN = 255.0  # noise is given in 8-bit grey levels (DN) whatever the output bit depth
 
 
-TISSUE_LAWS = ("linear", "stiffening", "power")
+TISSUE_LAWS = ("linear", "stiffening", "power", "toe")
 
 
 @dataclass(frozen=True)
@@ -31,8 +31,10 @@ class TissueLaw:
     """The simulated tissue's true response: strain of local load F (N) and its x/y anisotropy.
 
     linear: c F (spec §2's shape); stiffening: c F / (1 + F / half_n) (strain saturates as tissue stiffens);
-    power: c F0 (F / F0)^exponent with F0 = 10 N (the same strain at 10 N, flatter above). The strain is
-    (1 + anisotropy) times it along the frame's x axis and (1 - anisotropy) along y.
+    power: c F0 (F / F0)^exponent with F0 = 10 N (the same strain at 10 N, flatter above); toe: Fung's exponential
+    stress-strain law, strain logarithmic in load, c F0 ln(1 + F / toe_n) / ln(1 + F0 / toe_n) (a soft toe region
+    below toe_n, the same strain at F0 = 10 N). The strain is (1 + anisotropy) times it along the frame's x axis
+    and (1 - anisotropy) along y.
     """
 
     kind: str = "linear"
@@ -40,6 +42,7 @@ class TissueLaw:
     half_n: float = 40.0
     exponent: float = 0.8
     anisotropy: float = 0.0
+    toe_n: float = 15.0
 
     def strain(self, load_n: np.ndarray) -> np.ndarray:
         """Return the isotropic strain (dimensionless) at local loads (N)."""
@@ -48,6 +51,8 @@ class TissueLaw:
             return self.compliance_per_n * f / (1.0 + f / self.half_n)
         if self.kind == "power":
             return self.compliance_per_n * 10.0 * (f / 10.0) ** self.exponent
+        if self.kind == "toe":
+            return self.compliance_per_n * 10.0 * np.log1p(f / self.toe_n) / np.log1p(10.0 / self.toe_n)
         return self.compliance_per_n * f
 
     def to_dict(self) -> dict[str, float | str]:
@@ -58,6 +63,7 @@ class TissueLaw:
             "half_n": self.half_n,
             "exponent": self.exponent,
             "anisotropy": self.anisotropy,
+            "toe_n": self.toe_n,
         }
 
 

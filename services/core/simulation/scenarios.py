@@ -88,13 +88,16 @@ def draw_hand_kappa(rng: np.random.Generator) -> float:
 
 def draw_tissue_law(rng: np.random.Generator, kind: str, compliance_per_n: float) -> TissueLaw:
     """Return the true tissue law of a kind in TISSUE_LAWS: linear is spec §2's isotropic law; the others
-    stiffen (half strain at 25-60 N, or a power 0.7-0.9) and stretch 3-8 % more along one axis than the other."""
+    stiffen (half strain at 25-60 N, a power 0.7-0.9, or a logarithmic toe of 8-20 N) and stretch 3-8 % more along
+    one axis than the other."""
     if kind not in TISSUE_LAWS:
         raise ValueError(f"unknown tissue law {kind!r}; expected one of {', '.join(TISSUE_LAWS)}")
     if kind == "linear":
         return TissueLaw(kind, compliance_per_n)
     anisotropy = float(rng.uniform(0.03, 0.08) * rng.choice([-1.0, 1.0]))
-    return TissueLaw(kind, compliance_per_n, float(rng.uniform(25.0, 60.0)), float(rng.uniform(0.7, 0.9)), anisotropy)
+    half_n, exponent = float(rng.uniform(25.0, 60.0)), float(rng.uniform(0.7, 0.9))
+    toe_n = float(rng.uniform(8.0, 20.0)) if kind == "toe" else TissueLaw.toe_n  # drawn last: the others unchanged
+    return TissueLaw(kind, compliance_per_n, half_n, exponent, anisotropy, toe_n)
 
 
 def _stream_times(rng: np.random.Generator, t_first: float, t_last: float, rate_hz: float) -> np.ndarray:

@@ -35,7 +35,7 @@ def frame_agreement(session: SessionReconstruction, frames: list[PreparedFrame])
     calib = session.calibration
     out = []
     for pf in frames:
-        layers = FrameLayers(pf.image, pf.image, pf.image, calib.principal_point, calib.px_per_mm)
+        layers = FrameLayers.of(pf.image, pf.image, pf.image, calib.principal_point, calib.px_per_mm)
         affine = canvas.frame_to_canvas(poses[pf.index], layers)
         affine[:, 2] += mosaic.origin_px
         back = cv2.warpAffine(mosaic.vein, affine, pf.image.shape[::-1], flags=cv2.WARP_INVERSE_MAP)

@@ -23,7 +23,7 @@ def _window() -> np.ndarray:
 
 
 def _layers(intensity: np.ndarray, force_n: float = 5.0) -> FrameLayers:
-    return FrameLayers(
+    return FrameLayers.of(
         intensity=intensity.astype(np.float32),
         weight=blend_weight(_window()),
         force_n=np.full((H, W), force_n, np.float32),

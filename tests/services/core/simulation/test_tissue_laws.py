@@ -3,8 +3,9 @@
 One tolerance table, each band measured on `short` seed 1 (40 frames, tilts up to 7 deg, true kappa 0.108 N/mm)
 with its margin: tilt RMS 0.63-0.91 deg per axis (target 1 deg); kappa fitted 0.126-0.131 (17-21 % high: the
 short scan's tilts are small, so foreshortening, a second-order effect, is weak evidence); path RMSE 0.325
-(linear: the 5 % compliance prior holds the simulator's 4-10 % off E back), 0.121 (stiffening) and 0.751 mm
-(power law: the compliance fit is linear in load, its extrapolation to no load misses a power law's strain).
+(linear: the 5 % compliance prior holds the simulator's 4-10 % off E back), 0.101 (stiffening; 0.121 with a
+linear compliance law), 0.751 mm (power law: over these 40 frames' 3-12 N its curvature is at the noise, so the
+fit keeps the linear law, whose extrapolation to no load misses a power law's strain) and 0.630 (toe; 0.646).
 """
 
 from __future__ import annotations
@@ -18,12 +19,14 @@ from services.core.methods import method_options
 from services.core.outputs.evaluation import evaluate_angles, evaluate_path
 from services.core.outputs.session_report import path_angles_deg
 from services.core.pipeline import reconstruct
+from services.core.simulation.renderer import TissueLaw
 from services.core.simulation.scenarios import TRUE_KAPPA_N_PER_MM, simulate
 
 TOL = {  # law: (max path RMSE mm, max tilt RMS deg per axis, max relative kappa error)
     "linear": (0.45, 1.0, 0.35),
     "stiffening": (0.25, 1.0, 0.35),
     "power": (1.0, 1.0, 0.35),
+    "toe": (0.85, 1.0, 0.35),
 }
 
 
@@ -53,3 +56,19 @@ def test_without_the_view_model_tilts_are_the_calibrations_hundredths() -> None:
     angles = evaluate_angles(path_angles_deg(recon.rows), recon.registered, scan.reference_angles_deg)
     assert angles["tilt_x_rmse_deg"] > 1.5  # the feature is what brings it under 1 deg (test above)
     assert "kappa_n_per_mm" not in recon.learned
+
+
+def test_best_fits_a_stiffening_law_to_a_tissue_of_another_shape() -> None:
+    # Fung's toe law (strain logarithmic in load, not the fit's hyperbola) on short seed 7, whose scales show the
+    # curvature over 3-12 N. Measured RMSE 0.222 mm (0.370 with a linear law: stiffening=false) and strain
+    # 13 / 7 / 2 % off the truth at 2 / 5 / 10 N (the linear law: 27 / 18 / 3 %); tilts are not asserted here
+    # (this seed's kappa is fitted 47 % high, the view model's matter, tested above on seed 1)
+    scan = simulate("short", 7, tissue="toe")
+    recon = reconstruct(scan, method_options("best"))
+    report = evaluate_path(recon.estimate_mm, recon.registered, scan.reference_mm)
+    assert report.rmse_mm <= 0.30, report.rmse_mm
+    assert recon.compliance is not None and recon.learned["compliance_law"] == "stiffening"
+    assert recon.learned["half_strain_load_low_n"] < recon.learned["half_strain_load_n"]
+    truth = TissueLaw(**scan.truth["tissue"])
+    loads = np.array([2.0, 5.0, 10.0])
+    np.testing.assert_allclose(recon.compliance.strain(loads), truth.strain(loads), rtol=0.2)

@@ -1,0 +1,42 @@
+"""A live session pastes its newest frames from remembered planes: the canvas is exactly the one without them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.core import session_reconstruction
+from services.core.methods import method_options
+from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
+from services.core.session_reconstruction import RECENT_LAYERS, SessionReconstruction
+from services.core.simulation.scenarios import simulate
+
+FRAMES = 80  # a raster's first row and the turn into the second: refinements move recent and older frames
+
+
+def test_remembered_planes_give_the_same_canvas_bit_for_bit(monkeypatch: pytest.MonkeyPatch) -> None:
+    scan = simulate("raster", 1)
+    options = method_options("best")
+    calib = scan.calibration
+    mask, flat = window_setup(scan, options)
+    frames = [pf for pf in prepared_frames(scan, frame_forces(scan), mask, flat, options) if pf.index < FRAMES]
+
+    def run() -> tuple[SessionReconstruction, int, int]:
+        live = SessionReconstruction(calib, options, window_radius_mm(mask, calib), live=True)
+        recent = old = 0
+        for pf in frames:
+            result, _ = live.add(pf)
+            recent += sum(1 for i in result.moved if i > pf.index - RECENT_LAYERS)
+            old += sum(1 for i in result.moved if i <= pf.index - RECENT_LAYERS)
+            assert len(live.recent) <= session_reconstruction.RECENT_LAYERS
+        return live, recent, old
+
+    remembered, moved_recent, moved_old = run()
+    assert moved_recent > 0 and moved_old > 0  # both paths taken: remembered planes and decoded kept frames
+    assert len(remembered.recent) == RECENT_LAYERS
+    monkeypatch.setattr(session_reconstruction, "RECENT_LAYERS", 0)  # every paste decodes what was kept
+    decoded, _, _ = run()
+    assert not decoded.recent
+    assert set(remembered.canvas.tiles) == set(decoded.canvas.tiles)
+    for key, tile in remembered.canvas.tiles.items():
+        assert np.array_equal(tile, decoded.canvas.tiles[key]), key  # lossless kept images: the same sums
