@@ -7,3 +7,9 @@ import os
 # (frames are checked against the much smaller max_frame_side from their header first, see image_header.py)
 # yet above any mosaic the service decodes (a 400 mm canvas at 8 px/mm is 10 Mpx). An operator's value wins.
 os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(1 << 26))
+
+# One BLAS thread per process. The matrix products here are small (descriptor distances, 500 x 500 x 128) and the
+# parallelism is across processes (workers) and the prepare thread pool; OpenBLAS's own threads busy-wait for work,
+# and with several workers on a 2-core machine they took the CPU from each other: descriptor matching cost 4.7x
+# and a worker's per-frame CPU 1.6x (bench/worker_cost.py). Set before numpy loads; an operator's value wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

@@ -98,6 +98,9 @@ class Settings(BaseSettings):
     # workers lower their CPU priority by this much (os.nice) so uploads and tiles win a busy CPU; processing
     # catches up when the burst is over (0: equal priority)
     worker_nice: int = Field(default=10, ge=0, le=19)
+    # OpenCV threads in each worker process: the parallelism is across worker processes (and sessions), and on a
+    # small machine OpenCV's own threads only add overhead (SIFT 25 % more CPU per frame with 2 threads)
+    worker_cv_threads: int = Field(default=1, ge=1, le=64)
     # the workers' timings: VEINMOSAIC_WORKER_CONFIG, one JSON object of WorkerSettings fields
     worker_config: WorkerSettings = Field(default_factory=WorkerSettings)
     # `veinmosaic serve` (and demo): the API's interface and port, and how many worker processes it starts

@@ -29,6 +29,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import redis
 
 from services.core.inputs.image_header import DEFAULT_MAX_FRAME_SIDE
@@ -425,6 +426,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if settings.worker_nice:
         with contextlib.suppress(OSError):
             os.nice(settings.worker_nice)  # ingest (API) before processing when the CPU is short
+    cv2.setNumThreads(settings.worker_cv_threads)
     config = worker_config(args, settings)
     return run_worker(
         config.data_dir,

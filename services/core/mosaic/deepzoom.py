@@ -21,11 +21,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.mosaic.canvas import PLANES, TILE_PX, SparseCanvas, force_to_color
+from services.core.mosaic.canvas import FORCE_FULL_SCALE_N, PLANES, TILE_PX, SparseCanvas
 
 TileKey = tuple[int, int, int]  # (level, col, row)
 MIN_WEIGHT = 1e-3  # as SparseCanvas.render: a pixel with less blend weight is uncovered
 PNG_LEVEL = 1  # zlib level: tiles are written often, read from cache; speed over size
+FORCE_INDICES = 255  # colours of a force tile's palette (index 0 is the transparent "uncovered")
 
 
 @dataclass(frozen=True)
@@ -142,26 +143,43 @@ def _png_chunk(kind: bytes, data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
 
 
-def encode_png_gray_alpha(gray: np.ndarray, alpha: np.ndarray) -> bytes:
-    """Return PNG bytes (8-bit gray + alpha, colour type 4); OpenCV cannot write 2-channel PNGs."""
-    h, w = gray.shape
-    raw = np.dstack([gray, alpha]).astype(np.uint8).reshape(h, 2 * w)
+def _png(raw: np.ndarray, width: int, colour_type: int, extra: bytes = b"") -> bytes:
+    """Return PNG bytes of 8-bit rows `raw` (h, bytes per row), each row "Up"-filtered, chunks `extra` before IDAT."""
+    h = raw.shape[0]
     up = raw.copy()
     up[1:] = raw[1:] - raw[:-1]  # PNG filter 2 ("Up"), mod 256
     filters = np.full((h, 1), 2, np.uint8)
     filters[0] = 0  # the first row has no row above: filter 0
     up[0] = raw[0]
     body = zlib.compress(np.hstack([filters, up]).tobytes(), PNG_LEVEL)
-    header = struct.pack(">IIBBBBB", w, h, 8, 4, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", header) + _png_chunk(b"IDAT", body) + _png_chunk(b"IEND", b"")
+    header = struct.pack(">IIBBBBB", width, h, 8, colour_type, 0, 0, 0)
+    chunks = _png_chunk(b"IHDR", header) + extra + _png_chunk(b"IDAT", body) + _png_chunk(b"IEND", b"")
+    return b"\x89PNG\r\n\x1a\n" + chunks
 
 
-def encode_png_bgra(image: np.ndarray) -> bytes:
-    """Return PNG bytes of a BGRA uint8 image (OpenCV, fast compression)."""
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL])
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buf.tobytes()
+def encode_png_gray_alpha(gray: np.ndarray, alpha: np.ndarray) -> bytes:
+    """Return PNG bytes (8-bit gray + alpha, colour type 4); OpenCV cannot write 2-channel PNGs."""
+    h, w = gray.shape
+    return _png(np.dstack([gray, alpha]).astype(np.uint8).reshape(h, 2 * w), w, 4)
+
+
+@lru_cache(maxsize=1)
+def _force_palette_chunks() -> bytes:
+    """Return the PLTE + tRNS chunks of the force tiles: index 0 transparent, 1..255 the TURBO map over 0..full."""
+    levels = np.round(np.arange(FORCE_INDICES) * 255.0 / (FORCE_INDICES - 1)).astype(np.uint8)
+    rgb = cv2.applyColorMap(levels.reshape(-1, 1), cv2.COLORMAP_TURBO).reshape(-1, 3)[:, ::-1]
+    plte = np.vstack([np.zeros((1, 3), np.uint8), rgb]).tobytes()
+    trns = bytes([0] + [255] * FORCE_INDICES)
+    return _png_chunk(b"PLTE", plte) + _png_chunk(b"tRNS", trns)
+
+
+def encode_png_force(force_n: np.ndarray, covered: np.ndarray) -> bytes:
+    """Return a force tile as an 8-bit palette PNG (colour type 3): TURBO over 0..FORCE_FULL_SCALE_N, clear where
+    uncovered. One byte a pixel compresses like the vein tiles (an RGBA tile cost 3x the time to write)."""
+    w = force_n.shape[1]
+    level = np.clip(np.nan_to_num(force_n) / FORCE_FULL_SCALE_N, 0.0, 1.0) * (FORCE_INDICES - 1) + 1.5
+    index = np.where(covered, level, 0).astype(np.uint8)
+    return _png(index, w, 3, _force_palette_chunks())
 
 
 def pool2(planes: np.ndarray) -> np.ndarray:
@@ -242,9 +260,7 @@ class TilePyramid:
             gray = np.where(covered, np.clip(planes[..., 0] / den, 0, 1) * 255.0 + 0.5, 0).astype(np.uint8)
             return encode_png_gray_alpha(gray, alpha)
         if layer == "force":
-            force = np.where(covered, planes[..., 2] / den, np.nan).astype(np.float32)
-            bgra = np.dstack([force_to_color(force), alpha])
-            return encode_png_bgra(bgra)
+            return encode_png_force(planes[..., 2] / den, covered)
         raise ValueError("layer must be 'vein' or 'force'")
 
     def blank_png(self) -> bytes:

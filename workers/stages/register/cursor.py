@@ -56,8 +56,9 @@ class Cursor:
         self.flusher.record_counters(held, list(range(cursor)))
         log.info("session taken over at cursor %d (token %d)", cursor, held.lease.token, extra={"session": held.sid})
 
-    def register_ready(self, held: HeldSession, finished: bool) -> None:
-        """Register frames from the cursor while they are available (for at most pass_budget_s), flushing when due."""
+    def register_ready(self, held: HeldSession, finished: bool) -> bool:
+        """Register frames from the cursor while they are available (for at most pass_budget_s), flushing when due;
+        return True when it caught up with the uploads, False when frames uploaded are still to be placed."""
         ctx, cfg, sv = self.ctx, self.ctx.config, held.sv
         started = time.monotonic()
         seqs: list[int] | None = None
@@ -77,7 +78,7 @@ class Cursor:
                     raise LeaseLostError from exc
                 self._advance(held)
                 if self.flusher.due(held):
-                    self.flusher.flush(held, final=False)
+                    self.flusher.flush(held, final=False, caught_up=False)
                 self.leases.renew_if_due(held)
                 continue
             rec = ctx.store.get_frame(sv.sid, seq)
@@ -85,18 +86,19 @@ class Cursor:
                 if time.time() - rec.received_at > cfg.lost_timeout_s:
                     every_ms = int(1000 * max(cfg.lost_timeout_s, 5.0))  # idempotent, so a duplicate costs little
                     queue.requeue_frame(ctx.r, sv.sid, seq, ctx.prefix, at_most_every_ms=every_ms)
-                break
+                return False  # behind: the frame is uploaded, its preparation is not done
             seqs = sv.stored_seqs() if seqs is None or seqs[-1:] <= [seq] else seqs
             later = [s for s in seqs if s > seq]
             if not later:
-                break
+                return True
             if not finished:
                 nxt = ctx.store.get_frame(sv.sid, later[0])
                 if nxt is None or time.time() - nxt.received_at <= cfg.lost_timeout_s:
-                    break
+                    return True
             self._lose(held, seq)
             held.lost.append(seq)
             self._advance(held)
+        return False
 
     def at_end(self, held: HeldSession) -> bool:
         """Return True when the cursor is past the last stored frame (or none is stored)."""

@@ -3,7 +3,8 @@
 A flush writes path.json, the changed tiles, mosaic.json and state.json, counts the frames handled since the
 last one and publishes one event, all through the publisher and only after the fence check. Flushes happen at
 most every flush_interval (flush_every_s, or twice the last flush's duration if longer: flushing takes at most
-a third of the time); the whole images (mosaic.png, force.png, coverage.png) at most every image_every_s, and
+a third of the time); the whole images (mosaic.png, force.png, coverage.png) at most every image_every_s and only
+once the session has caught up with its uploads (a session that is behind spends the CPU on placing frames), and
 the tiles of levels where one tile holds the whole canvas with them. The final flush writes everything.
 """
 
@@ -25,6 +26,12 @@ from workers.stages.register.held import HeldSession
 from workers.stages.register.lease import LeaseKeeper
 
 
+def images_due(final: bool, written: bool, caught_up: bool, since_s: float, every_s: float) -> bool:
+    """Return True when a flush writes the whole images: always at the end or the first time, else at most every
+    every_s seconds and only once the session has caught up with its uploads."""
+    return final or not written or (caught_up and since_s >= every_s)
+
+
 class Flusher:
     """Decides when a held session is flushed and writes the flush through the publisher."""
 
@@ -38,9 +45,16 @@ class Flusher:
         now = time.monotonic() if now is None else now
         return now - held.clocks.flushed >= held.clocks.flush_interval
 
-    def flush(self, held: HeldSession, final: bool, before_event: Callable[[], None] | None = None) -> None:
+    def flush(
+        self,
+        held: HeldSession,
+        final: bool,
+        before_event: Callable[[], None] | None = None,
+        caught_up: bool = True,
+    ) -> None:
         """Write path, changed tiles, images when due, mosaic.json and state; count frames; publish an event.
 
+        caught_up: no registered frame is waiting (False mid-catch-up: the whole images wait for the next flush).
         before_event runs once everything is written and before the event goes out (the completion sets the
         session's status there, so a client woken by the final event reads the status done).
         """
@@ -54,17 +68,17 @@ class Flusher:
         doc = ctx.results.read_mosaic_meta(sid, v) or {}
         version = int(doc.get("version", 0)) + 1
         revisions: dict[str, dict[str, int]] = doc.get("revisions") or empty_revisions()
-        images_due = final or not doc.get("width") or now - held.clocks.images >= cfg.image_every_s
+        with_images = images_due(final, bool(doc.get("width")), caught_up, now - held.clocks.images, cfg.image_every_s)
         pending.deferred |= held.pyramid.update(held.recon.canvas, pending.touched)
         pending.touched = set()
         # levels where one tile holds the whole canvas are only seen zoomed far out: refresh them with the images
         small = held.geometry.tiles_at(0) == (1, 1)
         whole = {k for k in pending.deferred if held.geometry.tiles_at(k[0]) == (1, 1)} if small else set()
-        changed = pending.deferred if images_due else pending.deferred - whole
-        pending.deferred = set() if images_due else whole
+        changed = pending.deferred if with_images else pending.deferred - whole
+        pending.deferred = set() if with_images else whole
         tiles_event = pub.write_tiles(sid, v, held.pyramid, changed, version, revisions, durable=final)
         image = image_meta(doc, held.calib.px_per_mm)
-        if images_due:
+        if with_images:
             image = pub.write_images(sid, v, held.recon.canvas.render(), raw_layers=final)  # + coverage, layers
             held.clocks.images = now
         finished = ctx.store.get_meta(sid).finished_at is not None

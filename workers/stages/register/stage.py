@@ -93,17 +93,17 @@ class RegisterStage:
         self.leases.renew_if_due(held, force=True)
         meta = self.ctx.store.get_meta(held.sid)
         finished = meta.finished_at is not None
-        self.cursor.register_ready(held, finished)
+        caught_up = self.cursor.register_ready(held, finished)
         if finished and not self.ctx.stop.is_set() and self.cursor.at_end(held):
             self.completion.complete(held, meta.status)
             held.lease.release(self.ctx.r, mode="final")
             return False
         now = time.monotonic()
         if held.pending.dirty and self.flusher.due(held, now):
-            self.flusher.flush(held, final=False)
+            self.flusher.flush(held, final=False, caught_up=caught_up)
         if self.leases.idle(held, now):
             if held.pending.dirty:
-                self.flusher.flush(held, final=False)
+                self.flusher.flush(held, final=False, caught_up=caught_up)
             return held.lease.release(self.ctx.r) == 0  # refused: work arrived meanwhile, keep serving
         return True
 

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.core.mosaic.canvas import TILE_PX, FrameLayers, SparseCanvas
+from services.core.mosaic.canvas import TILE_PX, FrameLayers, SparseCanvas, force_to_color
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid, blank_png, encode_png_gray_alpha
 from services.core.similarity import Similarity
 
@@ -39,7 +39,7 @@ def _dot_frame() -> FrameLayers:
     intensity = np.full((64, 64), 0.5, np.float32)
     intensity[32, 32] = 1.0  # the frame's centre pixel
     force = np.full((64, 64), 10.0, np.float32)
-    return FrameLayers(intensity, np.ones((64, 64), np.float32), force, (32.0, 32.0), 8.0)
+    return FrameLayers.of(intensity, np.ones((64, 64), np.float32), force, (32.0, 32.0), 8.0)
 
 
 def _decode(png: bytes) -> np.ndarray:
@@ -74,8 +74,11 @@ def test_pasted_frame_lands_at_the_right_tile_and_pixel() -> None:
     assert planes[128, 128, 0] / planes[128, 128, 1] == pytest.approx(0.625, abs=1e-6)
     low = _decode(pyr.render_png(11, 3, 3, "vein"))
     assert low[128, 128, 0] == int(0.625 * 255 + 0.5)
-    force = _decode(pyr.render_png(12, 7, 7, "force"))
+    force = _decode(pyr.render_png(12, 7, 7, "force"))  # palette + tRNS decodes as BGRA
     assert force.shape == (256, 256, 4) and force[0, 0, 3] == 255 and force[100, 100, 3] == 0
+    # 10 N in TURBO over 0..30 N, as force_to_color draws it: the palette's 255 levels are within one of its 256
+    want = force_to_color(np.array([[9.9, 10.0, 10.1]], np.float32)).astype(int)
+    assert np.all(np.abs(force[0, 0, :3].astype(int) - want[0, 1]) <= np.abs(want[0, 2] - want[0, 0]) + 1)
     assert pyr.render_png(12, 0, 0, "vein") is None  # no data there
     with pytest.raises(ValueError):
         pyr.render_png(12, 7, 7, "other")
