@@ -34,7 +34,7 @@ import redis
 
 from services.core.inputs.image_header import DEFAULT_MAX_FRAME_SIDE
 from services.decoder_limits import set_decoder_limits
-from services.jobs import dead_letters, delayed, queue
+from services.jobs import dead_letters, delayed, queue, worker_load
 from services.jobs import reprocess as jobs
 from services.jobs.redis_backend import close, connect
 from services.settings import Settings
@@ -58,6 +58,11 @@ def _text(fields: dict[Any, Any]) -> dict[str, str]:
     }
 
 
+# A kick declined by a worker busier than another (Worker.busier_than_another) comes back after this long, for
+# the less loaded worker to take; short, so a new session waits a fraction of a second at most once or twice.
+DECLINE_DELAY_S = 0.2
+
+
 def _id(entry_id: Any) -> str:
     return entry_id.decode() if isinstance(entry_id, bytes) else str(entry_id)
 
@@ -75,6 +80,7 @@ class Worker:
         self.faulted = False  # a transient fault was met during the current step
         self.stranded: dict[tuple[str, str], dict[str, str]] = {}  # pending entries to retry once Redis answers
         self._last_beat = 0.0
+        self._published_held, self._published_at = -1, 0.0  # the session count last published (worker_load)
 
     # ----- the loop --------------------------------------------------------------------------------------------
     def run(self, max_seconds: float | None = None) -> None:
@@ -140,7 +146,9 @@ class Worker:
         if time.monotonic() - self._last_claim >= cfg.claim_every_s:
             self._last_claim = time.monotonic()
             self.autoclaim()
+        self.publish_load()
         self.register.poll()
+        self.publish_load()
         if ctx.stop.is_set():
             return
         streams = {self.frames: ">", self.kicks: ">"}
@@ -244,16 +252,32 @@ class Worker:
         sid = fields.get("session", "")
         if kind == "frame":
             return handle_frame(ctx, sid, int(fields["seq"]))
-        if kind == "finish":
-            self.register.on_kick(sid, LIVE_VERSION)
-            return None
-        if kind == "register":
-            self.register.on_kick(sid, int(fields.get("version", LIVE_VERSION)))
+        if kind in ("finish", "register"):
+            version = LIVE_VERSION if kind == "finish" else int(fields.get("version", LIVE_VERSION))
+            if self.busier_than_another(sid, version):
+                return Retry(DECLINE_DELAY_S, "another worker holds fewer sessions")
+            self.register.on_kick(sid, version)
             return None
         if kind in ("reprocess", "send"):
             return self.run_job(stream, entry_id, fields)
         log.warning("entry of unknown kind dropped")
         return None
+
+    def busier_than_another(self, sid: str, version: int) -> bool:
+        """Return True when this worker does not hold the session and another live worker holds fewer sessions:
+        the kick waits DECLINE_DELAY_S for that worker, so sessions spread over the workers."""
+        held = len(self.register.held)
+        if not held or (sid, int(version)) in self.register.held:
+            return False
+        fewest = worker_load.fewest_held_elsewhere(self.ctx.r, self.ctx.prefix, self.ctx.config.consumer)
+        return fewest is not None and fewest < held
+
+    def publish_load(self) -> None:
+        """Publish how many sessions this worker holds (when it changes, else at most every second)."""
+        held, now = len(self.register.held), time.monotonic()
+        if held != self._published_held or now - self._published_at >= 1.0:
+            worker_load.publish_held(self.ctx.r, self.ctx.prefix, self.ctx.config.consumer, held)
+            self._published_held, self._published_at = held, now
 
     def run_job(self, stream: str, entry_id: str, fields: dict[str, str]) -> Retry | None:
         """Run a job (reprocess or send) once: under its run lock, unless it is finished (then the entry is
