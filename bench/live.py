@@ -41,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from cli.client import ApiError, VeinmosaicClient, upload_scan_folder
 from cli.launcher import Service, free_port
 from services.core.inputs.scan import Scan
-from services.core.simulation.scenarios import SCENARIOS, simulate
+from services.core.simulation.scenarios import ALL_SCENARIOS, LONG_SCENARIOS, simulate
 from services.settings import get_settings
 from services.store.scan_folder import write_scan_folder
 
@@ -223,7 +223,7 @@ def measure(
 def main(argv: list[str] | None = None) -> int:
     """Start the service, run the baseline and target rates, print the table; return 0."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--scenario", default="raster", choices=[s for s in SCENARIOS if s != "calib"])
+    p.add_argument("--scenario", default="raster", choices=[s for s in ALL_SCENARIOS if s != "calib"])
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--frames", type=int, default=150, help="upload the scan's first N frames")
     p.add_argument("--rate", type=float, default=10.0, help="target upload rate, frames/s (0: as fast as accepted)")
@@ -241,7 +241,8 @@ def main(argv: list[str] | None = None) -> int:
     if redis_url:  # a shared server: our own keys only, deleted at the end
         env["VEINMOSAIC_REDIS_PREFIX"] = prefix
     print(f"simulating {args.scenario} seed {args.seed} ...", file=sys.stderr)
-    scan = first_frames(simulate(args.scenario, args.seed), args.frames)
+    length = args.frames if args.scenario in LONG_SCENARIOS else None  # an exam is simulated as long as asked
+    scan = first_frames(simulate(args.scenario, args.seed, frames=length), args.frames)
     rows: list[Row] = []
     with tempfile.TemporaryDirectory(prefix="vm-live-", ignore_cleanup_errors=True) as tmp:
         scan_dir = Path(tmp) / "scan"
