@@ -76,7 +76,9 @@ class Flusher:
         whole = {k for k in pending.deferred if held.geometry.tiles_at(k[0]) == (1, 1)} if small else set()
         changed = pending.deferred if with_images else pending.deferred - whole
         pending.deferred = set() if with_images else whole
-        tiles_event = pub.write_tiles(sid, v, held.pyramid, changed, version, revisions, durable=final)
+        # a flush after a global refinement re-renders much of the pyramid: keep the lease while it does
+        renew = lambda: self.leases.renew_if_due(held)  # noqa: E731
+        tiles_event = pub.write_tiles(sid, v, held.pyramid, changed, version, revisions, durable=final, heartbeat=renew)
         image = image_meta(doc, held.calib.px_per_mm)
         if with_images:
             image = pub.write_images(sid, v, held.recon.canvas.render(), raw_layers=final)  # + coverage, layers
