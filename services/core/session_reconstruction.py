@@ -184,7 +184,7 @@ class SessionReconstruction:
         """Keep the planes of the RECENT_LAYERS newest frames: new frames and most re-pastes after a refinement."""
         if not self.live:
             return
-        newest = max(self.frames)
+        newest = next(reversed(self.frames))  # frames are added in index order
         if index <= newest - RECENT_LAYERS:
             return
         self.recent[index] = layers
