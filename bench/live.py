@@ -237,7 +237,8 @@ def main(argv: list[str] | None = None) -> int:
     key = "bench-" + secrets.token_urlsafe(12)
     redis_url = get_settings().redis_url
     prefix = f"vmbench:{secrets.token_hex(6)}:"
-    env = {"VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view"]}), "VEINMOSAIC_LOG_LEVEL": "WARNING"}
+    level = os.environ.get("VEINMOSAIC_LOG_LEVEL", "WARNING")  # INFO shows take-overs and releases
+    env = {"VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view"]}), "VEINMOSAIC_LOG_LEVEL": level}
     if redis_url:  # a shared server: our own keys only, deleted at the end
         env["VEINMOSAIC_REDIS_PREFIX"] = prefix
     print(f"simulating {args.scenario} seed {args.seed} ...", file=sys.stderr)

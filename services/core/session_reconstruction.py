@@ -7,8 +7,9 @@ session over replays the prepared frames it has not seen; registration is determ
 
 from __future__ import annotations
 
+import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,6 +37,17 @@ from services.core.similarity import Similarity
 # from its prepared image directly, and half of the re-pastes a refinement asks for are of frames this recent
 # (measured on a simulated raster: 116 of 268 within 8 frames); older ones are decoded from what was kept.
 RECENT_LAYERS = 12
+# While a live scan goes on, a refined frame is re-pasted only when some point of its window moved by this many
+# mosaic pixels or more since it was pasted: smaller moves are invisible, and re-pasting every frame a local pass
+# nudged by 0.4 px (the registrar's MOVED_MM) cost a third of a long examination's registration time. The final
+# mosaic is unaffected: finish() pastes every frame afresh at its final pose.
+LIVE_REPASTE_PX = 2.0
+# Frames a refinement moved are re-pasted a few per registered frame (oldest first), not all at once: a global
+# pass moves most of a long examination's frames, whose re-paste at once held one frame for seconds. The new frame
+# and the moved frames whose planes are kept (the newest) are pasted at once; settle() lets a caught-up worker
+# repaint more.
+REPAINT_PER_FRAME = 4
+REPAINT_AT_ONCE = 12  # moved frames this recent are re-pasted at once (their planes are usually kept)
 
 PATH_COLUMNS = (
     "seq",
@@ -104,6 +116,8 @@ class SessionReconstruction:
     gauge: float = 1.0
     finished: bool = False
     recent: dict[int, FrameLayers] = field(default_factory=dict)  # paste planes of the newest frames (live)
+    stale: dict[int, None] = field(default_factory=dict)  # moved frames not re-pasted yet, oldest first (live)
+    heartbeat: Callable[[], None] = field(default=lambda: None, repr=False)  # called between long steps
 
     def __post_init__(self) -> None:
         self.registrar = Registrar(
@@ -119,7 +133,9 @@ class SessionReconstruction:
 
     def add(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:
         """Register a frame (in index order); return its result and the canvas tiles that changed."""
+        self.heartbeat()
         result = self.registrar.add(pf)
+        self.heartbeat()
         self.results[pf.index] = result
         kept = keep_frame(pf, pasteable=result.status == STATUS_OK and not result.blurred)
         self.frames[pf.index] = kept
@@ -127,8 +143,18 @@ class SessionReconstruction:
         if self.live:
             if kept.pasteable:  # the planes straight from the prepared frame: the kept image is the same, losslessly
                 self._remember(pf.index, self._build_layers(pf.image, pf.mask, kept))
-            touched |= self._sync_canvas((pf.index, *result.moved))
+            now = tuple(i for i in result.moved if i > pf.index - REPAINT_AT_ONCE)
+            self.stale.update((i, None) for i in result.moved if i <= pf.index - REPAINT_AT_ONCE)
+            touched |= self._sync_canvas((pf.index, *now))
+            touched |= self.settle(REPAINT_PER_FRAME)
         return result, touched
+
+    def settle(self, limit: int) -> set[tuple[int, int]]:
+        """Re-paste up to `limit` moved frames not re-pasted yet (oldest first); return the canvas tiles changed."""
+        batch = list(itertools.islice(self.stale, limit))
+        for i in batch:
+            del self.stale[i]
+        return self._sync_canvas(tuple(batch))
 
     def lose(self, index: int) -> None:
         """Record a frame that never arrived (declared lost by the queue) so path rows stay complete."""
@@ -213,8 +239,11 @@ class SessionReconstruction:
         for i in indices:
             pose = self._stitch_pose(i)
             old = self.pasted.get(i)
-            if (old is not None and pose is not None and np.array_equal(old, pose)) or (old is None and pose is None):
+            if (old is not None and pose is not None and self._unseen_move(old, pose)) or (
+                old is None and pose is None
+            ):
                 continue
+            self.heartbeat()
             layers = self._layers(i)
             if old is not None:
                 touched.update(self.canvas.paste(layers, old, sign=-1.0))
@@ -223,6 +252,17 @@ class SessionReconstruction:
                 touched.update(self.canvas.paste(layers, pose))
                 self.pasted[i] = pose
         return touched
+
+    def _unseen_move(self, old: np.ndarray, new: np.ndarray) -> bool:
+        """Return True when a frame pasted with affine `old` (2x3, mm) needs no re-paste at `new`: the same, or
+        (while live and not finished) no point of its window moved by LIVE_REPASTE_PX mosaic pixels."""
+        if np.array_equal(old, new):
+            return True
+        if self.finished:
+            return False
+        delta = new - old
+        reach_mm = float(np.hypot(*delta[:, 2])) + float(np.linalg.norm(delta[:, :2], 2)) * self.window_radius_mm
+        return reach_mm * self.calibration.px_per_mm < LIVE_REPASTE_PX
 
     def render(self) -> MosaicImage:
         """Return the mosaic: the live canvas, or (offline) a stitch of every sharp placed frame."""
@@ -235,6 +275,7 @@ class SessionReconstruction:
         old = set(self.canvas.tiles)
         self.canvas = SparseCanvas(self.calibration.px_per_mm)
         self.pasted = {}
+        self.stale = {}
         return old | self._sync_canvas(tuple(sorted(self.frames)))
 
     def learned_model(self) -> dict[str, Any]:
@@ -259,23 +300,29 @@ class SessionReconstruction:
             doc.update(self.compliance.law_dict())
         return doc
 
-    def _tilt_deg(self, pf: KeptFrame) -> tuple[float, float]:
-        """Return a frame's (tilt_x, tilt_y) in degrees: spec §2 with the fitted kappa, else the calibration's."""
+    def _tilts_deg(self, kept: Sequence[KeptFrame]) -> np.ndarray:
+        """Return (N, 2) frames' (tilt_x, tilt_y) in degrees: spec §2 with the fitted kappa, else the calibration's."""
         fit = self.registrar.view_fit
+        if not kept:
+            return np.zeros((0, 2))
         if fit is None:
-            return math.degrees(pf.load.theta_x_rad), math.degrees(pf.load.theta_y_rad)
-        theta = tilt_angles_rad(pf.forces_n, fit.kappa_n_per_mm, self.calibration.sensor_separation_mm)
-        return math.degrees(theta[0]), math.degrees(theta[1])
+            return np.degrees([[k.load.theta_x_rad, k.load.theta_y_rad] for k in kept])
+        forces = np.array([k.forces_n for k in kept], np.float64)
+        return np.degrees(tilt_angles_rad(forces, fit.kappa_n_per_mm, self.calibration.sensor_separation_mm))
 
     def path_rows(self) -> list[PathRow]:
         """Return one PathRow per frame seen so far (spec §4), in index order."""
         poses = self.final_poses() if self.finished else self.registrar.poses
+        indices = sorted(self.results)
+        kept = [self.frames[i] for i in indices if i in self.frames]
+        tilts = iter(self._tilts_deg(kept))  # in the order of the frames kept, one vectorised call
         rows = []
-        for index in sorted(self.results):
+        for index in indices:
             r = self.results[index]
             pf = self.frames.get(index)
             pose = poses.get(index) if r.status == STATUS_OK else None
             x, y, yaw = (pose.t.real, pose.t.imag, math.degrees(pose.yaw_rad)) if pose else (math.nan,) * 3
+            tilt_x, tilt_y = next(tilts) if pf else (math.nan, math.nan)
             rows.append(
                 PathRow(
                     seq=pf.seq if pf else index,
@@ -284,8 +331,8 @@ class SessionReconstruction:
                     y_mm=y,
                     yaw_deg=yaw,
                     fz_n=pf.load.fz_n if pf else math.nan,
-                    tilt_x_deg=self._tilt_deg(pf)[0] if pf else math.nan,
-                    tilt_y_deg=self._tilt_deg(pf)[1] if pf else math.nan,
+                    tilt_x_deg=float(tilt_x),
+                    tilt_y_deg=float(tilt_y),
                     stretch=pf.stretch if pf else math.nan,
                     inliers=r.inliers,
                     status=r.status,

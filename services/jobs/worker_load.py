@@ -1,9 +1,11 @@
 """How many registration sessions each live worker holds, so new sessions go to the least loaded worker.
 
-Each worker publishes its count under <prefix>load:<consumer> with a short expiry (refreshed every loop turn);
-a worker that stops publishing (dead, or busy in a long job) drops out when the key expires. Registration of a
-session is serial in the worker holding its lease, so sessions piling up on one worker would leave the others
-preparing frames for it (measured: 3 probes on 2 workers, all held by one: it at 100 % CPU, the other at 42 %).
+One hash, <prefix>load, holds a field per worker: "<count>:<expiry ms>" by the Redis server's clock (no skew
+between hosts). A worker refreshes its field every loop turn; a reader drops the fields that expired (a worker
+dead, or busy in a long job, drops out) and reads the rest in the same round trip, so nothing scans the
+keyspace. Registration of a session is serial in the worker holding its lease, so sessions piling up on one
+worker would leave the others preparing frames for it (measured: 3 probes on 2 workers, all held by one: it at
+100 % CPU, the other at 42 %).
 """
 
 from __future__ import annotations
@@ -12,23 +14,43 @@ import redis
 
 LOAD_TTL_MS = 5000  # a worker's count lives this long unless refreshed
 
+_PUBLISH = """
+local t = redis.call('TIME')
+local now = tonumber(t[1]) * 1000 + math.floor(tonumber(t[2]) / 1000)
+redis.call('HSET', KEYS[1], ARGV[1], ARGV[2] .. ':' .. (now + tonumber(ARGV[3])))
+return 1
+"""
 
-def _key(prefix: str, consumer: str) -> str:
-    return f"{prefix}load:{consumer}"
+_FEWEST_ELSEWHERE = """
+local t = redis.call('TIME')
+local now = tonumber(t[1]) * 1000 + math.floor(tonumber(t[2]) / 1000)
+local all = redis.call('HGETALL', KEYS[1])
+local fewest = -1
+for i = 1, #all, 2 do
+  local field, value = all[i], all[i + 1]
+  local sep = string.find(value, ':', 1, true)
+  local count, expiry = tonumber(string.sub(value, 1, sep - 1)), tonumber(string.sub(value, sep + 1))
+  if expiry <= now then
+    redis.call('HDEL', KEYS[1], field)
+  elseif field ~= ARGV[1] and (fewest < 0 or count < fewest) then
+    fewest = count
+  end
+end
+return fewest
+"""
+
+
+def load_key(prefix: str) -> str:
+    """Return the hash holding every worker's held-session count."""
+    return f"{prefix}load"
 
 
 def publish_held(r: redis.Redis, prefix: str, consumer: str, held: int) -> None:
-    """Record that `consumer` holds `held` sessions (expires after LOAD_TTL_MS unless published again)."""
-    r.set(_key(prefix, consumer), int(held), px=LOAD_TTL_MS)
+    """Record that `consumer` holds `held` sessions (dropped after LOAD_TTL_MS unless published again)."""
+    r.eval(_PUBLISH, 1, load_key(prefix), consumer, int(held), LOAD_TTL_MS)
 
 
 def fewest_held_elsewhere(r: redis.Redis, prefix: str, consumer: str) -> int | None:
     """Return the smallest session count another live worker holds, or None when no other worker is live."""
-    mine = _key(prefix, consumer)
-    keys = [k for k in r.scan_iter(match=_key(prefix, "*"), count=100) if _text(k) != mine]
-    counts = [int(v) for v in r.mget(keys) if v is not None] if keys else []
-    return min(counts) if counts else None
-
-
-def _text(value: bytes | str) -> str:
-    return value.decode() if isinstance(value, bytes) else value
+    fewest = int(r.eval(_FEWEST_ELSEWHERE, 1, load_key(prefix), consumer))
+    return fewest if fewest >= 0 else None

@@ -45,6 +45,7 @@ LOCAL_REFINE_FROM = 400  # placed frames: below this every refinement is global
 GLOBAL_GROWTH = 1.25  # ... from it, a global pass when the placed frames grew by this factor since the last one
 LOCAL_RADIUS_WINDOWS = 3.0  # a local pass frees the frames within this many window radii of the newest frame
 LOCAL_RECENT = 60  # ... and the newest frames
+LOCAL_MAX = 240  # ... at most this many of the nearest (an examination's passes pile frames on the same area)
 MOVED_MM = 0.05  # a refined pose that moves a frame by less than this (0.4 px) does not re-render its tiles
 MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the placed frame's window
 DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
@@ -112,6 +113,8 @@ class Registrar:
     view_fit: ViewFit | None = None  # the probe's tilt and tissue anisotropy learned from the edges' affines
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
     _views: dict[int, np.ndarray] = field(default_factory=dict)  # each frame's view D under the current fit
+    # each edge (by its frames) corrected under the current fit, with the edge it was corrected from
+    _undeformed: dict[tuple[int, int], tuple[Edge, Edge]] = field(default_factory=dict)
 
     @property
     def ransac_mm(self) -> float:
@@ -351,12 +354,21 @@ class Registrar:
         return cached
 
     def undeformed(self, edges: list[Edge]) -> list[Edge]:
-        """Return the edges measuring relative poses between undeformed frames (tilt foreshortening removed)."""
+        """Return the edges measuring relative poses between undeformed frames (tilt foreshortening removed).
+
+        Each edge is corrected once per view fit (cached by its frames until the next fit_tilt): a refinement
+        re-reads hundreds of edges whose correction has not changed.
+        """
         if self.view_fit is None:
             return edges
-        return [
-            e.with_relative(corrected_relative(e.relative, e.affine, self.view(e.i), self.view(e.j))) for e in edges
-        ]
+        out = []
+        for e in edges:
+            cached = self._undeformed.get((e.i, e.j))
+            if cached is None or cached[0] is not e:
+                cached = (e, e.with_relative(corrected_relative(e.relative, e.affine, self.view(e.i), self.view(e.j))))
+                self._undeformed[(e.i, e.j)] = cached
+            out.append(cached[1])
+        return out
 
     def fit_tilt(self) -> ViewFit | None:
         """Refit the view model (kappa, anisotropy) from every edge's affine (services.core.physics.tissue_model)."""
@@ -367,6 +379,7 @@ class Registrar:
         if fit is not None:
             self.view_fit = fit
             self._views = {}
+            self._undeformed = {}
         return self.view_fit
 
     def refine(self, final: bool = False) -> tuple[int, ...]:
@@ -389,12 +402,16 @@ class Registrar:
         return self.local_refine()
 
     def local_refine(self) -> tuple[int, ...]:
-        """Re-optimise the poses near the newest frame (within LOCAL_RADIUS_WINDOWS window radii, and the newest
-        LOCAL_RECENT frames), the frames they share edges with held where they are; return the frames that moved."""
+        """Re-optimise the poses near the newest frame (the LOCAL_MAX nearest within LOCAL_RADIUS_WINDOWS window
+        radii, and the newest LOCAL_RECENT frames), the frames they share edges with held where they are; return
+        the frames that moved. Its cost is bounded however long the scan (issue 15)."""
         newest = self.poses[self.order[-1]].t
         reach = LOCAL_RADIUS_WINDOWS * self.window_radius_mm
-        active = {i for i in self.order[-LOCAL_RECENT:]}
-        active |= {i for i in self.order if abs(self.poses[i].t - newest) < reach}
+        placed = np.array(self.order)
+        dist = np.abs(np.array([self.poses[i].t for i in self.order]) - newest)
+        near = np.flatnonzero(dist < reach)
+        nearest = near[np.argsort(dist[near], kind="stable")[:LOCAL_MAX]]
+        active = {int(i) for i in placed[nearest]} | set(self.order[-LOCAL_RECENT:])
         active.discard(self.order[0])
         edges = [e for e in self.edges if e.i in active or e.j in active]
         held = {e.i for e in edges if e.i not in active} | {e.j for e in edges if e.j not in active}

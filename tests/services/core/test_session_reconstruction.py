@@ -1,4 +1,5 @@
-"""A live session pastes its newest frames from remembered planes: the canvas is exactly the one without them."""
+"""A live session's canvas: its newest frames pasted from remembered planes (exactly the canvas without them), and
+frames a refinement moved re-pasted a few at a time, within LIVE_REPASTE_PX of their poses once settled."""
 
 from __future__ import annotations
 
@@ -40,3 +41,32 @@ def test_remembered_planes_give_the_same_canvas_bit_for_bit(monkeypatch: pytest.
     assert set(remembered.canvas.tiles) == set(decoded.canvas.tiles)
     for key, tile in remembered.canvas.tiles.items():
         assert np.array_equal(tile, decoded.canvas.tiles[key]), key  # lossless kept images: the same sums
+
+
+def test_moved_frames_are_repainted_a_few_at_a_time_and_settle_within_the_tolerance() -> None:
+    scan = simulate("raster", 1)
+    options = method_options("best")
+    calib = scan.calibration
+    mask, flat = window_setup(scan, options)
+    live = SessionReconstruction(calib, options, window_radius_mm(mask, calib), live=True)
+    deferred = 0
+    for pf in prepared_frames(scan, frame_forces(scan), mask, flat, options):
+        if pf.index >= FRAMES:
+            break
+        waiting = set(live.stale)
+        live.add(pf)
+        # at most REPAINT_PER_FRAME of the frames waiting are re-pasted per registered frame
+        assert len(waiting - set(live.stale)) <= session_reconstruction.REPAINT_PER_FRAME
+        deferred = max(deferred, len(live.stale))
+    assert deferred > 0  # a refinement moved older frames than a frame's paste can carry at once
+    while live.stale:
+        waiting = len(live.stale)
+        live.settle(8)
+        assert len(live.stale) == max(0, waiting - 8)
+    # every pasted frame now lies within LIVE_REPASTE_PX of its current pose (tolerance: the rule itself)
+    lagging = [i for i, pasted in live.pasted.items() if not live._unseen_move(pasted, live._stitch_pose(i))]
+    assert not lagging
+    live.finish()
+    assert not live.stale
+    # finish pastes every frame at its final pose, exactly
+    assert all(np.array_equal(pasted, live._stitch_pose(i)) for i, pasted in live.pasted.items())

@@ -9,6 +9,7 @@ LeaseLostError: the session is dropped from memory without writing.
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 
 import redis
@@ -17,6 +18,8 @@ from services.jobs.leases import Lease, acquire
 from services.store.version_state import VersionState
 from workers.config import Context
 from workers.stages.register.held import HeldSession
+
+log = logging.getLogger("veinmosaic.worker")
 
 
 class LeaseLostError(Exception):
@@ -47,6 +50,10 @@ class LeaseKeeper:
             return
         if force and now - held.clocks.renewed < cfg.lease_ms / 6000.0:
             return
+        if now - held.clocks.renewed > 0.8 * cfg.lease_ms / 1000.0:  # a step ran nearly as long as the lease
+            log.warning(
+                "lease renewed %.1f s after the last renewal", now - held.clocks.renewed, extra={"session": held.sid}
+            )
         watchdog = time.time() + 2.0 * cfg.lease_ms / 1000.0
         if not held.lease.renew(self.ctx.r, cfg.lease_ms, watchdog):
             raise LeaseLostError

@@ -33,6 +33,7 @@ from workers.stages.register.lease import LeaseKeeper, LeaseLostError
 from workers.stages.register.poison import PoisonCounter
 
 log = logging.getLogger("veinmosaic.worker")
+IDLE_REPAINT = 16  # moved frames re-pasted per step of a session that caught up with its uploads
 
 
 class RegisterStage:
@@ -94,6 +95,9 @@ class RegisterStage:
         meta = self.ctx.store.get_meta(held.sid)
         finished = meta.finished_at is not None
         caught_up = self.cursor.register_ready(held, finished)
+        if caught_up and held.recon.stale:  # idle between frames: repaint what a refinement moved
+            held.pending.touched |= held.recon.settle(IDLE_REPAINT)
+            held.pending.dirty = True
         if finished and not self.ctx.stop.is_set() and self.cursor.at_end(held):
             self.completion.complete(held, meta.status)
             held.lease.release(self.ctx.r, mode="final")
@@ -104,7 +108,14 @@ class RegisterStage:
         if self.leases.idle(held, now):
             if held.pending.dirty:
                 self.flusher.flush(held, final=False, caught_up=caught_up)
-            return held.lease.release(self.ctx.r) == 0  # refused: work arrived meanwhile, keep serving
+            if held.lease.release(self.ctx.r) == 0:
+                return True  # refused: work arrived meanwhile, keep serving
+            log.info(
+                "session released after %.0f s without progress",
+                now - held.clocks.progressed,
+                extra={"session": held.sid},
+            )
+            return False
         return True
 
     def serve(self, held: HeldSession) -> None:
@@ -167,5 +178,6 @@ class RegisterStage:
             sv, lease, recon, geometry, TilePyramid(geometry), lost=list(state.lost), rejected=list(state.rejected)
         )
         held.clocks.renewed = time.monotonic()
+        recon.heartbeat = lambda: self.leases.renew_if_due(held)  # the lease outlives a long refinement or repaint
         self.cursor.replay(held, state.cursor)
         return held
