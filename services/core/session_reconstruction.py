@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,6 +48,7 @@ LIVE_REPASTE_PX = 2.0
 # and the moved frames whose planes are kept (the newest) are pasted at once; settle() lets a caught-up worker
 # repaint more.
 REPAINT_PER_FRAME = 4
+RESTITCH_AHEAD = 4  # a whole restitch builds this many frames' planes (~5 MB each) ahead of the paste
 REPAINT_AT_ONCE = 12  # moved frames this recent are re-pasted at once (their planes are usually kept)
 
 PATH_COLUMNS = (
@@ -276,7 +278,30 @@ class SessionReconstruction:
         self.canvas = SparseCanvas(self.calibration.px_per_mm)
         self.pasted = {}
         self.stale = {}
-        return old | self._sync_canvas(tuple(sorted(self.frames)))
+        poses = {i: pose for i in sorted(self.frames) if (pose := self._stitch_pose(i)) is not None}
+        touched: set[tuple[int, int]] = set()
+        for i, layers in zip(poses, self._layers_ahead(list(poses)), strict=True):  # pasted in order: same sums
+            self.heartbeat()
+            touched.update(self.canvas.paste(layers, poses[i]))
+            self.pasted[i] = poses[i]
+        return old | touched
+
+    def _layers_ahead(self, indices: list[int]) -> Iterator[FrameLayers]:
+        """Yield the paste planes of `indices` in order, built up to RESTITCH_AHEAD ahead on two threads (decoding
+        and OpenCV free the GIL); the remembered planes are read, never changed, from the threads."""
+
+        def build(i: int) -> FrameLayers:
+            layers = self.recent.get(i)
+            kept = self.frames[i]
+            return layers if layers is not None else self._build_layers(kept.image(), kept.mask(), kept)
+
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            futures = [pool.submit(build, i) for i in indices[:RESTITCH_AHEAD]]
+            for k in range(len(indices)):
+                if k + RESTITCH_AHEAD < len(indices):
+                    futures.append(pool.submit(build, indices[k + RESTITCH_AHEAD]))
+                yield futures[k].result()
+                futures[k] = None  # type: ignore[call-overload]
 
     def learned_model(self) -> dict[str, Any]:
         """Return what the scan taught about the tissue and the probe (mosaic.json and report.json "tissue").
