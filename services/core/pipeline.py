@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,6 +12,7 @@ import numpy as np
 
 from services.core.inputs.calibration import Calibration
 from services.core.inputs.scan import Scan
+from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import MosaicImage
 from services.core.physics.compliance import ComplianceFit
@@ -111,15 +111,7 @@ def prepared_frames(
     def job(i: int) -> PreparedFrame:
         return prepare_scan_frame(scan, i, forces[i], mask, flat, options)
 
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        ahead = 4
-        futures = [pool.submit(job, i) for i in range(min(ahead, len(scan)))]
-        for i in range(len(scan)):
-            nxt = i + ahead
-            if nxt < len(scan):
-                futures.append(pool.submit(job, nxt))
-            yield futures[i].result()
-            futures[i] = None  # type: ignore[call-overload]
+    yield from in_order_ahead(job, range(len(scan)), ahead=4)
 
 
 def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = None) -> Reconstruction:

@@ -10,13 +10,13 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from services.core.inputs.calibration import Calibration
+from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, blend_weight
 from services.core.physics.compliance import ComplianceFit, fit_compliance
@@ -295,13 +295,7 @@ class SessionReconstruction:
             kept = self.frames[i]
             return layers if layers is not None else self._build_layers(kept.image(), kept.mask(), kept)
 
-        with ThreadPoolExecutor(max_workers=2) as pool:
-            futures = [pool.submit(build, i) for i in indices[:RESTITCH_AHEAD]]
-            for k in range(len(indices)):
-                if k + RESTITCH_AHEAD < len(indices):
-                    futures.append(pool.submit(build, indices[k + RESTITCH_AHEAD]))
-                yield futures[k].result()
-                futures[k] = None  # type: ignore[call-overload]
+        return in_order_ahead(build, indices, ahead=RESTITCH_AHEAD)
 
     def learned_model(self) -> dict[str, Any]:
         """Return what the scan taught about the tissue and the probe (mosaic.json and report.json "tissue").
