@@ -40,6 +40,7 @@ STATUSES: tuple[str, ...] = ("receiving", "processing", "done", "failed")
 FRAME_EXTENSIONS: tuple[str, ...] = ("png", "tif", "jpg")
 MAX_SEQ = 999_999
 _BATCH_CACHE_MAX = 20_000
+_MERGED_CACHE_MAX = 64  # sessions whose merged batches a process keeps (~1 MB for a 4-minute examination)
 _SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
 
 
@@ -120,6 +121,15 @@ def _merge_rows(batches: list[np.ndarray], width: int) -> np.ndarray:
     return rows[first]
 
 
+def _batch_names(bdir: Path) -> list[str]:
+    """Return the batch file names in bdir in arrival order (os.listdir: a glob cost 10 ms at 2400 batches)."""
+    try:
+        names = os.listdir(bdir)
+    except FileNotFoundError:
+        return []
+    return sorted(n for n in names if n[:1].isdigit() and n.endswith(".json"))
+
+
 class SessionStore:
     """Sessions on local disk under data_dir/sessions; safe for several threads and processes on one host."""
 
@@ -130,6 +140,7 @@ class SessionStore:
         self.root = self.data_dir / "sessions"
         self.root.mkdir(parents=True, exist_ok=True)
         self._batch_cache: dict[Path, np.ndarray] = {}
+        self._merged_cache: dict[Path, tuple[list[str], np.ndarray]] = {}  # batch dir -> (names merged, rows)
         self.jobs = JobLedger(self.data_dir / "jobs")
 
     # ----- paths and locking -------------------------------------------------------------------------
@@ -377,8 +388,9 @@ class SessionStore:
         body = _json_bytes({kind: rows.tolist()})
         digest = hashlib.sha256(body).hexdigest()[:16]
         bdir = path / "raw" / ("forces" if kind == "samples" else "imu")
-        for existing in bdir.glob(f"*-{digest}.json"):
-            return existing.stem  # the same batch re-sent: stored once
+        for existing in _batch_names(bdir):
+            if existing.endswith(f"-{digest}.json"):
+                return existing.removesuffix(".json")  # the same batch re-sent: stored once
         name = f"{time.time_ns():019d}-{digest}"
         atomic_write_bytes(bdir / f"{name}.json", body)
         return name
@@ -405,28 +417,47 @@ class SessionStore:
             iname = self._put_batch(path, "imu", m) if len(m) else None
         return fname, iname
 
-    def _load_batches(self, bdir: Path, kind: str, width: int) -> list[np.ndarray]:
-        out = []
-        for p in sorted(bdir.glob("[0-9]*.json")):
-            arr = self._batch_cache.get(p)
-            if arr is None:  # batch files are immutable, so a parsed batch can be cached forever
-                arr = _finite_rows(json.loads(p.read_bytes())[kind], width, kind)
-                if len(self._batch_cache) >= _BATCH_CACHE_MAX:
-                    self._batch_cache.clear()
-                self._batch_cache[p] = arr
-            out.append(arr)
-        return out
+    def _load_batch(self, path: Path, kind: str, width: int) -> np.ndarray:
+        """Return one batch file's rows, parsed once per process (batch files are immutable)."""
+        arr = self._batch_cache.get(path)
+        if arr is None:
+            arr = _finite_rows(json.loads(path.read_bytes())[kind], width, kind)
+            if len(self._batch_cache) >= _BATCH_CACHE_MAX:
+                self._batch_cache.clear()
+            self._batch_cache[path] = arr
+        return arr
+
+    def _merged_batches(self, bdir: Path, kind: str, width: int) -> np.ndarray:
+        """Return the rows of every batch in bdir merged (_merge_rows), merging only batches new since the last call.
+
+        Batch names sort in arrival order, so the batches of the last call are a prefix of the listing and the
+        new ones arrived later (they win ties, as in a full merge). A listing that does not extend the last one
+        (a batch renamed into place late by another process) is merged whole again.
+        """
+        names = _batch_names(bdir)
+        known = self._merged_cache.get(bdir)
+        if known is not None and names[: len(known[0])] == known[0]:
+            fresh = names[len(known[0]) :]
+            if not fresh:
+                return known[1]
+            rows = _merge_rows([known[1], *(self._load_batch(bdir / n, kind, width) for n in fresh)], width)
+        else:
+            rows = _merge_rows([self._load_batch(bdir / n, kind, width) for n in names], width)
+        if bdir not in self._merged_cache and len(self._merged_cache) >= _MERGED_CACHE_MAX:
+            self._merged_cache.pop(next(iter(self._merged_cache)), None)  # the oldest session first
+        self._merged_cache[bdir] = (names, rows)
+        return rows
 
     def merged_forces(self, session_id: str) -> tuple[np.ndarray, np.ndarray]:
         """Return (t_s (M,) s strictly increasing, forces_n (M, 4) N as F1..F4) over all batches, deduped."""
         bdir = self.session_dir(session_id) / "raw" / "forces"
-        rows = _merge_rows(self._load_batches(bdir, "samples", 5), 5)
+        rows = self._merged_batches(bdir, "samples", 5)
         return rows[:, 0].copy(), rows[:, 1:].copy()
 
     def merged_imu(self, session_id: str) -> tuple[np.ndarray, np.ndarray]:
         """Return (t_s (K,) s strictly increasing, tilt_deg (K, 2) as tilt_x, tilt_y) over all IMU batches."""
         bdir = self.session_dir(session_id) / "raw" / "imu"
-        rows = _merge_rows(self._load_batches(bdir, "imu", 3), 3)
+        rows = self._merged_batches(bdir, "imu", 3)
         return rows[:, 0].copy(), rows[:, 1:].copy()
 
     # ----- health ---------------------------------------------------------------------------------------

@@ -185,6 +185,31 @@ def test_merged_forces_sorted_dedup_latest_wins(store: SessionStore, sid: str) -
     assert set(json.loads(batch.read_bytes())) == {"samples"}  # stored as received
 
 
+def test_merged_forces_incremental_equals_a_fresh_merge(store: SessionStore, sid: str, tmp_path: Path) -> None:
+    """Merging only the batches new since the last call gives what a fresh process merging all of them gives,
+    ties won by the later arrival, also when a batch named earlier appears after a later one was merged."""
+    rng = np.random.default_rng(7)
+    for k in range(30):
+        t0 = 0.1 * k - (0.15 if k % 4 == 0 else 0.0)  # every fourth batch overlaps the one before
+        rows = [[round(t0 + 0.01 * j, 2), *rng.uniform(0, 9, 4)] for j in range(12)]
+        store.put_forces(sid, rows)
+        t_inc, f_inc = store.merged_forces(sid)  # incremental: one new batch per call
+    fresh = SessionStore(store.data_dir)
+    t_all, f_all = fresh.merged_forces(sid)
+    np.testing.assert_array_equal(t_inc, t_all)
+    np.testing.assert_array_equal(f_inc, f_all)
+    assert np.all(np.diff(t_inc) > 0)
+    # a batch renamed into place late, named before the last one merged: the listing is no longer an extension
+    bdir = store.session_dir(sid) / "raw" / "forces"
+    (bdir / f"{0:019d}-{'0' * 16}.json").write_text(json.dumps({"samples": [[0.1, 7, 7, 7, 7], [99.0, 1, 2, 3, 4]]}))
+    t_late, f_late = store.merged_forces(sid)
+    t_ref, f_ref = SessionStore(store.data_dir).merged_forces(sid)
+    np.testing.assert_array_equal(t_late, t_ref)
+    np.testing.assert_array_equal(f_late, f_ref)
+    assert t_late[-1] == 99.0 and len(t_late) == len(t_all) + 1  # its new sample is in
+    np.testing.assert_array_equal(f_late[t_late == 0.1], f_all[t_all == 0.1])  # at t = 0.1 the later arrival wins
+
+
 def test_bad_force_rows_rejected(store: SessionStore, sid: str) -> None:
     with pytest.raises(ValueError, match="finite"):
         store.put_forces(sid, [[0.0, 1, 2, 3, float("nan")]])
