@@ -27,8 +27,9 @@ PRIOR_T_MM = 50.0  # ... and its t with this one (mm)
 class Edge:
     """A relative constraint T_j = T_i T_ij with its translation standard deviation (mm) and kind.
 
-    affine: the match's full affine (2x3, frame j mm -> frame i mm) when it has one, and its non-similarity
-    sigma: the evidence services.core.physics.tissue_model learns the probe's tilt from.
+    affine: the match's full affine (2x3, frame j mm -> frame i mm) when it has one (the edge's measurement);
+    view_affine, the affine on its own inliers, and its non-similarity sigma: the evidence
+    services.core.physics.tissue_model learns the probe's tilt from.
     """
 
     i: int
@@ -39,6 +40,7 @@ class Edge:
     inliers: int = 0
     affine: np.ndarray | None = field(default=None, compare=False, repr=False)
     affine_sigma: float = field(default=float("inf"), compare=False)
+    view_affine: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def with_relative(self, relative: Similarity) -> Edge:
         """Return the same edge measuring another relative similarity (e.g. between undeformed frames)."""

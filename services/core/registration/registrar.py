@@ -67,11 +67,12 @@ class Match:
     rms: float  # mm
     affine: np.ndarray | None = None  # the full affine of a feature match (2x3), see SimilarityFit
     affine_sigma: float = math.inf
+    view_affine: np.ndarray | None = None  # the affine on its own inliers: the view model's evidence
 
 
 def feature_match(fit: SimilarityFit) -> Match:
     """Return the Match of a feature fit (with its full affine)."""
-    return Match(fit.transform, fit.inliers, fit.rms, fit.affine, fit.affine_sigma)
+    return Match(fit.transform, fit.inliers, fit.rms, fit.affine, fit.affine_sigma, fit.view_affine)
 
 
 @dataclass(frozen=True)
@@ -340,7 +341,15 @@ class Registrar:
         sigma = (0.01 + (rms / np.sqrt(inliers) if inliers > 0 else rms)) * load
         loop = self.order[-1] - other > self.options.loop_gap
         return Edge(
-            other, pf.index, match.relative, sigma, loop, inliers, affine=match.affine, affine_sigma=match.affine_sigma
+            other,
+            pf.index,
+            match.relative,
+            sigma,
+            loop,
+            inliers,
+            affine=match.affine,
+            affine_sigma=match.affine_sigma,
+            view_affine=match.view_affine,
         )
 
     def view(self, index: int) -> np.ndarray:
@@ -372,7 +381,9 @@ class Registrar:
 
     def fit_tilt(self) -> ViewFit | None:
         """Refit the view model (kappa, anisotropy) from every edge's affine (services.core.physics.tissue_model)."""
-        evidence = [AffineEvidence(e.i, e.j, e.affine, e.affine_sigma) for e in self.edges if e.affine is not None]
+        evidence = [
+            AffineEvidence(e.i, e.j, e.view_affine, e.affine_sigma) for e in self.edges if e.view_affine is not None
+        ]
         fit = fit_view_model(
             evidence, self.forces, self.separation_mm, self.kappa_prior_n_per_mm, self.compliance_per_n
         )

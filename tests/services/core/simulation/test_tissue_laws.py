@@ -1,11 +1,11 @@
 """A patient as on the shared scans (a hand's tilt, tissue laws of several shapes): what `best` learns and keeps.
 
 One tolerance table, each band measured on `short` seed 1 (40 frames, tilts up to 7 deg, true kappa 0.108 N/mm)
-with its margin: tilt RMS 0.63-0.91 deg per axis (target 1 deg); kappa fitted 0.126-0.131 (17-21 % high: the
-short scan's tilts are small, so foreshortening, a second-order effect, is weak evidence); path RMSE 0.325
-(linear: the 5 % compliance prior holds the simulator's 4-10 % off E back), 0.101 (stiffening; 0.121 with a
-linear compliance law), 0.751 mm (power law: over these 40 frames' 3-12 N its curvature is at the noise, so the
-fit keeps the linear law, whose extrapolation to no load misses a power law's strain) and 0.630 (toe; 0.646).
+with its margin: tilt RMS 0.19-0.28 deg per axis (target 1 deg; 0.63-0.91 when the view model's evidence was
+the affine on the similarity's inliers, which understates the stretch); kappa fitted 0.106-0.111 (within 3 %;
+17-21 % high before); path RMSE 0.295 (linear: the 5 % compliance prior holds the simulator's 4-10 % off E
+back), 0.062 (stiffening), 0.696 mm (power law: over these 40 frames' 3-12 N its curvature is at the noise, so
+the fit keeps the linear law, whose extrapolation to no load misses a power law's strain) and 0.580 (toe).
 """
 
 from __future__ import annotations
@@ -22,11 +22,11 @@ from services.core.pipeline import reconstruct
 from services.core.simulation.renderer import TissueLaw
 from services.core.simulation.scenarios import TRUE_KAPPA_N_PER_MM, simulate
 
-TOL = {  # law: (max path RMSE mm, max tilt RMS deg per axis, max relative kappa error)
-    "linear": (0.45, 1.0, 0.35),
-    "stiffening": (0.25, 1.0, 0.35),
-    "power": (1.0, 1.0, 0.35),
-    "toe": (0.85, 1.0, 0.35),
+TOL = {  # law: (max path RMSE mm, max tilt RMS deg per axis, max |log(kappa / true kappa)|)
+    "linear": (0.40, 0.5, 0.10),
+    "stiffening": (0.12, 0.5, 0.10),
+    "power": (0.85, 0.5, 0.10),
+    "toe": (0.75, 0.5, 0.10),
 }
 
 
@@ -60,9 +60,9 @@ def test_without_the_view_model_tilts_are_the_calibrations_hundredths() -> None:
 
 def test_best_fits_a_stiffening_law_to_a_tissue_of_another_shape() -> None:
     # Fung's toe law (strain logarithmic in load, not the fit's hyperbola) on short seed 7, whose scales show the
-    # curvature over 3-12 N. Measured RMSE 0.222 mm (0.370 with a linear law: stiffening=false) and strain
-    # 13 / 7 / 2 % off the truth at 2 / 5 / 10 N (the linear law: 27 / 18 / 3 %); tilts are not asserted here
-    # (this seed's kappa is fitted 47 % high, the view model's matter, tested above on seed 1)
+    # curvature over 3-12 N. Measured RMSE 0.206 mm (0.352 with a linear law: stiffening=false) and strain
+    # 13 / 6 / 2 % off the truth at 2 / 5 / 10 N (the linear law: 28 / 18 / 4 %); tilts are not asserted here
+    # (0.65 / 0.49 deg; this seed's kappa is fitted 17 % high, the view model's matter, tested above on seed 1)
     scan = simulate("short", 7, tissue="toe")
     recon = reconstruct(scan, method_options("best"))
     report = evaluate_path(recon.estimate_mm, recon.registered, scan.reference_mm)
