@@ -222,8 +222,9 @@ def upload_scan_folder(
     imu = None
     if scan.imu_t_s is not None and scan.imu_tilt_deg is not None:
         imu = np.column_stack([scan.imu_t_s, scan.imu_tilt_deg])
+        imu = imu[np.argsort(imu[:, 0], kind="stable")]
     order = np.argsort(scan.frame_t_s, kind="stable")
-    sent_forces = 0
+    sent_forces = sent_imu = 0
     t0_wall, t0_scan = time.monotonic(), float(scan.frame_t_s[order[0]])
     done = 0
     with ThreadPoolExecutor(max_workers=parallel) as pool:
@@ -232,11 +233,14 @@ def upload_scan_folder(
             t = float(scan.frame_t_s[i])
             if realtime > 0:
                 time.sleep(max(0.0, (t - t0_scan) / realtime - (time.monotonic() - t0_wall)))
-            # the last sample is held back so the final batch (which carries the IMU rows) is never empty
+            # the last sample is held back so the final batch (with the last IMU rows) is never empty
             upto = min(int(np.searchsorted(forces[:, 0], t + FORCE_LEAD_S, side="right")), len(forces) - 1)
-            if upto > sent_forces:
-                client.upload_forces(session_id, forces[sent_forces:upto])
-                sent_forces = upto
+            if upto > sent_forces:  # with the IMU rows up to the same time, so a frame's IMU arrives with its forces
+                imu_upto = 0 if imu is None else int(np.searchsorted(imu[:, 0], forces[upto - 1, 0], side="right"))
+                client.upload_forces(
+                    session_id, forces[sent_forces:upto], None if imu is None else imu[sent_imu:imu_upto]
+                )
+                sent_forces, sent_imu = upto, max(sent_imu, imu_upto)
             seq = int(scan.frame_seq[i])
             path = next(scan_dir.glob(frame_name(seq, "*")))
             pending.append(pool.submit(client.upload_frame, session_id, seq, t, path.read_bytes(), path.name))
@@ -250,6 +254,6 @@ def upload_scan_folder(
             done += 1
             if progress:
                 progress(done, len(scan))
-    client.upload_forces(session_id, forces[sent_forces:], imu)
+    client.upload_forces(session_id, forces[sent_forces:], None if imu is None else imu[sent_imu:])
     client.finish(session_id)
     return session_id

@@ -15,7 +15,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from services.core.simulation.scenarios import simulate
     from services.store.scan_folder import write_scan_folder
 
-    scan = simulate(args.scenario, args.seed, tissue=args.tissue, frames=args.frames)
+    scan = simulate(args.scenario, args.seed, tissue=args.tissue, frames=args.frames, imu=args.imu)
     write_scan_folder(scan, args.out)
     length = scan.truth.get("path_length_mm", float("nan"))
     print(f"wrote {len(scan)} frames ({args.scenario}, seed {args.seed}, path {length:.0f} mm) to {args.out}")
@@ -166,6 +166,7 @@ def add_commands(command: Callable[[str, str], argparse.ArgumentParser]) -> None
     )
     p.add_argument("--seed", type=int, default=1, help="random seed (same seed, same scan)")
     p.add_argument("--frames", type=int, default=None, help="an exam's frames (default 2400: 4 min at 10 frames/s)")
+    p.add_argument("--imu", action="store_true", help="write imu.csv, the probe's IMU tilts (calib always has one)")
     p.add_argument(
         "--tissue",
         default=None,

@@ -19,6 +19,7 @@ import numpy as np
 from services.core.inputs.calibration import Calibration
 from services.core.inputs.scan import Scan
 from services.core.physics.force_model import interpolate_forces, load_state
+from services.core.physics.tissue_model import HookeFit, fit_kappa_to_tilts
 from services.core.registration.features import detect_features
 from services.core.registration.vein_enhancement import enhance_veins
 
@@ -37,10 +38,6 @@ RATIO_TEST = 0.75
 RANSAC_THRESHOLD_PX = 1.5
 MIN_INLIERS = 20
 MASK_ERODE_PX = 12  # keep keypoints whose descriptor window lies inside the field of view
-
-# Hooke fit.
-MIN_TILT_DEG = 0.25  # IMU samples tilted less than this on an axis carry no information on that axis
-MIN_HOOKE_SAMPLES = 10
 
 
 @dataclass(frozen=True)
@@ -61,15 +58,6 @@ class ModulusFit:
         """Return the model's scales (1 - c F0) / (1 - c Fk) for the fitted frames (dimensionless)."""
         c = self.compliance_per_n
         return (1.0 - c * self.ref_load_n) / (1.0 - c * self.loads_n)
-
-
-@dataclass(frozen=True)
-class HookeFit:
-    """Least-squares Hooke constant kappa (N/mm) from IMU tilts; residual RMS of the force differences (N)."""
-
-    hooke_n_per_mm: float
-    n_samples: int
-    residual_rms_n: float
 
 
 @dataclass(frozen=True)
@@ -159,25 +147,11 @@ def fit_hooke(
     ft = np.asarray(force_t_s, dtype=np.float64).ravel()
     if len(ft) == 0:
         raise ValueError("no force samples")
-    s_x, s_y = (float(v) for v in sensor_separation_mm)
     inside = np.isfinite(t) & np.all(np.isfinite(tilt), axis=1) & (t >= ft.min()) & (t <= ft.max())
     t, tilt = t[inside], tilt[inside]
     if len(t) == 0:
         raise ValueError("no IMU sample falls inside the force record")
-    f = interpolate_forces(ft, forces_n, t)
-    g = np.concatenate([2.0 * s_y * np.sin(np.radians(tilt[:, 0])), 2.0 * s_x * np.sin(np.radians(tilt[:, 1]))])
-    df = np.concatenate([f[:, 1] - f[:, 0], f[:, 3] - f[:, 2]])
-    tilted = np.concatenate([np.abs(tilt[:, 0]), np.abs(tilt[:, 1])]) >= MIN_TILT_DEG
-    g, df = g[tilted], df[tilted]
-    if len(g) < MIN_HOOKE_SAMPLES:
-        raise ValueError(
-            f"not enough tilt: {len(g)} IMU axis-samples tilted >= {MIN_TILT_DEG} deg (need {MIN_HOOKE_SAMPLES})"
-        )
-    kappa = float(np.sum(df * g) / np.sum(g * g))
-    if not kappa > 0.0:
-        raise ValueError(f"force differences do not follow the tilt (fitted kappa = {kappa:.3g} N/mm)")
-    residual = df - kappa * g
-    return HookeFit(hooke_n_per_mm=kappa, n_samples=len(g), residual_rms_n=float(np.sqrt(np.mean(residual**2))))
+    return fit_kappa_to_tilts(tilt, interpolate_forces(ft, forces_n, t), sensor_separation_mm)
 
 
 # ------------------------------------------------------------------------------------- image measurement

@@ -17,6 +17,7 @@ from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import MosaicImage
 from services.core.physics.compliance import ComplianceFit
 from services.core.physics.force_model import interpolate_forces
+from services.core.physics.tissue_model import reference_tilts_at
 from services.core.registration.frame_prep import (
     PreparedFrame,
     estimate_flat_field,
@@ -61,6 +62,11 @@ def frame_forces(scan: Scan) -> np.ndarray:
     return interpolate_forces(scan.force_t_s, scan.forces_n, scan.frame_t_s)
 
 
+def frame_imu(scan: Scan) -> np.ndarray:
+    """Return the IMU's (tilt_x, tilt_y) deg (N, 2) at each frame's timestamp, NaN where it has no sample around."""
+    return reference_tilts_at(scan.frame_t_s, scan.imu_t_s, scan.imu_tilt_deg)
+
+
 def window_setup_of(
     frames: Sequence[np.ndarray], mask: np.ndarray | None, options: MethodOptions
 ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -87,7 +93,13 @@ def window_radius_mm(mask: np.ndarray, calib: Calibration) -> float:
 
 
 def prepare_scan_frame(
-    scan: Scan, index: int, forces_n: np.ndarray, mask: np.ndarray, flat: np.ndarray | None, options: MethodOptions
+    scan: Scan,
+    index: int,
+    forces_n: np.ndarray,
+    mask: np.ndarray,
+    flat: np.ndarray | None,
+    options: MethodOptions,
+    imu_tilt_deg: np.ndarray | None = None,
 ) -> PreparedFrame:
     """Return frame `index` of a scan prepared for registration (see frame_prep.prepare_frame)."""
     return prepare_frame(
@@ -100,6 +112,7 @@ def prepare_scan_frame(
         mask=mask,
         flat=flat,
         options=options,
+        imu_tilt_deg=imu_tilt_deg,
     )
 
 
@@ -107,9 +120,10 @@ def prepared_frames(
     scan: Scan, forces: np.ndarray, mask: np.ndarray, flat: np.ndarray | None, options: MethodOptions
 ) -> Iterator[PreparedFrame]:
     """Yield prepared frames in order, preparing up to a few ahead on a thread pool (OpenCV frees the GIL)."""
+    imu = frame_imu(scan)
 
     def job(i: int) -> PreparedFrame:
-        return prepare_scan_frame(scan, i, forces[i], mask, flat, options)
+        return prepare_scan_frame(scan, i, forces[i], mask, flat, options, imu[i])
 
     yield from in_order_ahead(job, range(len(scan)), ahead=4)
 

@@ -301,8 +301,9 @@ class SessionReconstruction:
         """Return what the scan taught about the tissue and the probe (mosaic.json and report.json "tissue").
 
         The calibration's priors, the fitted view model (effective kappa with its 68 % range, tissue anisotropy,
-        services.core.physics.tissue_model) once fitted, and the compliance fit once finished: E in kPa, gauge, and
-        the strain law (linear or stiffening: zero-load compliance, half-strain load with 68 % ranges; compliance.py).
+        services.core.physics.tissue_model; kappa_source "images", or "imu+images" with the IMU's kappa) once
+        fitted, and the compliance fit once finished: E in kPa, gauge, and the strain law (linear or stiffening:
+        zero-load compliance, half-strain load with 68 % ranges; compliance.py).
         """
         calib = self.calibration
         doc: dict[str, Any] = {
@@ -311,6 +312,12 @@ class SessionReconstruction:
         }
         if self.registrar.view_fit is not None:
             doc.update(self.registrar.view_fit.to_dict())
+            reference = self.registrar.kappa_reference
+            doc["kappa_source"] = "imu+images" if reference is not None else "images"
+            if reference is not None:  # kappa of the IMU's tilts against the force differences: the fit's prior
+                doc["kappa_imu_n_per_mm"] = reference.hooke_n_per_mm
+                doc["kappa_imu_samples"] = reference.n_samples
+                doc["kappa_imu_residual_n"] = reference.residual_rms_n
         if self.compliance is not None:
             doc["compliance_per_n"] = self.compliance.compliance_per_n
             doc["young_modulus_kpa"] = self.compliance.young_modulus_kpa(calib.poisson_ratio, calib.scanner_area_m2)

@@ -14,8 +14,8 @@ from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
 from services.store.file_formats import check_format, npz_bytes
 
-PREPARED_FORMAT = 1
-READABLE_FORMATS = (0, 1)
+PREPARED_FORMAT = 2  # 2: the IMU's tilts at the frame time (array "imu_tilt_deg", absent without an IMU)
+READABLE_FORMATS = (0, 1, 2)
 
 
 def prepared_to_bytes(pf: PreparedFrame) -> bytes:
@@ -27,7 +27,9 @@ def prepared_to_bytes(pf: PreparedFrame) -> bytes:
         desc_stored = desc.astype(np.uint8)
     else:
         desc_stored = desc.astype(np.float32)
+    imu = {} if pf.imu_tilt_deg is None else {"imu_tilt_deg": np.asarray(pf.imu_tilt_deg, np.float64)}
     return npz_bytes(
+        **imu,
         format=np.array([PREPARED_FORMAT], np.int64),
         meta=np.array([pf.index, pf.seq], np.int64),
         scalars=np.array(
@@ -68,4 +70,5 @@ def prepared_from_bytes(data: bytes, what: str = "prepared frame") -> PreparedFr
         vein=z["vein"],
         vein_mask=z["vein_mask"],
         sharpness=sharpness,
+        imu_tilt_deg=z["imu_tilt_deg"] if "imu_tilt_deg" in z.files else None,
     )

@@ -15,12 +15,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli.client import VeinmosaicClient
+from cli.client import VeinmosaicClient, upload_scan_folder
 from cli.launcher import Service, free_port
 from services.core.inputs.scan import Scan
+from services.core.methods import method_options
+from services.core.pipeline import reconstruct
+from services.core.simulation.scenarios import simulate
 from services.jobs import queue
 from services.jobs.redis_backend import connect, read_embedded_url
 from services.store.scan_folder import frame_name, read_scan_folder, write_scan_folder
+from services.store.storage import SessionStore
 from tests.sim_cache import live_short, offline_best, simulated
 
 # Live and offline feed identical prepared frames in identical order to the same deterministic code, so the
@@ -101,3 +105,34 @@ def test_two_sessions_two_workers_out_of_order_equal_offline(tmp_path: Path) -> 
         live_xy = np.array([[row["x_mm"], row["y_mm"]] for row in path], float)
         assert [row["status"] for row in path] == [row.status for row in offline.rows]
         np.testing.assert_allclose(live_xy, offline.estimate_mm, atol=PATH_TOL_MM, rtol=0)
+
+
+@pytest.mark.slow
+def test_an_imu_scan_uploaded_as_a_device_would_equals_offline(tmp_path: Path) -> None:
+    # a hand-tilted patient with an IMU: the client sends the IMU's rows with each force batch, so every frame's
+    # IMU tilts are stored before the frame is prepared, and the live path equals the offline one
+    folder = tmp_path / "scan"
+    write_scan_folder(simulate("short", 3, tissue="stiffening", imu=True), folder)
+    (folder / "mask.png").unlink()
+    scan = read_scan_folder(folder)
+    offline = reconstruct(scan, method_options("best"))
+    key = f"k-{uuid.uuid4().hex}"
+    env = {"VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view"]}), "VEINMOSAIC_LOG_LEVEL": "WARNING"}
+    env["VEINMOSAIC_REDIS_PREFIX"] = f"vmtest{uuid.uuid4().hex[:8]}:"
+    service = Service(
+        tmp_path / "data", port=free_port(), workers=1, redis_url=os.environ.get("REDIS_URL"), extra_env=env
+    )
+    with service:
+        client = VeinmosaicClient(service.base_url, key)
+        sid = upload_scan_folder(client, folder, "imu")
+        assert client.wait_done(sid, timeout_s=180)["status"] == "done"
+        path = client.request("GET", f"/v1/sessions/{sid}/path").json()
+        tissue = client.request("GET", f"/v1/sessions/{sid}/mosaic.json").json()["tissue"]
+    store = SessionStore(tmp_path / "data")
+    imu_t, imu = store.merged_imu(sid)
+    np.testing.assert_array_equal(imu_t, scan.imu_t_s)
+    np.testing.assert_array_equal(imu, scan.imu_tilt_deg)
+    assert len(os.listdir(store.session_dir(sid) / "raw" / "imu")) > 10  # in many batches, not all at the end
+    assert tissue["kappa_source"] == offline.learned["kappa_source"] == "imu+images"
+    live_xy = np.array([[row["x_mm"], row["y_mm"]] for row in path], float)
+    np.testing.assert_allclose(live_xy, offline.estimate_mm, atol=PATH_TOL_MM, rtol=0)

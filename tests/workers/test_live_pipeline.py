@@ -4,6 +4,7 @@ lost frame that do not block the session, and reprocessing into a new version.""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import signal
 import time
@@ -14,7 +15,9 @@ import numpy as np
 import pytest
 
 from services.core.inputs.scan import Scan
-from services.core.pipeline import Reconstruction
+from services.core.methods import method_options
+from services.core.pipeline import Reconstruction, reconstruct
+from services.core.simulation.scenarios import simulate
 from services.jobs import queue
 from services.jobs import reprocess as jobs
 from services.store.results_store import ResultsStore
@@ -49,9 +52,10 @@ def path_arrays(rows: list[dict[str, Any]]) -> tuple[np.ndarray, list[str]]:
     return xyz, [r["status"] for r in rows]
 
 
-def assert_matches_offline(rows: list[dict[str, Any]], seed: int) -> None:
-    """Assert a live path equals the offline path within PATH_TOL_MM / YAW_TOL_DEG, statuses identical."""
-    off = offline_of(seed)
+def assert_matches_offline(rows: list[dict[str, Any]], seed: int, off: Reconstruction | None = None) -> None:
+    """Assert a live path equals the offline path (of scan_of(seed), or `off`) within PATH_TOL_MM / YAW_TOL_DEG,
+    statuses identical."""
+    off = off or offline_of(seed)
     live, statuses = path_arrays(rows)
     assert [r["seq"] for r in rows] == [r.seq for r in off.rows]
     assert statuses == [r.status for r in off.rows]
@@ -140,6 +144,24 @@ def _key(name: str) -> tuple[int, int, int]:
     level, rest = name.split("/")
     col, row = rest.split("_")
     return int(level), int(col), int(row)
+
+
+def test_an_imu_sent_with_the_forces_pins_kappa_live_as_offline(
+    backend: Backend, spawn_worker: Callable[..., Any]
+) -> None:
+    # a hand-tilted patient with an IMU (imu.csv; the shared scans have none): the view model's kappa gets the
+    # IMU's as its prior, live exactly as offline (each prepared frame carries the IMU's tilts at its time)
+    spawn_worker("a")
+    store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
+    scan = dataclasses.replace(simulate("short", 3, tissue="stiffening", imu=True), mask=None)
+    off = reconstruct(scan, method_options("best"))
+    assert off.learned["kappa_source"] == "imu+images"
+    sid = store_scan(store, scan, backend.r, backend.prefix)
+    wait_done(store, sid)
+    assert_matches_offline(results.read_path(sid, 1), 3, off)
+    tissue = results.read_mosaic_meta(sid, 1)["tissue"]
+    assert tissue["kappa_source"] == "imu+images" and tissue["kappa_imu_samples"] >= 10
+    assert tissue["kappa_n_per_mm"] == pytest.approx(off.learned["kappa_n_per_mm"], rel=1e-9)
 
 
 def test_two_sessions_concurrently(backend: Backend, spawn_worker: Callable[..., Any]) -> None:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.core.physics.force_model import interpolate_forces
+from services.core.physics.tissue_model import reference_tilts_at
 from services.core.pipeline import MASK_SAMPLE_FRAMES, window_setup_of
 from services.core.registration.frame_prep import prepare_frame
 from services.jobs import queue
@@ -93,6 +94,10 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
     if finished:
         force_t, forces = stored_forces(ctx.store, sid, rec.t_s)
     forces_n = interpolate_forces(force_t, forces, np.array([rec.t_s]))[0]
+    imu_t, imu = ctx.store.merged_imu(sid)  # an IMU's rows come with the force batches: wait for them as for forces
+    if not finished and len(imu_t) and imu_t[-1] < rec.t_s:
+        return Retry(ctx.config.not_ready_delay_s, "imu")
+    imu_tilt = reference_tilts_at(np.array([rec.t_s]), imu_t, imu)[0]
     # the header must state the calibrated size and a grayscale format before anything is decoded; a frame
     # that does not (BadImageError: its own content, not a fault) is dead-lettered and marked rejected
     calib = sv.calibration
@@ -104,6 +109,7 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
         seq=seq,
         t_s=rec.t_s,
         forces_n=forces_n,
+        imu_tilt_deg=imu_tilt,
         calib=calib,
         mask=mask,
         flat=flat,

@@ -33,6 +33,9 @@ MIN_AFFINE_EDGES = 8  # fewer edges with affine evidence: kappa stays at the pri
 CAUCHY_SCALE = 3.0  # robust scale, in units of an edge's sigma
 ANISOTROPY_PRIOR = 0.25  # the tissue's x/y compliance differs by a quarter either way at one sigma
 MIN_COS_TILT = 0.25  # a view tilted beyond 75 deg is no view: the stretch is capped there (4x)
+MIN_TILT_DEG = 0.25  # reference (IMU) samples tilted less than this on an axis carry no information on that axis
+MIN_HOOKE_SAMPLES = 10  # fewer tilted axis-samples: no kappa from reference tilts
+REFERENCE_LOG_SIGMA_FLOOR = 0.02  # a reference kappa is trusted to 2 % at best (the IMU's mounting, clocks)
 
 
 @dataclass(frozen=True)
@@ -43,6 +46,17 @@ class AffineEvidence:
     j: int
     affine: np.ndarray
     sigma: float
+
+
+@dataclass(frozen=True)
+class HookeFit:
+    """Least-squares kappa (N/mm) from reference tilts (an IMU's) against force differences (spec §2): samples
+    used, the force differences' residual RMS (N) and the 1-sigma of log kappa."""
+
+    hooke_n_per_mm: float
+    n_samples: int
+    residual_rms_n: float
+    log_sigma: float = math.inf
 
 
 @dataclass(frozen=True)
@@ -109,6 +123,47 @@ def tilt_angles_rad(forces_n: np.ndarray, kappa_n_per_mm: float, separation_mm: 
     return np.stack([theta_x, theta_y], axis=-1)
 
 
+def fit_kappa_to_tilts(tilt_deg: np.ndarray, forces_n: np.ndarray, separation_mm: Sequence[float]) -> HookeFit:
+    """Return the HookeFit of reference tilts (N, 2) deg against sensor forces (N, 4) N at the same times.
+
+    Spec §2: F2 - F1 = 2 kappa S_Y sin(theta_x), F4 - F3 = 2 kappa S_X sin(theta_y); kappa = sum(dF g) / sum(g^2)
+    over both axes, g = 2 S sin(theta), only axis-samples tilted >= MIN_TILT_DEG. Raises ValueError with fewer
+    than MIN_HOOKE_SAMPLES of them or a kappa that is not positive.
+    """
+    tilt = np.asarray(tilt_deg, np.float64).reshape(-1, 2)
+    f = np.asarray(forces_n, np.float64).reshape(-1, 4)
+    s_x, s_y = float(separation_mm[0]), float(separation_mm[1])
+    g = np.concatenate([2.0 * s_y * np.sin(np.radians(tilt[:, 0])), 2.0 * s_x * np.sin(np.radians(tilt[:, 1]))])
+    df = np.concatenate([f[:, 1] - f[:, 0], f[:, 3] - f[:, 2]])
+    tilted = np.concatenate([np.abs(tilt[:, 0]), np.abs(tilt[:, 1])]) >= MIN_TILT_DEG
+    g, df = g[tilted], df[tilted]
+    if len(g) < MIN_HOOKE_SAMPLES:
+        raise ValueError(
+            f"not enough tilt: {len(g)} IMU axis-samples tilted >= {MIN_TILT_DEG} deg (need {MIN_HOOKE_SAMPLES})"
+        )
+    kappa = float(np.sum(df * g) / np.sum(g * g))
+    if not kappa > 0.0:
+        raise ValueError(f"force differences do not follow the tilt (fitted kappa = {kappa:.3g} N/mm)")
+    residual_rms = float(np.sqrt(np.mean((df - kappa * g) ** 2)))
+    return HookeFit(kappa, len(g), residual_rms, residual_rms / math.sqrt(float(np.sum(g * g))) / kappa)
+
+
+def reference_tilts_at(t_s: np.ndarray, ref_t_s: np.ndarray | None, ref_deg: np.ndarray | None) -> np.ndarray:
+    """Return (N, 2) reference tilts (deg) interpolated at times t_s (s), NaN where the stream does not cover."""
+    t = np.asarray(t_s, np.float64).ravel()
+    out = np.full((len(t), 2), np.nan)
+    if ref_t_s is None or ref_deg is None or len(ref_t_s) == 0:
+        return out
+    rt = np.asarray(ref_t_s, np.float64).ravel()
+    rd = np.asarray(ref_deg, np.float64).reshape(len(rt), 2)
+    order = np.argsort(rt, kind="stable")
+    rt, rd = rt[order], rd[order]
+    inside = (t >= rt[0]) & (t <= rt[-1])
+    for axis in (0, 1):
+        out[inside, axis] = np.interp(t[inside], rt, rd[:, axis])
+    return out
+
+
 def foreshortening(forces_n: np.ndarray, kappa_n_per_mm: float, separation_mm: Sequence[float]) -> np.ndarray:
     """Return D (..., 2, 2): observed mm = D undeformed mm, a stretch 1/cos(tilt) along the tilt direction.
 
@@ -161,13 +216,15 @@ def fit_view_model(
     separation_mm: Sequence[float],
     kappa_prior_n_per_mm: float,
     compliance_per_n: float,
+    reference: HookeFit | None = None,
 ) -> ViewFit | None:
     """Return the MAP view model (kappa, anisotropy) that makes every match's corrected affine a similarity.
 
     Each edge's non-similarity residual counts with its sigma (evidence, with AFFINE_FLOOR added) under a
-    Cauchy loss; log kappa has a Gaussian prior of PRIOR_LOG_SIGMA about the calibration's kappa, the anisotropy
-    one of ANISOTROPY_PRIOR about 0. A coarse scan over log kappa, then a joint search; sigmas from the
-    curvature of the objective. None with fewer than MIN_AFFINE_EDGES edges.
+    Cauchy loss; log kappa has a Gaussian prior of PRIOR_LOG_SIGMA about the calibration's kappa, or, with a
+    reference (kappa fitted to an IMU's tilts), of its own sigma (at least REFERENCE_LOG_SIGMA_FLOOR) about it;
+    the anisotropy one of ANISOTROPY_PRIOR about 0. A coarse scan over log kappa, then a joint search; sigmas
+    from the curvature of the objective. None with fewer than MIN_AFFINE_EDGES edges.
     """
     usable = [e for e in evidence if e.i in forces_n and e.j in forces_n]
     if len(usable) < MIN_AFFINE_EDGES:
@@ -176,7 +233,8 @@ def fit_view_model(
     f_i = np.stack([forces_n[e.i] for e in usable])
     f_j = np.stack([forces_n[e.j] for e in usable])
     sigma = np.sqrt(np.array([e.sigma for e in usable]) ** 2 + AFFINE_FLOOR**2)
-    prior = math.log(kappa_prior_n_per_mm)
+    prior = math.log(reference.hooke_n_per_mm if reference is not None else kappa_prior_n_per_mm)
+    prior_sigma = max(reference.log_sigma, REFERENCE_LOG_SIGMA_FLOOR) if reference is not None else PRIOR_LOG_SIGMA
     sep = (float(separation_mm[0]), float(separation_mm[1]))
 
     def model(x: np.ndarray) -> ViewModel:
@@ -190,7 +248,7 @@ def fit_view_model(
     def objective(x: np.ndarray) -> float:
         r = residuals(x)
         data = float(np.sum(np.log1p((r / CAUCHY_SCALE) ** 2))) * CAUCHY_SCALE**2 / 2.0
-        return data + 0.5 * ((x[0] - prior) / PRIOR_LOG_SIGMA) ** 2 + 0.5 * (x[1] / ANISOTROPY_PRIOR) ** 2
+        return data + 0.5 * ((x[0] - prior) / prior_sigma) ** 2 + 0.5 * (x[1] / ANISOTROPY_PRIOR) ** 2
 
     lo, hi = (math.log(b) for b in KAPPA_BOUNDS_N_PER_MM)
     grid = np.linspace(lo, hi, 41)  # the objective can have a shoulder: a coarse scan, then a joint search

@@ -36,6 +36,7 @@ class PreparedFrame:
     vein: np.ndarray  # (h, w) uint8 vein map of the rectified frame (0 = skin) at options.vein_scale of (H, W)
     vein_mask: np.ndarray  # (h, w) uint8 0/255, where the vein map is valid (the window less a margin)
     sharpness: float  # variance of the Laplacian inside the window, grey levels^2
+    imu_tilt_deg: np.ndarray | None = None  # (2,) reference tilts (tilt_x, tilt_y) deg at the frame time, if an IMU
 
 
 def to_unit_float(raw: np.ndarray) -> np.ndarray:
@@ -100,8 +101,12 @@ def prepare_frame(
     mask: np.ndarray,
     flat: np.ndarray | None,
     options: MethodOptions,
+    imu_tilt_deg: np.ndarray | None = None,
 ) -> PreparedFrame:
-    """Return the prepared frame: photometry, undistort + rectify (spec §2 order), features in mm."""
+    """Return the prepared frame: photometry, undistort + rectify (spec §2 order), features in mm.
+
+    imu_tilt_deg: the IMU's (tilt_x, tilt_y) deg at the frame time (kept, not used here); None or NaN: no IMU.
+    """
     if raw.shape != (calib.image_size[1], calib.image_size[0]):
         raise ValueError(f"frame {seq}: size {raw.shape[::-1]} differs from calibration {calib.image_size}")
     state = load_state(forces_n, calib)
@@ -132,7 +137,16 @@ def prepare_frame(
         vein=vein.image,
         vein_mask=vein.mask,
         sharpness=sharpness,
+        imu_tilt_deg=_imu_or_none(imu_tilt_deg),
     )
+
+
+def _imu_or_none(imu_tilt_deg: np.ndarray | None) -> np.ndarray | None:
+    """Return the IMU's tilts as (2,) float64, or None when there are none (None or NaN: no sample around)."""
+    if imu_tilt_deg is None:
+        return None
+    tilt = np.asarray(imu_tilt_deg, np.float64).reshape(2)
+    return tilt if np.all(np.isfinite(tilt)) else None
 
 
 def _detect(image: np.ndarray, mask: np.ndarray, options: MethodOptions) -> Features:

@@ -15,7 +15,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.core.methods import MethodOptions
-from services.core.physics.tissue_model import AffineEvidence, ViewFit, corrected_relative, fit_view_model
+from services.core.physics.tissue_model import (
+    AffineEvidence,
+    HookeFit,
+    ViewFit,
+    corrected_relative,
+    fit_kappa_to_tilts,
+    fit_view_model,
+)
 from services.core.registration.direct_alignment import AlignmentImage, DirectFit, align, alignment_image, correlation
 from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
@@ -111,7 +118,9 @@ class Registrar:
     # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
     forces: dict[int, np.ndarray] = field(default_factory=dict)  # every frame seen: sensor forces F1..F4 (N)
+    imu_tilts: dict[int, np.ndarray] = field(default_factory=dict)  # frames with an IMU: its tilts (deg) then
     view_fit: ViewFit | None = None  # the probe's tilt and tissue anisotropy learned from the edges' affines
+    kappa_reference: HookeFit | None = None  # kappa fitted to the IMU's tilts (the view fit's prior), if any
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
     _views: dict[int, np.ndarray] = field(default_factory=dict)  # each frame's view D under the current fit
     # each edge (by its frames) corrected under the current fit, with the edge it was corrected from
@@ -203,6 +212,8 @@ class Registrar:
     def add(self, pf: PreparedFrame) -> FrameResult:
         """Register one prepared frame; return its status, pose and which earlier frames moved."""
         self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)  # its view, once the model is fitted
+        if pf.imu_tilt_deg is not None:
+            self.imu_tilts[pf.index] = np.asarray(pf.imu_tilt_deg, np.float64)
         blurred = self._is_blurred(pf)
         if not self.order:
             return self._accept(pf, IDENTITY, [], len(pf.features), blurred)
@@ -384,14 +395,35 @@ class Registrar:
         evidence = [
             AffineEvidence(e.i, e.j, e.view_affine, e.affine_sigma) for e in self.edges if e.view_affine is not None
         ]
+        self.kappa_reference = self._kappa_from_imu()
         fit = fit_view_model(
-            evidence, self.forces, self.separation_mm, self.kappa_prior_n_per_mm, self.compliance_per_n
+            evidence,
+            self.forces,
+            self.separation_mm,
+            self.kappa_prior_n_per_mm,
+            self.compliance_per_n,
+            reference=self.kappa_reference,
         )
         if fit is not None:
             self.view_fit = fit
             self._views = {}
             self._undeformed = {}
         return self.view_fit
+
+    def _kappa_from_imu(self) -> HookeFit | None:
+        """Return kappa fitted to the IMU's tilts of the frames seen (spec §2 calibration), or None (no IMU, or
+        too little tilt: the images alone decide)."""
+        if not self.imu_tilts:
+            return None
+        frames = sorted(self.imu_tilts)
+        try:
+            return fit_kappa_to_tilts(
+                np.stack([self.imu_tilts[i] for i in frames]),
+                np.stack([self.forces[i] for i in frames]),
+                self.separation_mm,
+            )
+        except ValueError:
+            return None
 
     def refine(self, final: bool = False) -> tuple[int, ...]:
         """Re-optimise placed poses on the pose graph; return the frames that moved (> MOVED_MM).

@@ -147,6 +147,7 @@ def simulate(
     imaging: ImagingVariant | str = "realistic",
     tissue: str | None = None,
     frames: int | None = None,
+    imu: bool = False,
 ) -> Scan:
     """Return a simulated Scan (frames in memory) of a scenario in SCENARIOS, deterministic for the seed.
 
@@ -161,6 +162,8 @@ def simulate(
     effective kappa (draw_hand_kappa), tilts up to HAND_TILT_DEG (a tilted view: 1/cos along the tilt) and the
     law's shape and anisotropy. reference_angles_deg: yaw relative to frame 0 and the true tilts, as a tracker.
     frames: the number of frames of an "exam" (default 2400: 4 minutes at 10 frames/s); other scenarios have theirs.
+    imu: give the scan an IMU stream of the true tilts (imu.csv; the "calib" scenario always has one): the
+    shared scans have none, so by default the tilt must come from the images.
     """
     if scenario not in ALL_SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(ALL_SCENARIOS)}")
@@ -215,7 +218,8 @@ def simulate(
     forces = true_forces + offsets + rng_stream.normal(0.0, FORCE_NOISE_N, true_forces.shape)
     imu_t = _stream_times(rng_stream, t_first, t_last, IMU_RATE_HZ)
     _, itx, ity = motion.load_at(imu_t)
-    imu = np.rad2deg(np.stack([itx, ity], axis=1)) + rng_stream.normal(0.0, IMU_NOISE_DEG, (len(imu_t), 2))
+    imu_deg = np.rad2deg(np.stack([itx, ity], axis=1)) + rng_stream.normal(0.0, IMU_NOISE_DEG, (len(imu_t), 2))
+    with_imu = imu or scenario == "calib"
 
     xy, yaw = frame_poses(motion)
     truth = {
@@ -243,8 +247,8 @@ def simulate(
         forces_n=forces,
         frame_loader=in_memory_loader(frames),
         mask=geometry.mask.copy(),
-        imu_t_s=imu_t,
-        imu_tilt_deg=imu,
+        imu_t_s=imu_t if with_imu else None,
+        imu_tilt_deg=imu_deg if with_imu else None,
         reference_mm=xy.copy(),
         reference_angles_deg=np.stack([yaw, np.rad2deg(tx), np.rad2deg(ty)], axis=1),
         truth=truth,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -67,6 +68,8 @@ def _assert_same(a: PreparedFrame, b: PreparedFrame) -> None:
         (a.features.sizes_px, b.features.sizes_px),
     ]:
         assert x.dtype == y.dtype and np.array_equal(x, y)
+    assert (a.imu_tilt_deg is None) == (b.imu_tilt_deg is None)
+    assert a.imu_tilt_deg is None or np.array_equal(a.imu_tilt_deg, b.imu_tilt_deg)
 
 
 def test_prepared_roundtrip_is_lossless() -> None:
@@ -79,6 +82,10 @@ def test_prepared_roundtrip_is_lossless() -> None:
     assert len(prepared_to_bytes(_prepared(4, fractional))) > len(data)  # uint8 storage is the smaller one
     empty = _prepared(5, np.zeros((0, 128), np.float32))
     _assert_same(empty, prepared_from_bytes(prepared_to_bytes(empty)))
+    with_imu = dataclasses.replace(pf, imu_tilt_deg=np.array([1.0 / 3.0, -2.5]))  # an IMU's tilts at the frame
+    back = prepared_from_bytes(prepared_to_bytes(with_imu))
+    _assert_same(with_imu, back)
+    assert back.imu_tilt_deg is not None and prepared_from_bytes(data).imu_tilt_deg is None
 
 
 def test_versions_and_current(stores: tuple[ResultsStore, str]) -> None:

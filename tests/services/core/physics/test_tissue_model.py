@@ -16,8 +16,10 @@ from services.core.physics.tissue_model import (
     AffineEvidence,
     ViewModel,
     corrected_relative,
+    fit_kappa_to_tilts,
     fit_view_model,
     foreshortening,
+    reference_tilts_at,
     tilt_angles_rad,
 )
 from services.core.similarity import Similarity
@@ -95,3 +97,25 @@ def test_corrected_relative_undoes_both_views() -> None:
     observed = np.hstack([d_i @ m[:, :2] @ np.linalg.inv(d_j), d_i @ m[:, 2:]])
     back = corrected_relative(Similarity(1.0, 0j), observed, d_i, d_j)
     assert abs(back.a - rel.a) < 1e-12 and abs(back.t - rel.t) < 1e-12
+
+
+def test_reference_tilts_interpolated_inside_the_stream_only() -> None:
+    t = np.array([0.0, 1.0, 2.0])
+    tilts = np.array([[0.0, 2.0], [1.0, 4.0], [3.0, 6.0]])
+    got = reference_tilts_at(np.array([-0.1, 0.5, 1.5, 2.0, 2.1]), t[::-1], tilts[::-1])  # any order in
+    np.testing.assert_allclose(got[1:4], [[0.5, 3.0], [2.0, 5.0], [3.0, 6.0]], atol=1e-12)
+    assert np.all(np.isnan(got[[0, 4]]))  # before and after the stream: no IMU there
+    assert np.all(np.isnan(reference_tilts_at(np.array([0.5]), None, None)))
+
+
+def test_kappa_from_reference_tilts_with_its_uncertainty() -> None:
+    # spec §2 run backwards at kappa 0.15 N/mm with 0.05 N of force noise: the fit is within its own 3 sigma
+    rng = np.random.default_rng(3)
+    theta = np.radians(rng.uniform(-8, 8, (200, 2)))
+    dx, dy = 2 * 0.15 * 53.0 * np.sin(theta[:, 0]), 2 * 0.15 * 53.0 * np.sin(theta[:, 1])
+    forces = np.stack([5 - dx / 2, 5 + dx / 2, 5 - dy / 2, 5 + dy / 2], axis=1) + rng.normal(0, 0.05, (200, 4))
+    fit = fit_kappa_to_tilts(np.degrees(theta), forces, (53.0, 53.0))
+    assert 0 < fit.log_sigma < 0.01
+    assert abs(math.log(fit.hooke_n_per_mm / 0.15)) < 3 * fit.log_sigma
+    with pytest.raises(ValueError, match="not enough tilt"):
+        fit_kappa_to_tilts(np.zeros((200, 2)), forces, (53.0, 53.0))
