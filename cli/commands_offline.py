@@ -166,7 +166,11 @@ def add_commands(command: Callable[[str, str], argparse.ArgumentParser]) -> None
     )
     p.add_argument("--seed", type=int, default=1, help="random seed (same seed, same scan)")
     p.add_argument("--frames", type=int, default=None, help="an exam's frames (default 2400: 4 min at 10 frames/s)")
-    p.add_argument("--imu", action="store_true", help="write imu.csv, the probe's IMU tilts (calib always has one)")
+    p.add_argument(
+        "--imu",
+        action="store_true",
+        help="write imu.csv, the probe's IMU tilts (default: none, as on the shared scans; calib always has one)",
+    )
     p.add_argument(
         "--tissue",
         default=None,

@@ -9,7 +9,19 @@ import logging
 from typing import Any, TextIO
 
 request_id_var: contextvars.ContextVar[str] = contextvars.ContextVar("request_id", default="-")
-LOG_FIELDS = ("session", "seq", "bytes", "frames", "method", "route", "status", "duration_ms", "worker")
+LOG_FIELDS = (
+    "session",
+    "seq",
+    "bytes",
+    "frames",
+    "method",
+    "route",
+    "status",
+    "duration_ms",
+    "worker",
+    "finish_s",  # a session's final refinement and restitch (s), in its "session done" line
+    "final_flush_s",  # and its final flush: every tile durably, the whole images (s)
+)
 
 
 class RequestIdFilter(logging.Filter):

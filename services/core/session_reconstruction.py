@@ -324,7 +324,8 @@ class SessionReconstruction:
             doc["gauge"] = self.compliance.gauge
             doc["compliance_residual_rms"] = self.compliance.residual_rms
             doc.update(self.compliance.law_dict())
-        return doc
+        # strict JSON (mosaic.json, report.json): an unbounded range or an unfitted value is null, never inf or NaN
+        return {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in doc.items()}
 
     def _tilts_deg(self, kept: Sequence[KeptFrame]) -> np.ndarray:
         """Return (N, 2) frames' (tilt_x, tilt_y) in degrees: spec §2 with the fitted kappa, else the calibration's."""

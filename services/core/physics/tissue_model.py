@@ -35,6 +35,7 @@ ANISOTROPY_PRIOR = 0.25  # the tissue's x/y compliance differs by a quarter eith
 MIN_COS_TILT = 0.25  # a view tilted beyond 75 deg is no view: the stretch is capped there (4x)
 MIN_TILT_DEG = 0.25  # reference (IMU) samples tilted less than this on an axis carry no information on that axis
 MIN_HOOKE_SAMPLES = 10  # fewer tilted axis-samples: no kappa from reference tilts
+MAX_LOG_SIGMA = 30.0  # a kappa range wider than e^30 either way is no range: reported open (None)
 REFERENCE_LOG_SIGMA_FLOOR = 0.02  # a reference kappa is trusted to 2 % at best (the IMU's mounting, clocks)
 
 
@@ -99,19 +100,23 @@ class ViewFit:
         """Return the fitted effective kappa (N/mm)."""
         return self.model.kappa_n_per_mm
 
-    def to_dict(self) -> dict[str, float | int]:
-        """Return the fit as JSON-able numbers (kappa N/mm with its 68 % range, anisotropy, residuals)."""
+    def to_dict(self) -> dict[str, float | int | None]:
+        """Return the fit as JSON-able numbers (kappa N/mm with its 68 % range, anisotropy, residuals); None where a
+        bound is unbounded (a scan without tilt leaves kappa free: its range is open above)."""
         k = self.model.kappa_n_per_mm
-        return {
+        doc: dict[str, float | int | None] = {
             "kappa_n_per_mm": k,
-            "kappa_low_n_per_mm": k * math.exp(-self.log_kappa_sigma),
-            "kappa_high_n_per_mm": k * math.exp(self.log_kappa_sigma),
+            "kappa_low_n_per_mm": k * math.exp(-self.log_kappa_sigma) if self.log_kappa_sigma <= MAX_LOG_SIGMA else 0.0,
+            "kappa_high_n_per_mm": k * math.exp(self.log_kappa_sigma)
+            if self.log_kappa_sigma <= MAX_LOG_SIGMA
+            else None,
             "anisotropy": self.model.anisotropy,
             "anisotropy_sigma": self.anisotropy_sigma,
             "edges": self.n_edges,
             "affine_residual_rms": self.residual_rms,
             "affine_residual_rms_nominal": self.residual_rms_nominal,
         }
+        return {key: v if not isinstance(v, float) or math.isfinite(v) else None for key, v in doc.items()}
 
 
 def tilt_angles_rad(forces_n: np.ndarray, kappa_n_per_mm: float, separation_mm: Sequence[float]) -> np.ndarray:

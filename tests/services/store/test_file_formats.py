@@ -30,11 +30,12 @@ def _with_format(data: bytes, fmt: int | None) -> bytes:
 def test_prepared_frames_carry_their_format() -> None:
     pf = _prepared(7, np.ones((3, 128), np.float32))
     data = prepared_to_bytes(pf)
-    assert int(np.load(io.BytesIO(data))["format"][0]) == PREPARED_FORMAT == 1
+    assert int(np.load(io.BytesIO(data))["format"][0]) == PREPARED_FORMAT == 2
     _assert_same(pf, prepared_from_bytes(data))
     _assert_same(pf, prepared_from_bytes(_with_format(data, None)))  # written before formats: format 0, read
-    with pytest.raises(UnknownFormatError, match=r"prepared frame 7: format 2 is unknown .*reads formats 0, 1"):
-        prepared_from_bytes(_with_format(data, 2), "prepared frame 7")
+    _assert_same(pf, prepared_from_bytes(_with_format(data, 1)))  # format 1: the same layout without an IMU
+    with pytest.raises(UnknownFormatError, match=r"prepared frame 7: format 3 is unknown .*reads formats 0, 1, 2"):
+        prepared_from_bytes(_with_format(data, 3), "prepared frame 7")
 
 
 def test_state_json_carries_its_format() -> None:

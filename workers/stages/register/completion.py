@@ -8,6 +8,7 @@ gets its rows (all rejected) and an empty mosaic. Either way the live session's 
 from __future__ import annotations
 
 import logging
+import time
 
 from services.core.mosaic.deepzoom import DziGeometry
 from services.core.outputs.documents import empty_image_meta, empty_revisions
@@ -37,14 +38,17 @@ class Completion:
         """Final refinement and compliance fit, final flush and render, status done."""
         self.leases.renew_if_due(held, force=True)
         self.leases.check_fence(held)
+        started = time.monotonic()
         held.pending.touched |= held.recon.finish()
+        finished = time.monotonic()
 
         def mark_done() -> None:  # after every file is written, before the final event: no client sees it early
             if held.version == LIVE_VERSION and session_status != "failed":
                 self.ctx.store.set_status(held.sid, "done")
 
         self.flusher.flush(held, final=True, before_event=mark_done)
-        log.info("session done", extra={"session": held.sid, "frames": len(held.recon.results)})
+        timings = {"finish_s": round(finished - started, 2), "final_flush_s": round(time.monotonic() - finished, 2)}
+        log.info("session done", extra={"session": held.sid, "frames": len(held.recon.results), **timings})
 
     def finish_empty(self, lease: Lease, sv: SessionVersion, session_status: str, rejected: list[int]) -> None:
         """A finished session with no usable frame (none, or all poison): rows rejected, no mosaic, status done."""

@@ -7,6 +7,7 @@ within 0.03 (a few of its fitted sigmas), and at zero noise both to 0.5 %.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -14,6 +15,7 @@ import pytest
 
 from services.core.physics.tissue_model import (
     AffineEvidence,
+    ViewFit,
     ViewModel,
     corrected_relative,
     fit_kappa_to_tilts,
@@ -119,3 +121,14 @@ def test_kappa_from_reference_tilts_with_its_uncertainty() -> None:
     assert abs(math.log(fit.hooke_n_per_mm / 0.15)) < 3 * fit.log_sigma
     with pytest.raises(ValueError, match="not enough tilt"):
         fit_kappa_to_tilts(np.zeros((200, 2)), forces, (53.0, 53.0))
+
+
+def test_an_unbounded_kappa_range_is_reported_open_not_infinite() -> None:
+    # a scan without tilt leaves kappa free: its sigma is infinite, and mosaic.json (strict JSON) must still be
+    # written (a live session's final flush failed on an infinite bound before)
+    fit = ViewFit(ViewModel(18.0), math.inf, 0.01, 40, 1e-3, 1e-3)
+    doc = fit.to_dict()
+    assert doc["kappa_high_n_per_mm"] is None and doc["kappa_low_n_per_mm"] == 0.0
+    json.dumps(doc, allow_nan=False)
+    bounded = ViewFit(ViewModel(0.15), 0.1, 0.01, 40, 1e-3, 1e-3).to_dict()
+    assert bounded["kappa_low_n_per_mm"] < 0.15 < bounded["kappa_high_n_per_mm"]

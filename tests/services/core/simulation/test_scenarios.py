@@ -29,8 +29,9 @@ SEED = 11
 
 @cache
 def sim(scenario: str, seed: int = SEED, imaging: str = "realistic") -> Scan:
-    """One simulation per (scenario, seed, imaging) for the whole module (the raster takes a few seconds)."""
-    return simulate(scenario, seed, imaging)
+    """One simulation per (scenario, seed, imaging) for the whole module (the raster takes a few seconds), with its
+    IMU stream (simulate(..., imu=True))."""
+    return simulate(scenario, seed, imaging, imu=True)
 
 
 def test_unknown_scenario_is_rejected() -> None:
@@ -38,8 +39,18 @@ def test_unknown_scenario_is_rejected() -> None:
         simulate("nope", 1)
 
 
+def test_an_imu_stream_only_when_asked_or_for_the_calibration_scan() -> None:
+    # the shared scans have no imu.csv: by default the tilt must come from the images; the same motion either way
+    plain, with_imu = simulate("short", 5), sim("short", 5)
+    assert plain.imu_t_s is None and plain.imu_tilt_deg is None
+    assert with_imu.imu_t_s is not None and len(with_imu.imu_t_s) > len(plain)
+    np.testing.assert_array_equal(plain.forces_n, with_imu.forces_n)
+    np.testing.assert_array_equal(plain.reference_mm, with_imu.reference_mm)
+    assert simulate("calib", 5).imu_t_s is not None
+
+
 def test_same_seed_gives_identical_scan_and_other_seed_differs() -> None:
-    a, b, c = simulate("short", 5), simulate("short", 5), simulate("short", 6)
+    a, b, c = simulate("short", 5, imu=True), simulate("short", 5, imu=True), simulate("short", 6, imu=True)
     for name in ("frame_t_s", "force_t_s", "forces_n", "imu_t_s", "imu_tilt_deg", "reference_mm", "mask"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     assert a.truth == b.truth
