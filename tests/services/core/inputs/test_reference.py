@@ -25,7 +25,7 @@ def test_tracker_header_reads_yaw_and_tilts() -> None:
 def test_shared_scan_reference_parses() -> None:
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[3].parent / "shared" / "scans" / "short_veins_21" / "reference.csv"
+    path = Path(__file__).resolve().parents[5] / "shared" / "scans" / "short_veins_21" / "reference.csv"  # ../shared
     if not path.exists():
         pytest.skip("the shared reference scans are not next to this checkout")
     ref = parse_reference_csv(path.read_text(), range(40))
