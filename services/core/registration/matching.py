@@ -171,11 +171,12 @@ def estimate_similarity(
     transform = Similarity(complex(M[0, 0], M[1, 0]), complex(M[0, 2], M[1, 2]))
     resid = transform.apply(src[inl]) - dst[inl]
     rms = float(np.sqrt(np.mean(np.sum(resid**2, axis=1))))
-    view_affine, chosen = affine_inliers(src, dst, inl, threshold)
+    affine = fit_affine(src[inl], dst[inl])
+    view_affine, chosen = affine_inliers(src, dst, affine, inl, threshold)
     spread = float(np.sqrt(np.mean(np.sum((src[chosen] - src[chosen].mean(axis=0)) ** 2, axis=1))))
     a_rms = _affine_rms(view_affine, src[chosen], dst[chosen]) if view_affine is not None else rms
     affine_sigma = a_rms / (math.sqrt(int(chosen.sum())) * spread) if spread > 0 else math.inf
-    return SimilarityFit(transform, n, rms, inl, fit_affine(src[inl], dst[inl]), affine_sigma, view_affine)
+    return SimilarityFit(transform, n, rms, inl, affine, affine_sigma, view_affine)
 
 
 def _affine_residuals(affine: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -187,16 +188,20 @@ def _affine_rms(affine: np.ndarray, src: np.ndarray, dst: np.ndarray) -> float:
 
 
 def affine_inliers(
-    src: np.ndarray, dst: np.ndarray, start: np.ndarray, threshold: float, rounds: int = 4
+    src: np.ndarray,
+    dst: np.ndarray,
+    affine: np.ndarray | None,
+    start: np.ndarray,
+    threshold: float,
+    rounds: int = 4,
 ) -> tuple[np.ndarray | None, np.ndarray]:
-    """Return (the least-squares affine, its inliers) starting from a similarity's inliers, re-selected by the
-    affine's own residuals until they settle.
+    """Return (the least-squares affine, its inliers), starting from `affine` fitted on a similarity's inliers
+    `start`, re-selected by the affine's own residuals until they settle.
 
     A similarity's inliers are biased toward pairs whose noise hides the non-similar part (a stretch of 1 % moves
     points 20 mm from the centre by 0.2 mm, a few pixels): the affine fitted on them alone understates it.
     """
     chosen = start
-    affine = fit_affine(src[chosen], dst[chosen])
     for _ in range(rounds):
         if affine is None:
             break
