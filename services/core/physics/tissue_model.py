@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
+from services.core.physics.force_model import interpolate_forces
 from services.core.similarity import Similarity
 
 KAPPA_BOUNDS_N_PER_MM = (0.01, 100.0)  # the search range: tilts of tens of degrees down to none
@@ -101,10 +102,11 @@ class ViewFit:
         return self.model.kappa_n_per_mm
 
     def to_dict(self) -> dict[str, float | int | None]:
-        """Return the fit as JSON-able numbers (kappa N/mm with its 68 % range, anisotropy, residuals); None where a
-        bound is unbounded (a scan without tilt leaves kappa free: its range is open above)."""
+        """Return the fit's numbers (kappa N/mm with its 68 % range, anisotropy, residuals); the upper bound None
+        where the range is open (a scan without tilt leaves kappa free). SessionReconstruction.learned_model makes
+        the whole "tissue" document strict JSON."""
         k = self.model.kappa_n_per_mm
-        doc: dict[str, float | int | None] = {
+        return {
             "kappa_n_per_mm": k,
             "kappa_low_n_per_mm": k * math.exp(-self.log_kappa_sigma) if self.log_kappa_sigma <= MAX_LOG_SIGMA else 0.0,
             "kappa_high_n_per_mm": k * math.exp(self.log_kappa_sigma)
@@ -116,7 +118,6 @@ class ViewFit:
             "affine_residual_rms": self.residual_rms,
             "affine_residual_rms_nominal": self.residual_rms_nominal,
         }
-        return {key: v if not isinstance(v, float) or math.isfinite(v) else None for key, v in doc.items()}
 
 
 def tilt_angles_rad(forces_n: np.ndarray, kappa_n_per_mm: float, separation_mm: Sequence[float]) -> np.ndarray:
@@ -156,16 +157,10 @@ def fit_kappa_to_tilts(tilt_deg: np.ndarray, forces_n: np.ndarray, separation_mm
 def reference_tilts_at(t_s: np.ndarray, ref_t_s: np.ndarray | None, ref_deg: np.ndarray | None) -> np.ndarray:
     """Return (N, 2) reference tilts (deg) interpolated at times t_s (s), NaN where the stream does not cover."""
     t = np.asarray(t_s, np.float64).ravel()
-    out = np.full((len(t), 2), np.nan)
     if ref_t_s is None or ref_deg is None or len(ref_t_s) == 0:
-        return out
-    rt = np.asarray(ref_t_s, np.float64).ravel()
-    rd = np.asarray(ref_deg, np.float64).reshape(len(rt), 2)
-    order = np.argsort(rt, kind="stable")
-    rt, rd = rt[order], rd[order]
-    inside = (t >= rt[0]) & (t <= rt[-1])
-    for axis in (0, 1):
-        out[inside, axis] = np.interp(t[inside], rt, rd[:, axis])
+        return np.full((len(t), 2), np.nan)
+    out = interpolate_forces(ref_t_s, np.asarray(ref_deg, np.float64).reshape(len(ref_t_s), 2), t)  # any stream
+    out[(t < np.min(ref_t_s)) | (t > np.max(ref_t_s))] = np.nan  # interpolate_forces holds the ends: no IMU there
     return out
 
 

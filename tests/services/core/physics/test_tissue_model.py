@@ -126,9 +126,9 @@ def test_kappa_from_reference_tilts_with_its_uncertainty() -> None:
 def test_an_unbounded_kappa_range_is_reported_open_not_infinite() -> None:
     # a scan without tilt leaves kappa free: its sigma is infinite, and mosaic.json (strict JSON) must still be
     # written (a live session's final flush failed on an infinite bound before)
-    fit = ViewFit(ViewModel(18.0), math.inf, 0.01, 40, 1e-3, 1e-3)
-    doc = fit.to_dict()
-    assert doc["kappa_high_n_per_mm"] is None and doc["kappa_low_n_per_mm"] == 0.0
-    json.dumps(doc, allow_nan=False)
+    for sigma in (math.inf, 800.0):  # e^800 overflows a float
+        doc = ViewFit(ViewModel(18.0), sigma, 0.01, 40, 1e-3, 1e-3).to_dict()
+        assert doc["kappa_high_n_per_mm"] is None and doc["kappa_low_n_per_mm"] == 0.0
+        json.dumps(doc, allow_nan=False)
     bounded = ViewFit(ViewModel(0.15), 0.1, 0.01, 40, 1e-3, 1e-3).to_dict()
     assert bounded["kappa_low_n_per_mm"] < 0.15 < bounded["kappa_high_n_per_mm"]
