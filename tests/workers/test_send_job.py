@@ -66,6 +66,17 @@ def served(orthanc: Orthanc, tmp_path_factory: pytest.TempPathFactory) -> Iterat
         client.close()
 
 
+def wait_for_study(orthanc: Orthanc, accession: str, series: int, timeout_s: float) -> dict:
+    """Return Orthanc's study of this accession once it holds `series` series (it shows from its first object on)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        found = orthanc.find("Study", AccessionNumber=accession)
+        if len(found) == 1 and len(found[0]["Series"]) >= series:
+            return found[0]
+        assert time.monotonic() < deadline, f"the auto-send never reached Orthanc in full: {len(found)} studies"
+        time.sleep(0.5)
+
+
 @pytest.mark.slow
 def test_a_session_reaches_orthanc_by_both_protocols_filed_and_rendered(
     served: tuple[Service, VeinmosaicClient], orthanc: Orthanc, tmp_path: Path
@@ -75,11 +86,7 @@ def test_a_session_reaches_orthanc_by_both_protocols_filed_and_rendered(
     write_scan_folder(simulated("short", 1), folder)
     sid = upload_scan_folder(client, folder, "send test", study=STUDY)  # finishing it queued the auto-send
     assert client.wait_done(sid, timeout_s=240)["status"] == "done"
-    deadline = time.monotonic() + 120
-    while not (found := orthanc.find("Study", AccessionNumber=STUDY["accession_number"])):
-        assert time.monotonic() < deadline, "the auto-send never reached Orthanc"
-        time.sleep(0.5)
-    (study,) = found
+    study = wait_for_study(orthanc, STUDY["accession_number"], OBJECTS, timeout_s=120)
     assert study["PatientMainDicomTags"]["PatientID"] == STUDY["patient_id"]
     assert study["PatientMainDicomTags"]["PatientName"] == STUDY["patient_name"]
     assert len(study["Series"]) == OBJECTS
