@@ -38,6 +38,8 @@ class WorkerSettings(BaseModel):
     block_ms: int = Field(default=500, ge=0)  # XREADGROUP BLOCK when holding no session
     held_block_ms: int = Field(default=100, ge=0)  # ... when holding sessions (they are polled between reads)
     flush_every_s: float = Field(default=0.5, ge=0)  # path/tiles/mosaic.json/event at most this often
+    behind_flush_every_s: float = Field(default=2.0, ge=0)  # ... while a live session is behind its uploads:
+    behind_lag_s: float = Field(default=5.0, ge=0)  # its newest published frame waited longer than this since upload
     image_every_s: float = Field(default=2.0, ge=0)  # whole mosaic.png/force.png at most this often (and at the end)
     max_deliveries: int = Field(default=3, ge=1)  # attempts before an entry goes to the dead-letter stream
     linger_s: float = Field(default=30.0, ge=0)  # release a session's lease after this long without progress

@@ -120,6 +120,9 @@ class SessionReconstruction:
     recent: dict[int, FrameLayers] = field(default_factory=dict)  # paste planes of the newest frames (live)
     stale: dict[int, None] = field(default_factory=dict)  # moved frames not re-pasted yet, oldest first (live)
     heartbeat: Callable[[], None] = field(default=lambda: None, repr=False)  # called between long steps
+    # where a placed frame's rectified image and mask are read back by index (a live worker: its prepared file,
+    # so a long examination does not hold every frame's pixels); None keeps them here, as PNG
+    pixels: Callable[[int], tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         self.registrar = Registrar(
@@ -139,7 +142,7 @@ class SessionReconstruction:
         result = self.registrar.add(pf)
         self.heartbeat()
         self.results[pf.index] = result
-        kept = keep_frame(pf, pasteable=result.status == STATUS_OK and not result.blurred)
+        kept = keep_frame(pf, result.status == STATUS_OK and not result.blurred, keep_pixels=self.pixels is None)
         self.frames[pf.index] = kept
         touched: set[tuple[int, int]] = set()
         if self.live:
@@ -203,10 +206,16 @@ class SessionReconstruction:
         """Return a frame's paste planes: remembered for the newest frames, else rebuilt from what was kept."""
         layers = self.recent.get(index)
         if layers is None:
-            kept = self.frames[index]
-            layers = self._build_layers(kept.image(), kept.mask(), kept)
+            layers = self._build_layers(*self._pixels(index), self.frames[index])
             self._remember(index, layers)
         return layers
+
+    def _pixels(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return a pasted frame's rectified image and window mask: kept here, or read back through `pixels`."""
+        kept = self.frames[index]
+        if kept.has_pixels or self.pixels is None:
+            return kept.image(), kept.mask()
+        return self.pixels(index)
 
     def _remember(self, index: int, layers: FrameLayers) -> None:
         """Keep the planes of the RECENT_LAYERS newest frames: new frames and most re-pastes after a refinement."""
@@ -292,8 +301,7 @@ class SessionReconstruction:
 
         def build(i: int) -> FrameLayers:
             layers = self.recent.get(i)
-            kept = self.frames[i]
-            return layers if layers is not None else self._build_layers(kept.image(), kept.mask(), kept)
+            return layers if layers is not None else self._build_layers(*self._pixels(i), self.frames[i])
 
         return in_order_ahead(build, indices, ahead=RESTITCH_AHEAD)
 

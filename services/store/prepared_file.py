@@ -12,7 +12,7 @@ import numpy as np
 from services.core.physics.force_model import LoadState
 from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
-from services.store.file_formats import check_format, npz_bytes
+from services.store.file_formats import PREPARED_STORED, check_format, npz_bytes
 
 PREPARED_FORMAT = 2  # 2: the IMU's tilts at the frame time (array "imu_tilt_deg", absent without an IMU)
 READABLE_FORMATS = (0, 1, 2)
@@ -29,6 +29,7 @@ def prepared_to_bytes(pf: PreparedFrame) -> bytes:
         desc_stored = desc.astype(np.float32)
     imu = {} if pf.imu_tilt_deg is None else {"imu_tilt_deg": np.asarray(pf.imu_tilt_deg, np.float64)}
     return npz_bytes(
+        PREPARED_STORED,
         **imu,
         format=np.array([PREPARED_FORMAT], np.int64),
         meta=np.array([pf.index, pf.seq], np.int64),
@@ -54,8 +55,10 @@ def prepared_from_bytes(data: bytes, what: str = "prepared frame") -> PreparedFr
     check_format(what, int(z["format"][0]) if "format" in z.files else 0, READABLE_FORMATS)
     index, seq = (int(v) for v in z["meta"])
     t_s, fz, tx, ty, stretch, sharpness = (float(v) for v in z["scalars"])
-    desc = z["descriptors"]
-    desc = desc.astype(np.float32).reshape(-1, int(z["desc_width"][0]))
+    # whole 0..255 descriptors stay uint8, as features.detect makes them: a live session keeps every frame's
+    # features, and float32 would hold 4x the memory for the same values
+    desc = z["descriptors"].reshape(-1, int(z["desc_width"][0]))
+    desc = desc.astype(np.float32) if bool(z["desc_float"][0]) else desc.astype(np.uint8)
     features = Features(z["points"].reshape(-1, 2), desc, z["sizes_px"])
     return PreparedFrame(
         index=index,
@@ -72,3 +75,11 @@ def prepared_from_bytes(data: bytes, what: str = "prepared frame") -> PreparedFr
         sharpness=sharpness,
         imu_tilt_deg=z["imu_tilt_deg"] if "imu_tilt_deg" in z.files else None,
     )
+
+
+def prepared_pixels_from_bytes(data: bytes, what: str = "prepared frame") -> tuple[np.ndarray, np.ndarray]:
+    """Return only the rectified image and window mask (H, W) uint8 of a `prepared_to_bytes` file (the rest is
+    not decompressed)."""
+    z = np.load(io.BytesIO(data), allow_pickle=False)
+    check_format(what, int(z["format"][0]) if "format" in z.files else 0, READABLE_FORMATS)
+    return z["image"], z["mask"]

@@ -40,7 +40,7 @@ from services.core.registration.frame_prep import PreparedFrame
 from services.core.session_reconstruction import PathRow, path_rows_json
 from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, replace_bytes, write_once
 from services.store.file_formats import npz_bytes
-from services.store.prepared_file import prepared_from_bytes, prepared_to_bytes
+from services.store.prepared_file import prepared_from_bytes, prepared_pixels_from_bytes, prepared_to_bytes
 from services.store.version_state import VersionState
 
 IMAGE_NAMES = ("mosaic.png", "force.png", "coverage.png", "paths.png", "errors.png", "layers.npz")
@@ -224,6 +224,11 @@ class ResultsStore:
         except FileNotFoundError:
             return None
         return prepared_from_bytes(data, f"prepared frame {int(seq)} of session {sid} version {int(v)}")
+
+    def read_prepared_pixels(self, sid: str, v: int, seq: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return a prepared frame's rectified image and window mask (uint8); FileNotFoundError if not prepared."""
+        data = self.prepared_path(sid, v, seq).read_bytes()
+        return prepared_pixels_from_bytes(data, f"prepared frame {int(seq)} of session {sid} version {int(v)}")
 
     def handled_seqs(self, sid: str, v: int) -> set[int]:
         """Return the seqs of version v's prepared or poison frames (from the file names only: cheap)."""

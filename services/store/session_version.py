@@ -110,6 +110,10 @@ class SessionVersion:
         """Return this version's prepared frame `seq`, None when it is not prepared (yet)."""
         return self.results.read_prepared(self.sid, self.v, seq)
 
+    def prepared_pixels(self, seq: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return this version's prepared frame `seq`'s rectified image and window mask (it must be prepared)."""
+        return self.results.read_prepared_pixels(self.sid, self.v, seq)
+
     def is_poison(self, seq: int) -> bool:
         """Return True if frame `seq` was marked poison in this version (it is registered as rejected)."""
         return self.results.is_poison(self.sid, self.v, seq)

@@ -1,10 +1,11 @@
-"""When a flush writes the whole mosaic images (workers/stages/register/flush.py: images_due)."""
+"""When a flush happens and when it writes the whole mosaic images (workers/stages/register/flush.py: flush_every_s,
+images_due)."""
 
 from __future__ import annotations
 
 import pytest
 
-from workers.stages.register.flush import images_due
+from workers.stages.register.flush import flush_every_s, images_due
 
 
 @pytest.mark.parametrize(
@@ -21,3 +22,19 @@ def test_whole_images_wait_until_the_session_has_caught_up(
     final: bool, written: bool, caught_up: bool, since_s: float, due: bool
 ) -> None:
     assert images_due(final, written, caught_up, since_s, every_s=2.0) is due
+
+
+@pytest.mark.parametrize(
+    ("caught_up", "lags_s", "every"),
+    [
+        (True, [9.0, 8.0], 0.5),  # caught up: the usual cadence, however late the frames it just placed
+        (False, [1.2, 0.8], 0.5),  # a frame or two waiting for preparation, as one probe often has: not behind
+        (False, [9.0, 6.0], 2.0),  # even its newest frame waited over behind_lag_s: behind, flush less often
+        (False, [9.0, 4.0], 0.5),  # the newest one is within behind_lag_s: catching up
+        (False, [], 0.5),  # nothing published (or a reprocessed version, whose lags are not recorded)
+    ],
+)
+def test_a_session_far_behind_its_uploads_is_flushed_less_often(
+    caught_up: bool, lags_s: list[float], every: float
+) -> None:
+    assert flush_every_s(caught_up, lags_s, every_s=0.5, behind_every_s=2.0, behind_lag_s=5.0) == every

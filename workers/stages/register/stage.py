@@ -172,7 +172,13 @@ class RegisterStage:
                 lease.release(ctx.r, mode="final")  # the next prepared frame kicks again
             return None
         calib = sv.calibration
-        recon = SessionReconstruction(calib, sv.method_options, window_radius_mm(setup[0], calib), live=True)
+        recon = SessionReconstruction(
+            calib,
+            sv.method_options,
+            window_radius_mm(setup[0], calib),
+            live=True,
+            pixels=sv.prepared_pixels,  # a frame's index is its seq; its pixels stay on disk, not in the worker
+        )
         geometry = DziGeometry.for_mosaic(calib.px_per_mm, ctx.config.half_extent_mm)
         held = HeldSession(
             sv, lease, recon, geometry, TilePyramid(geometry), lost=list(state.lost), rejected=list(state.rejected)

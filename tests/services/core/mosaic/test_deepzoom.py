@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from services.core.mosaic.canvas import TILE_PX, FrameLayers, SparseCanvas, force_to_color
-from services.core.mosaic.deepzoom import DziGeometry, TilePyramid, blank_png, encode_png_gray_alpha
+from services.core.mosaic.deepzoom import DziGeometry, TilePyramid, blank_png, encode_png_gray_alpha, pool2
 from services.core.similarity import Similarity
 
 
@@ -136,3 +136,13 @@ def test_png_encoders() -> None:
     assert np.array_equal(img[..., 0], gray) and np.array_equal(img[..., 3], alpha)
     blank = _decode(blank_png())
     assert blank.shape == (256, 256, 4) and not blank[..., 3].any()
+
+
+def test_pool2_is_the_two_by_two_block_sum() -> None:
+    # the pyramid's parents are sums of their children's 2x2 pixel blocks; OpenCV computes them as 4 x the area
+    # mean, so float32 rounding of sums of four values in 0..1 (1e-6 relative) is the only difference
+    planes = np.random.default_rng(3).random((256, 256, 4), dtype=np.float32)
+    want = planes.reshape(128, 2, 128, 2, 4).sum(axis=(1, 3), dtype=np.float64)
+    got = pool2(planes)
+    assert got.shape == (128, 128, 4) and got.dtype == np.float32
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
