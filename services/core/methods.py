@@ -32,6 +32,7 @@ class MethodOptions:
     fit_tilt: bool = True  # learn the probe's true tilt (effective kappa) from the matches' affines; undo it
     flat_field: bool = True  # divide out the IR ring's vignetting before blending
     min_inliers: int = 20  # unique RANSAC inliers for an accepted registration
+    confirmed_inlier_share: float = 0.5  # ... this share of it for a match to an older frame agreeing with the latest's
     ransac_px: float = 2.0  # RANSAC reprojection threshold, pixels of the rectified frame
     ratio: float = 0.8  # Lowe ratio test
     neighbours: int = 4  # keyframes matched per frame (keyframes registration)

@@ -200,8 +200,12 @@ class Registrar:
             dedupe_radius=same_place,
         )
 
-    def _pairwise(self, pf: PreparedFrame, other: int) -> Match | None:
-        fit = self._match(pf, self.features[other])
+    def _confirmed_min_inliers(self) -> int:
+        """Return the unique inliers a match to an older frame needs when the latest frame's match confirms it."""
+        return max(3, round(self.options.min_inliers * self.options.confirmed_inlier_share))
+
+    def _pairwise(self, pf: PreparedFrame, other: int, min_inliers: int | None = None) -> Match | None:
+        fit = self._match(pf, self.features[other], min_inliers)
         return None if fit is None else feature_match(fit)
 
     def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity, lost_for: int) -> tuple[Similarity, int] | None:
@@ -299,8 +303,14 @@ class Registrar:
         centre = anchor if anchor is not None else predicted
         radius = 1.6 * self.window_radius_mm * (1 + (lost_for if anchor is None else 0))
         count = self.options.neighbours + (4 if anchor is None else 0)
+        weak: list[Edge] = []
         for other in self._candidates(centre, count, radius)[1:]:
-            found = self._pairwise(pf, other)
+            # agreeing with the match to the latest frame (LOOP_GATE_MM below) is evidence in itself: an anchored
+            # match needs a share of the inliers (options.confirmed_inlier_share). Such a weak edge is kept only
+            # when no other frame matched in full: it ties a hard scan's row to the row before where nothing else
+            # does, and adds no noisier scale where full edges are (on simulated raster and short it cost up to
+            # 0.1 mm when always kept)
+            found = self._pairwise(pf, other, self._confirmed_min_inliers() if anchor is not None else None)
             if found is None:
                 continue
             pose = self.poses[other].compose(found.relative)
@@ -308,7 +318,10 @@ class Registrar:
                 continue  # disagrees with the direct match to the latest frame: a false loop closure
             if anchor is None and not self._plausible(pose, predicted, lost_for):
                 continue
-            edges.append(self._edge(pf, other, found))
+            edge = self._edge(pf, other, found)
+            (edges if found.inliers >= self.options.min_inliers else weak).append(edge)
+        if len(edges) == int(anchor is not None):  # nothing but the latest frame matched in full: take the weak ones
+            edges.extend(weak)
         if not edges:
             return self._fail(pf, blurred, self._why_not(pf))
         pose = place_node(self.poses, self.undeformed(edges), pf.index)
