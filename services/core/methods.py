@@ -21,6 +21,7 @@ class MethodOptions:
     vein_scale: float = 0.5  # vein map and its features at this fraction of full resolution (0.5: 0.25 mm/px)
     target_features: int = 500  # adaptive detection: keypoints kept per frame, spread over it (0 = fixed thresholds)
     contrast_threshold: float = 0.03  # SIFT contrast threshold when target_features is 0
+    sift_finest_octave: int = -1  # SIFT's finest octave: -1 OpenCV's doubled image, 0 the image's own pixels
     direct_fallback: bool = True  # when features fail, align the vein maps directly (phase correlation + ECC)
     direct_refine: bool = False  # refine every feature match to the latest frame by direct alignment
     min_correlation: float = 0.6  # ECC correlation of the vein maps for an accepted direct alignment

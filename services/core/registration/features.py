@@ -94,6 +94,7 @@ def detect_features(
     max_features: int = 0,
     contrast_threshold: float = 0.03,
     target: int = 0,
+    finest_octave: int = -1,
 ) -> Features:
     """Return keypoints (pixels) and descriptors of an 8-bit image, kept only where mask > 0.
 
@@ -101,12 +102,13 @@ def detect_features(
     max_features caps SIFT per view (0 = no cap). target > 0 makes the threshold adaptive: detect with a low
     contrast threshold, then keep `target` keypoints spread over the image (spread_keypoints), so a faint frame
     and a contrasted one both yield a usable, well-spread set instead of 10 or 2000 points.
+    finest_octave 0 (adaptive SIFT only) skips OpenCV's doubled first octave (detect_without_doubling).
     """
     if image.dtype != np.uint8:
         raise ValueError("detect_features expects an 8-bit image")
     if target > 0 and kind == "sift":
         detector = _detector(kind, 0, min(contrast_threshold, ADAPTIVE_CONTRAST_THRESHOLD))
-        found = detector.detect(image, mask)
+        found = detector.detect(image, mask) if finest_octave < 0 else detect_without_doubling(detector, image, mask)
         keypoints, descriptors = detector.compute(image, spread_keypoints(found, image.shape[:2], target))
     elif target > 0:  # AffineFeature describes a keypoint in the view it was found in: describe, then select
         detector = _detector(kind, 0, min(contrast_threshold, ADAPTIVE_CONTRAST_THRESHOLD))
@@ -131,3 +133,29 @@ def detect_features(
         keep = mask[yi, xi] > 0
         points, descriptors, sizes = points[keep], descriptors[keep], sizes[keep]
     return Features(points, descriptors, sizes)
+
+
+def detect_without_doubling(detector: cv2.Feature2D, image: np.ndarray, mask: np.ndarray | None) -> list[cv2.KeyPoint]:
+    """Return SIFT keypoints of octave 0 and coarser, in `image`'s pixels, for a quarter of the detection's cost.
+
+    OpenCV's SIFT always doubles its input first (octave -1). Detecting on the image halved by area averaging
+    gives that doubled base at the image's own size, so its octaves are the full image's octaves 0, 1, ...
+    Each keypoint is lifted back: position 2 p + 0.5 (the half image's pixel centres), size x2, octave + 1, so
+    `compute` on the full image describes it from the full image's own pyramid (which then starts at octave 0
+    too, without the doubled image: its cost falls as well).
+    """
+    h, w = image.shape[:2]
+    half = (w // 2, h // 2)
+    small = cv2.resize(image[: 2 * half[1], : 2 * half[0]], half, interpolation=cv2.INTER_AREA)
+    small_mask = None
+    if mask is not None:  # a half-image pixel is inside only when all four of its pixels are
+        small_mask = cv2.resize(mask[: 2 * half[1], : 2 * half[0]], half, interpolation=cv2.INTER_AREA)
+        small_mask = np.where(small_mask >= 255, 255, 0).astype(np.uint8)
+    lifted = []
+    for k in detector.detect(small, small_mask):
+        octave = k.octave & 255
+        octave = octave - 256 if octave >= 128 else octave
+        packed = (k.octave & ~255) | ((octave + 1) & 255)
+        x, y = k.pt
+        lifted.append(cv2.KeyPoint(2 * x + 0.5, 2 * y + 0.5, 2 * k.size, k.angle, k.response, packed, k.class_id))
+    return lifted

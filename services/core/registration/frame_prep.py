@@ -152,7 +152,13 @@ def _imu_or_none(imu_tilt_deg: np.ndarray | None) -> np.ndarray | None:
 def _detect(image: np.ndarray, mask: np.ndarray, options: MethodOptions) -> Features:
     """Return the method's keypoints (pixels of `image`) and descriptors inside mask."""
     return detect_features(
-        image, mask, options.features, options.max_features, options.contrast_threshold, options.target_features
+        image,
+        mask,
+        options.features,
+        options.max_features,
+        options.contrast_threshold,
+        options.target_features,
+        options.sift_finest_octave,
     )
 
 
