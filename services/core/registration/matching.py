@@ -29,6 +29,8 @@ class SimilarityFit:
     affine: np.ndarray | None = None
     affine_sigma: float = math.inf
     view_affine: np.ndarray | None = None
+    centre: complex = 0j  # the inliers' centroid (src units): where the fit's translation is best known
+    spread: float = 0.0  # the inliers' RMS distance from it (src units): the lever of its rotation and scale
 
 
 def fit_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
@@ -176,7 +178,10 @@ def estimate_similarity(
     spread = float(np.sqrt(np.mean(np.sum((src[chosen] - src[chosen].mean(axis=0)) ** 2, axis=1))))
     a_rms = _affine_rms(view_affine, src[chosen], dst[chosen]) if view_affine is not None else rms
     affine_sigma = a_rms / (math.sqrt(int(chosen.sum())) * spread) if spread > 0 else math.inf
-    return SimilarityFit(transform, n, rms, inl, affine, affine_sigma, view_affine)
+    centroid = src[inl].mean(axis=0)
+    lever = float(np.sqrt(np.mean(np.sum((src[inl] - centroid) ** 2, axis=1))))
+    centre = complex(centroid[0], centroid[1])
+    return SimilarityFit(transform, n, rms, inl, affine, affine_sigma, view_affine, centre, lever)
 
 
 def _affine_residuals(affine: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -41,6 +41,8 @@ class Edge:
     affine: np.ndarray | None = field(default=None, compare=False, repr=False)
     affine_sigma: float = field(default=float("inf"), compare=False)
     view_affine: np.ndarray | None = field(default=None, compare=False, repr=False)
+    centre: complex = 0j  # frame j's point (mm) the edge is measured about: its inliers' centroid
+    lever_mm: float = 0.0  # the inliers' spread about it (mm): the lever of the a-rows; 0 = the graph's default
 
     def with_relative(self, relative: Similarity) -> Edge:
         """Return the same edge measuring another relative similarity (e.g. between undeformed frames)."""
@@ -67,9 +69,24 @@ def edge_residuals_mm(poses: dict[int, Similarity], edges: list[Edge], lever_mm:
     tj = np.array([poses[e.j].t for e in edges])
     ma = np.array([e.relative.a for e in edges])
     mt = np.array([e.relative.t for e in edges])
-    r_a = (aj - ai * ma) * lever_mm
-    r_t = tj - ti - ai * mt
+    c, lever = edge_frames(edges, lever_mm)
+    r_a = (aj - ai * ma) * lever
+    r_t = (aj - ai * ma) * c + tj - ti - ai * mt
     return np.sqrt(np.abs(r_a) ** 2 + np.abs(r_t) ** 2)
+
+
+def edge_frames(edges: list[Edge], lever_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return each edge's centre (complex, frame j mm) and lever (mm; lever_mm where the edge has none).
+
+    An edge is measured where its inliers are: its translation row states T_j(c) = T_i T_ij (c) at their centroid
+    c, where a least-squares fit knows it best and independently of its rotation and scale, and its a-row is
+    weighted by their spread (a fit's a is known to rms / (sqrt(n) spread)); both rows then share sigma_mm.
+    Measured at frame j's centre with a fixed lever instead, an edge whose overlap lies off-centre (two frames
+    far apart) carried an extrapolated translation and an overweighted rotation.
+    """
+    c = np.array([e.centre for e in edges], dtype=complex)
+    lever = np.array([e.lever_mm if e.lever_mm > 0 else lever_mm for e in edges], dtype=float)
+    return c, lever
 
 
 def robust_weights(residuals_mm: np.ndarray, edges: list[Edge], scale_mm: float) -> np.ndarray:
@@ -94,7 +111,8 @@ def _unit_system(
     ci = np.array([col.get(e.i, -1) for e in edges], dtype=np.int64)
     cj = np.array([col.get(e.j, -1) for e in edges], dtype=np.int64)
     ma = np.array([e.relative.a for e in edges], dtype=complex)
-    mt = np.array([e.relative.t for e in edges], dtype=complex)
+    centre, lever = edge_frames(edges, lever_mm)
+    mt = np.array([e.relative.t for e in edges], dtype=complex) + ma * centre  # T_ij(c) - 0: t-row's a_i factor
     held_i = (
         np.array([initial[e.i].a if e.i not in col else 0j for e in edges], dtype=complex),
         np.array([initial[e.i].t if e.i not in col else 0j for e in edges], dtype=complex),
@@ -114,13 +132,20 @@ def _unit_system(
         vals.append(np.broadcast_to(np.asarray(v, float), r.shape))
 
     j, jf = cj >= 0, (cj < 0)
-    for off, scale in ((0, lever_mm), (1, lever_mm), (2, 1.0), (3, 1.0)):  # +X_j
-        put(base[j] + off, cj[j] + off, scale)
-    fa, ft = held_j[0][jf] * lever_mm, held_j[1][jf]
+    for off in (0, 1):  # +a_j lever
+        put(base[j] + off, cj[j] + off, lever[j])
+    for off in (2, 3):  # +t_j
+        put(base[j] + off, cj[j] + off, 1.0)
+    cc = centre[j]  # +a_j c in the t-rows: real row a_re c_re - a_im c_im, imag row a_re c_im + a_im c_re
+    put(base[j] + 2, cj[j], cc.real)
+    put(base[j] + 2, cj[j] + 1, -cc.imag)
+    put(base[j] + 3, cj[j], cc.imag)
+    put(base[j] + 3, cj[j] + 1, cc.real)
+    fa, ft = held_j[0][jf] * lever[jf], held_j[1][jf] + held_j[0][jf] * centre[jf]
     for off, v in ((0, fa.real), (1, fa.imag), (2, ft.real), (3, ft.imag)):
         b[base[jf] + off] -= v
     i, fi = ci >= 0, (ci < 0)
-    la, lt = ma[i] * lever_mm, mt[i]  # -a_i M: real row -(a_re m_re - a_im m_im), imag row -(a_re m_im + a_im m_re)
+    la, lt = ma[i] * lever[i], mt[i]  # -a_i M: real row -(a_re m_re - a_im m_im), imag row -(a_re m_im + a_im m_re)
     put(base[i], ci[i], -la.real)
     put(base[i], ci[i] + 1, la.imag)
     put(base[i] + 1, ci[i], -la.imag)
@@ -131,7 +156,7 @@ def _unit_system(
     put(base[i] + 3, ci[i] + 1, -lt.real)
     put(base[i] + 2, ci[i] + 2, -1.0)  # -t_i
     put(base[i] + 3, ci[i] + 3, -1.0)
-    va = held_i[0][fi] * ma[fi] * lever_mm
+    va = held_i[0][fi] * ma[fi] * lever[fi]
     vt = held_i[0][fi] * mt[fi] + held_i[1][fi]
     for off, v in ((0, va.real), (1, va.imag), (2, vt.real), (3, vt.imag)):
         b[base[fi] + off] += v

@@ -86,11 +86,15 @@ class Match:
     affine: np.ndarray | None = None  # the full affine of a feature match (2x3), see SimilarityFit
     affine_sigma: float = math.inf
     view_affine: np.ndarray | None = None  # the affine on its own inliers: the view model's evidence
+    centre: complex = 0j  # where the match is measured (the inliers' centroid, frame mm); 0 for a direct one
+    spread_mm: float = 0.0  # the inliers' RMS distance from it; 0: unknown (the pose graph's default lever)
 
 
 def feature_match(fit: SimilarityFit) -> Match:
-    """Return the Match of a feature fit (with its full affine)."""
-    return Match(fit.transform, fit.inliers, fit.rms, fit.affine, fit.affine_sigma, fit.view_affine)
+    """Return the Match of a feature fit (with its full affine and where its inliers lie)."""
+    return Match(
+        fit.transform, fit.inliers, fit.rms, fit.affine, fit.affine_sigma, fit.view_affine, fit.centre, fit.spread
+    )
 
 
 @dataclass(frozen=True)
@@ -386,6 +390,8 @@ class Registrar:
             affine=match.affine,
             affine_sigma=match.affine_sigma,
             view_affine=match.view_affine,
+            centre=match.centre,
+            lever_mm=match.spread_mm,
         )
 
     def view(self, index: int) -> np.ndarray:
