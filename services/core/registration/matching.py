@@ -175,13 +175,18 @@ def estimate_similarity(
     rms = float(np.sqrt(np.mean(np.sum(resid**2, axis=1))))
     affine = fit_affine(src[inl], dst[inl])
     view_affine, chosen = affine_inliers(src, dst, affine, inl, threshold)
-    spread = float(np.sqrt(np.mean(np.sum((src[chosen] - src[chosen].mean(axis=0)) ** 2, axis=1))))
+    _, spread = centroid_and_spread(src[chosen])
     a_rms = _affine_rms(view_affine, src[chosen], dst[chosen]) if view_affine is not None else rms
     affine_sigma = a_rms / (math.sqrt(int(chosen.sum())) * spread) if spread > 0 else math.inf
-    centroid = src[inl].mean(axis=0)
-    lever = float(np.sqrt(np.mean(np.sum((src[inl] - centroid) ** 2, axis=1))))
-    centre = complex(centroid[0], centroid[1])
+    centre, lever = centroid_and_spread(src[inl])
     return SimilarityFit(transform, n, rms, inl, affine, affine_sigma, view_affine, centre, lever)
+
+
+def centroid_and_spread(points: np.ndarray) -> tuple[complex, float]:
+    """Return the centroid (complex, the points' units) of (N, 2) points and their RMS distance from it."""
+    centroid = points.mean(axis=0)
+    spread = float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1))))
+    return complex(centroid[0], centroid[1]), spread
 
 
 def _affine_residuals(affine: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:

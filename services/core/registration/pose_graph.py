@@ -69,13 +69,13 @@ def edge_residuals_mm(poses: dict[int, Similarity], edges: list[Edge], lever_mm:
     tj = np.array([poses[e.j].t for e in edges])
     ma = np.array([e.relative.a for e in edges])
     mt = np.array([e.relative.t for e in edges])
-    c, lever = edge_frames(edges, lever_mm)
+    c, lever = edge_centres_and_levers(edges, lever_mm)
     r_a = (aj - ai * ma) * lever
     r_t = (aj - ai * ma) * c + tj - ti - ai * mt
     return np.sqrt(np.abs(r_a) ** 2 + np.abs(r_t) ** 2)
 
 
-def edge_frames(edges: list[Edge], lever_mm: float) -> tuple[np.ndarray, np.ndarray]:
+def edge_centres_and_levers(edges: list[Edge], lever_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Return each edge's centre (complex, frame j mm) and lever (mm; lever_mm where the edge has none).
 
     An edge is measured where its inliers are: its translation row states T_j(c) = T_i T_ij (c) at their centroid
@@ -100,10 +100,12 @@ def _unit_system(
     initial: dict[int, Similarity], edges: list[Edge], col: dict[int, int], lever_mm: float
 ) -> tuple[csr_matrix, np.ndarray]:
     """Return (A, b) of optimise_poses' linear system before the per-edge scaling (rows 4k..4k+3 for edge k:
-    a re/im at lever_mm, then t re/im), with the priors' rows after the edges' (already scaled by their sigmas).
+    a re/im at the edge's lever, then t re/im at its centre), with the priors' rows after the edges' (already
+    scaled by their sigmas).
 
-    Edge k states c_j X_j - M X_i = 0 in complex form (X = a scaled by the lever, or t), split into real and
-    imaginary rows; a term of a held node (not in col) moves to the right-hand side with its pose.
+    Edge k states (a_j - a_i a_ij) L = 0 and a_j c + t_j - t_i - a_i (a_ij c + t_ij) = 0 in complex form (L, c:
+    edge_centres_and_levers), split into real and imaginary rows; a term of a held node (not in col) moves to
+    the right-hand side with its pose.
     """
     n_free = len(col)
     ne = len(edges)
@@ -111,7 +113,7 @@ def _unit_system(
     ci = np.array([col.get(e.i, -1) for e in edges], dtype=np.int64)
     cj = np.array([col.get(e.j, -1) for e in edges], dtype=np.int64)
     ma = np.array([e.relative.a for e in edges], dtype=complex)
-    centre, lever = edge_frames(edges, lever_mm)
+    centre, lever = edge_centres_and_levers(edges, lever_mm)
     mt = np.array([e.relative.t for e in edges], dtype=complex) + ma * centre  # T_ij(c) - 0: t-row's a_i factor
     held_i = (
         np.array([initial[e.i].a if e.i not in col else 0j for e in edges], dtype=complex),
