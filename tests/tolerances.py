@@ -25,8 +25,8 @@ class Tolerances:
     # `best` on the simulated hard scan (seed 1: 200 frames at up to 30 N, rows 18 mm apart), the path's residual
     # after the best 2x2 linear map (what remains once the global scale/shear of the tissue law is taken out):
     # measured 0.67 mm with loop closures gated at 6 mm, 1.89 mm at 3 mm (the last rows closed no loop and
-    # drifted to 8.5 mm); 0.39 mm once confirmed closures need 10 inliers. <= 1.2 mm fails the old gate with
-    # margin; >= 0.2 mm flags a task made too easy.
+    # drifted to 8.5 mm); 0.39 mm once confirmed closures need 10 inliers, 0.25 mm with edges measured at their
+    # inliers. <= 1.2 mm fails the old gate with margin; >= 0.2 mm flags a task made too easy.
     hard_shape_residual_mm: tuple[float, float] = (0.2, 1.2)
 
     # Known answers written into the tests as decimal literals with 10+ significant digits (worked out by

@@ -146,11 +146,10 @@ def test_an_edge_is_measured_where_its_inliers_are() -> None:
     # the truth. Measured at the frame's centre with one lever (lever_mm 0), A carried its rotation error 30 mm
     # out into its translation and half of it into the pose: 0.26 mm and 0.5 deg off.
     truth = Similarity(cmath.exp(1j * 0.2), complex(12.0, -3.0))
-    delta = np.radians(1.0)
     centre_a = complex(30.0, 0.0)
-    tilted = Similarity(truth.a * cmath.exp(1j * delta), 0j)
-    tilted = Similarity(tilted.a, truth.apply(np.array([[30.0, 0.0]]))[0] @ [1, 1j] - tilted.a * centre_a)
-    initial = {0: IDENTITY, 1: IDENTITY.compose(truth)}
+    turned = truth.a * cmath.exp(1j * np.radians(1.0))
+    tilted = Similarity(turned, truth.a * centre_a + truth.t - turned * centre_a)  # = truth at centre_a
+    initial = {0: IDENTITY, 1: truth}
 
     def solve(lever_a: float, centre_a_mm: complex, lever_b: float, centre_b_mm: complex) -> Similarity:
         a = Edge(0, 1, tilted, EDGE_SIGMA_MM, inliers=40, centre=centre_a_mm, lever_mm=lever_a)
