@@ -10,10 +10,10 @@ The law is spec §2's linear one, eps = c F, unless the scales show the tissue s
 eps(F) = c F / (1 + s F): c the zero-load compliance, F_s = 1 / s the load at which the strain is half the linear
 law's. g extrapolates the law to no load, so a linear fit to a stiffening tissue's scales misplaces the whole path's
 scale (README, "Compliance self-calibration"). Two steps: the law's shape s from the scales alone (their scatter
-about the linear fit is the noise; adopted only when it beats the linear law both by BIC's ln n and at 1 %
-significance), then its level by MAP, with the calibration's prior on the secant compliance eps(F_ref) / F_ref at
-the frames' mean load F_ref (the calibration fits stretch against load at loads like the scan's: spec §2,
-Calibration).
+about the linear fit is the noise; adopted only when it beats the linear law both by BIC's ln n and past
+chi-square's 1 % point), then its level by MAP, with the calibration's prior on the secant compliance
+eps(F_ref) / F_ref at the frames' mean load F_ref (the calibration fits stretch against load at loads like the
+scan's: spec §2, Calibration).
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""End-to-end reconstruction of the simulator's short scan: accuracy bands, method ordering, determinism."""
+"""End-to-end reconstruction of the simulator's short scan (accuracy bands, method ordering, determinism) and of the
+shared short_veins_21 scan when ../shared is there."""
 
 from __future__ import annotations
 
@@ -121,7 +122,7 @@ SHARED_SHORT = Path(__file__).resolve().parents[4] / "shared" / "scans" / "short
 @pytest.mark.skipif(not SHARED_SHORT.is_dir(), reason="the shared reference scans are not on this machine")
 def test_the_shared_short_scan_keeps_the_linear_law_its_weak_curvature_does_not_pass() -> None:
     # the scales of short_veins_21 curve a little (the stiffening law gains chi2 4.8, above BIC's ln 40 = 3.7):
-    # the law must beat the linear one at 1 % significance too (STIFFENING_MIN_CHI2) before the path follows it
+    # the law must pass chi-square's 1 % point too (STIFFENING_MIN_CHI2) before the path follows it
     scan = read_scan_folder(SHARED_SHORT)
     recon = reconstruct(scan, method_options("best"))
     assert recon.compliance is not None
