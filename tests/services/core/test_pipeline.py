@@ -4,7 +4,6 @@ shared short_veins_21 scan when ../shared is there."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +14,7 @@ from services.core.outputs.evaluation import AccuracyReport, evaluate_path
 from services.core.physics.compliance import STIFFENING_MIN_CHI2
 from services.core.pipeline import PATH_COLUMNS, Reconstruction, reconstruct
 from services.store.scan_folder import read_scan_folder
+from tests.shared_scans import SHARED_SCANS
 from tests.sim_cache import simulated
 from tests.tolerances import TOL
 
@@ -116,7 +116,7 @@ def test_mosaic_geometry(best: Reconstruction) -> None:
     assert np.nanmax(m.force_n) < 40.0 and np.nanmin(m.force_n) >= 0.0
 
 
-SHARED_SHORT = Path(__file__).resolve().parents[4] / "shared" / "scans" / "short_veins_21"  # ../shared
+SHARED_SHORT = SHARED_SCANS / "short_veins_21"
 
 
 @pytest.mark.skipif(not SHARED_SHORT.is_dir(), reason="the shared reference scans are not on this machine")

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from services.core.inputs.reference import ReferenceFormatError, parse_reference_csv, reference_csv
+from tests.shared_scans import SHARED_SCANS
 
 
 def test_positions_only_header_leaves_angles_unknown() -> None:
@@ -23,9 +24,7 @@ def test_tracker_header_reads_yaw_and_tilts() -> None:
 
 
 def test_shared_scan_reference_parses() -> None:
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[5] / "shared" / "scans" / "short_veins_21" / "reference.csv"  # ../shared
+    path = SHARED_SCANS / "short_veins_21" / "reference.csv"
     if not path.exists():
         pytest.skip("the shared reference scans are not next to this checkout")
     ref = parse_reference_csv(path.read_text(), range(40))

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 from functools import cache
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -14,8 +13,7 @@ import pytest
 from services.core.simulation.frame_stats import FrameStats, frame_stats
 from services.core.simulation.scenarios import simulate
 from services.core.simulation.variants import ImagingVariant, scenario_imaging
-
-SHARED_SCANS = Path(__file__).resolve().parents[5] / "shared" / "scans"
+from tests.shared_scans import SHARED_SCANS
 
 # Measured with services.core.simulation.frame_stats on every frame of ../shared/scans (short_veins_21: 40 frames,
 # hard_veins_22: 88 frames), per-frame min .. max over both scans (8-bit grey levels unless said):
