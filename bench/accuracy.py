@@ -12,8 +12,13 @@ axis's tilt RMS error in degrees where the reference has tilts (the shared scans
 Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe: a patient as on the shared scans (a hand's tilt,
 a tissue law of that shape with x/y anisotropy), not an imaging look.
 
+--texture PHOTO: the simulated cells' veins are a photograph's dark vessels instead of the procedural network
+(vein_texture.make_photo_world), e.g. a fundus photograph as issue 14's hidden "real retinal vessel texture"
+raster; scikit-image's wheel carries one (`pip download --no-deps scikit-image`, then unzip
+skimage/data/retina.jpg from it).
+
 Usage: python bench/accuracy.py [--quick] [--methods best,sift-chain,paper] [--scenarios raster,revisit,hard]
-       [--cells default,faint,...] [--seeds 1,2] [--shared DIR | --no-shared] [--json OUT]
+       [--cells default,faint,...] [--seeds 1,2] [--shared DIR | --no-shared] [--texture PHOTO] [--json OUT]
 `paper` costs about 1 s/frame: leave it out of --methods for a fast run. --quick: the shared scans and five
 cells of the 40-frame `short` scenario, seed 1 (a few minutes without `paper`).
 """
@@ -34,6 +39,8 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import cv2
+import numpy as np
 from tqdm import tqdm
 
 from services.core.inputs.scan import Scan
@@ -80,15 +87,25 @@ class Cell:
     scenario: str = ""
     look: str = ""
     seed: int = 0
+    texture: Path | None = None  # a photograph whose vessels are the simulated veins (None: procedural)
 
     def load(self) -> Scan:
         """Return the cell's Scan (read from its folder, or simulated)."""
         if self.folder is not None:
             return read_scan_folder(self.folder)
+        photo = None if self.texture is None else read_photo(self.texture)
         if self.look in TISSUE_CELLS:
-            return simulate(self.scenario, self.seed, tissue=TISSUE_CELLS[self.look])
+            return simulate(self.scenario, self.seed, tissue=TISSUE_CELLS[self.look], texture=photo)
         imaging = LOOKS[self.look](scenario_imaging(self.scenario))
-        return simulate(self.scenario, self.seed, dataclasses.replace(imaging, name=self.look))
+        return simulate(self.scenario, self.seed, dataclasses.replace(imaging, name=self.look), texture=photo)
+
+
+def read_photo(path: Path) -> np.ndarray:
+    """Return a texture photograph as stored (8/16-bit grayscale or BGR); SystemExit when it cannot be read."""
+    photo = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if photo is None:
+        raise SystemExit(f"--texture: cannot read an image from {path}")
+    return photo
 
 
 def shared_cells(root: Path) -> list[Cell]:
@@ -100,13 +117,20 @@ def shared_cells(root: Path) -> list[Cell]:
     ]
 
 
-def sim_cells(scenarios: list[str], looks: list[str], seeds: list[int]) -> list[Cell]:
-    """Return the simulator's Cells: every scenario x look x seed."""
+def sim_cells(scenarios: list[str], looks: list[str], seeds: list[int], texture: Path | None = None) -> list[Cell]:
+    """Return the simulator's Cells: every scenario x look x seed (over a texture photograph's vessels if given)."""
     unknown = [lk for lk in looks if lk not in LOOKS and lk not in TISSUE_CELLS]
     if unknown:
         raise SystemExit(f"unknown cells {unknown}; expected some of {', '.join([*LOOKS, *TISSUE_CELLS])}")
     return [
-        Cell("sim", f"{sc}/{lk}/s{seed}", scenario=sc, look=lk, seed=seed)
+        Cell(
+            "sim",
+            f"{sc}/{lk}/s{seed}" + ("/photo" if texture else ""),
+            scenario=sc,
+            look=lk,
+            seed=seed,
+            texture=texture,
+        )
         for sc in scenarios
         for lk in looks
         for seed in seeds
@@ -209,6 +233,7 @@ def main() -> int:
     parser.add_argument("--shared", type=Path, default=DEFAULT_SHARED, help="folder of reference scans")
     parser.add_argument("--no-shared", action="store_true", help="skip the shared scans")
     parser.add_argument("--no-sim", action="store_true", help="skip the simulated matrix")
+    parser.add_argument("--texture", type=Path, default=None, help="a photograph whose vessels are the sim's veins")
     parser.add_argument("--json", type=Path, default=None, help="write every result row to this JSON file")
     args = parser.parse_args()
 
@@ -224,7 +249,7 @@ def main() -> int:
     if not args.no_shared and not cells:
         print(f"note: no shared scans with reference.csv under {args.shared}", file=sys.stderr)
     if not args.no_sim:
-        cells += sim_cells(scenarios, looks, seeds)
+        cells += sim_cells(scenarios, looks, seeds, args.texture)
 
     started = time.perf_counter()
     rows: list[dict[str, Any]] = []

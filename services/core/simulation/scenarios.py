@@ -29,7 +29,7 @@ from services.core.simulation.renderer import (
     render_scene,
 )
 from services.core.simulation.variants import ImagingVariant, scenario_imaging
-from services.core.simulation.vein_texture import make_world
+from services.core.simulation.vein_texture import make_photo_world, make_world
 
 SCENARIOS = ("raster", "revisit", "hard", "short", "calib")
 LONG_SCENARIOS = ("exam",)  # minutes long (2400 frames by default): for the long-examination bench, not test loops
@@ -37,6 +37,8 @@ ALL_SCENARIOS = SCENARIOS + LONG_SCENARIOS
 
 NOMINAL_E_KPA = 16.1
 NOMINAL_KAPPA_N_PER_MM = 18.0
+# a texture photograph's pixel on the skin: a fundus photograph's widest vessels (~15 px) become ~5 mm veins
+TEXTURE_MM_PER_PX = 0.375
 TRUE_KAPPA_N_PER_MM = (0.1, 0.3)  # the effective kappa of a hand on tissue, log-uniform (draw_hand_kappa)
 HAND_TILT_DEG = {
     "raster": 10.0,
@@ -148,6 +150,7 @@ def simulate(
     tissue: str | None = None,
     frames: int | None = None,
     imu: bool = False,
+    texture: np.ndarray | None = None,
 ) -> Scan:
     """Return a simulated Scan (frames in memory) of a scenario in SCENARIOS, deterministic for the seed.
 
@@ -164,6 +167,9 @@ def simulate(
     frames: the number of frames of an "exam" (default 2400: 4 minutes at 10 frames/s); other scenarios have theirs.
     imu: give the scan an IMU stream of the true tilts (imu.csv; the "calib" scenario always has one): the
     shared scans have none, so by default the tilt must come from the images.
+    texture: a photograph (grayscale or BGR, 8/16 bit) whose dark vessels become the veins instead of the
+    procedural network (a fundus photograph: the "real retinal vessel texture" of issue 14's hidden raster), at
+    TEXTURE_MM_PER_PX; truth["texture"] says which.
     """
     if scenario not in ALL_SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(ALL_SCENARIOS)}")
@@ -193,7 +199,10 @@ def simulate(
     lo = motion.centre_mm.min(axis=0) - WORLD_MARGIN_MM
     hi = motion.centre_mm.max(axis=0) + WORLD_MARGIN_MM
     bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
-    world = make_world(rng_world, bounds, calib.px_per_mm, look.vessel_contrast, look.textured_skin)
+    if texture is None:
+        world = make_world(rng_world, bounds, calib.px_per_mm, look.vessel_contrast, look.textured_skin)
+    else:
+        world = make_photo_world(rng_world, bounds, texture, TEXTURE_MM_PER_PX, calib.px_per_mm, look.vessel_contrast)
 
     geometry = frame_geometry(calib)
     fz, tx, ty = motion.load_at(motion.frame_t_s)
@@ -238,6 +247,7 @@ def simulate(
         "path_length_mm": path_length_mm(xy),
         "force_offsets_n": [float(v) for v in offsets],
         "tissue": law.to_dict(),
+        "texture": "procedural" if texture is None else "photograph",
     }
     return Scan(
         calibration=calib,

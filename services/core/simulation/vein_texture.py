@@ -29,6 +29,9 @@ MAX_GAP_MM = 10.0  # no point of the world is farther than this from a vessel ce
 STEP_MM = 1.0  # centreline step
 END_FADE_MM = 10.0  # a vessel's free end fades out over this length (vessels dive, they do not stop)
 CURVINESS = 0.015  # centrelines' random turning (rad per mm, before smoothing)
+PHOTO_BACKGROUND_SIGMA_PX = 25.0  # a photograph's local background: much wider than its vessels (photo pixels)
+PHOTO_FLOOR = 0.15  # darkness below this share of the photo's darkest vessels is its background's mottle, not vessel
+PHOTO_DEEP_BLUR_MM = 0.4  # the photograph's vessels seen through skin: scattered by this much (Gaussian sigma)
 
 
 @dataclass(frozen=True)
@@ -260,4 +263,62 @@ def make_world(
     vessels = vein_network(rng, (x0, y0, x0 + w / px_per_mm, y0 + h / px_per_mm), vessel_contrast)
     dark = vein_darkness(vessels, (h, w), (x0, y0), px_per_mm)
     image = cv2.GaussianBlur(skin * (1.0 - dark), (0, 0), BAND_LIMIT_SIGMA_PX)
+    return World(np.clip(image, 0.02, 0.98).astype(np.float32), px_per_mm, (float(x0), float(y0)))
+
+
+def photo_vessel_darkness(photo: np.ndarray) -> np.ndarray:
+    """Return the vessels of a photograph (float32 0..1, the photo's shape): dark lines on a brighter ground.
+
+    photo: grayscale (H, W) or BGR (H, W, 3; its green channel, where a fundus's vessels stand out), 8 or 16 bit.
+    Darkness is 1 - I / background (a masked Gaussian mean of PHOTO_BACKGROUND_SIGMA_PX over the photo's lit
+    region), scaled so the photo's 99.5th percentile is 1; what stays below PHOTO_FLOOR is set to 0 (the ground's
+    mottle), and the unlit border of a fundus photograph carries no vessel.
+    """
+    g = np.asarray(photo)
+    if g.ndim == 3:
+        g = g[..., 1]
+    if g.ndim != 2 or g.dtype not in (np.uint8, np.uint16):
+        raise ValueError("a texture photograph must be an 8- or 16-bit grayscale or colour image")
+    g = g.astype(np.float32) / float(np.iinfo(g.dtype).max)
+    lit = (cv2.GaussianBlur(g, (0, 0), 5.0) > 0.08).astype(np.float32)
+    lit = cv2.erode(lit, np.ones((41, 41), np.uint8))  # the lit region's rim is its vignetting, not vessel
+    if not np.any(lit):
+        raise ValueError("the texture photograph is dark everywhere")
+    ground = cv2.GaussianBlur(g * lit, (0, 0), PHOTO_BACKGROUND_SIGMA_PX)
+    ground /= np.maximum(cv2.GaussianBlur(lit, (0, 0), PHOTO_BACKGROUND_SIGMA_PX), 1e-3)
+    dark = cv2.GaussianBlur(np.clip(1.0 - g / np.maximum(ground, 1e-3), 0.0, None) * lit, (0, 0), 1.0)
+    top = float(np.percentile(dark[lit > 0], 99.5))
+    if top <= 0.0:
+        raise ValueError("the texture photograph shows no dark vessels")
+    dark = np.clip(dark / top, 0.0, 1.0)
+    dark[dark < PHOTO_FLOOR] = 0.0
+    return dark.astype(np.float32)
+
+
+def make_photo_world(
+    rng: np.random.Generator,
+    bounds_mm: tuple[float, float, float, float],
+    photo: np.ndarray,
+    photo_mm_per_px: float,
+    px_per_mm: float = 8.0,
+    vessel_contrast: tuple[float, float] = (0.03, 0.35),
+) -> World:
+    """Return a World covering bounds_mm whose veins are a photograph's vessels (photo_vessel_darkness).
+
+    The photo is scaled to photo_mm_per_px, mirror-tiled until it covers the world and cropped at a random
+    offset; its vessels darken smooth skin by up to the top of vessel_contrast (a vessel half as dark in the photo
+    by half as much: its faint ones fainter than that), seen through PHOTO_DEEP_BLUR_MM of scattering.
+    """
+    x0, y0, x1, y1 = bounds_mm
+    w = int(np.ceil((x1 - x0) * px_per_mm))
+    h = int(np.ceil((y1 - y0) * px_per_mm))
+    scale = photo_mm_per_px * px_per_mm
+    dark = cv2.resize(photo_vessel_darkness(photo), None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+    while dark.shape[0] < h + 1 or dark.shape[1] < w + 1:
+        dark = np.block([[dark, dark[:, ::-1]], [dark[::-1], dark[::-1, ::-1]]])
+    oy = int(rng.integers(0, dark.shape[0] - h))
+    ox = int(rng.integers(0, dark.shape[1] - w))
+    dark = cv2.GaussianBlur(dark[oy : oy + h, ox : ox + w], (0, 0), PHOTO_DEEP_BLUR_MM * px_per_mm)
+    skin = smooth_skin(rng, (h, w), px_per_mm)
+    image = cv2.GaussianBlur(skin * (1.0 - np.float32(vessel_contrast[1]) * dark), (0, 0), BAND_LIMIT_SIGMA_PX)
     return World(np.clip(image, 0.02, 0.98).astype(np.float32), px_per_mm, (float(x0), float(y0)))

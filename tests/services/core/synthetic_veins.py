@@ -1,4 +1,5 @@
-"""Synthetic NIR vein frames built in memory, for the vein-map, feature and direct-alignment tests.
+"""Synthetic NIR vein frames built in memory, for the vein-map, feature and direct-alignment tests, and a
+synthetic vessel photograph for the simulator's photo worlds.
 
 Skin is smooth (a low-frequency shading), the veins are soft dark curves a few per cent to ~30 % darker than
 the skin around them, the housing outside the window is dark, and there is a little sensor noise: the
@@ -133,3 +134,21 @@ def frame_pair(
     to_canvas[:, 2] += margin  # ... -> canvas px
     moving = cv2.warpAffine(field, to_canvas, (W, H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
     return observe(fixed, mask, seed + 1000), observe(moving, mask, seed + 2000), mask
+
+
+def vessel_photo(seed: int = 4, size: int = 600) -> tuple[np.ndarray, np.ndarray]:
+    """Return a photograph (uint8) of 30 dark straight vessels (3-9 px, 30-60 % darker) on shaded ground, and
+    the vessels' darkness as drawn (float32 0..1)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size]
+    ground = 170 + 20 * np.sin(xx / 97.0) * np.cos(yy / 131.0)  # slow shading, as a fundus's illumination
+    lines = np.zeros((size, size), np.float32)
+    for _ in range(30):
+        p = rng.uniform(0, size, 2)
+        a, length = rng.uniform(0, np.pi), rng.uniform(100, 400)
+        q = p + length * np.array([np.cos(a), np.sin(a)])
+        layer = np.zeros_like(lines)
+        start, end = (int(p[0]), int(p[1])), (int(q[0]), int(q[1]))
+        cv2.line(layer, start, end, float(rng.uniform(0.3, 0.6)), int(rng.integers(3, 10)), cv2.LINE_AA)
+        lines = np.maximum(lines, layer)
+    return np.clip(ground * (1 - cv2.GaussianBlur(lines, (0, 0), 1.5)), 0, 255).astype(np.uint8), lines

@@ -1,5 +1,5 @@
-"""End-to-end reconstruction of the simulator's short scan (accuracy bands, method ordering, determinism) and of the
-shared short_veins_21 scan when ../shared is there."""
+"""End-to-end reconstruction of the simulator's short scan (accuracy bands, method ordering, determinism), of it
+over a photograph's vessels, and of the shared short_veins_21 scan when ../shared is there."""
 
 from __future__ import annotations
 
@@ -13,7 +13,9 @@ from services.core.methods import method_options
 from services.core.outputs.evaluation import AccuracyReport, evaluate_path
 from services.core.physics.compliance import STIFFENING_MIN_CHI2
 from services.core.pipeline import PATH_COLUMNS, Reconstruction, reconstruct
+from services.core.simulation.scenarios import simulate
 from services.store.scan_folder import read_scan_folder
+from tests.services.core.synthetic_veins import vessel_photo
 from tests.shared_scans import SHARED_SCANS
 from tests.sim_cache import simulated
 from tests.tolerances import TOL
@@ -130,3 +132,18 @@ def test_the_shared_short_scan_keeps_the_linear_law_its_weak_curvature_does_not_
     assert recon.compliance.law == "linear"
     rmse = _report(scan, recon).rmse_mm
     assert TOL.shared_short_rmse_mm[0] <= rmse <= TOL.shared_short_rmse_mm[1], rmse
+
+
+def test_veins_from_a_photograph_are_registered_as_well_as_procedural_ones() -> None:
+    # issue 14's hidden rasters include "real retinal vessel texture": the simulator can take any photograph's
+    # vessels as the world (simulate(..., texture=photo)); the pipeline must not depend on its own network's look
+    photo, _ = vessel_photo()
+    scan = simulate("short", 1, tissue="linear", texture=photo)
+    procedural = simulate("short", 1, tissue="linear")
+    assert scan.truth["texture"] == "photograph" and procedural.truth["texture"] == "procedural"
+    assert not np.array_equal(scan.frame(0), procedural.frame(0))
+    np.testing.assert_array_equal(scan.reference_mm, procedural.reference_mm)  # the same probe, other skin
+    recon = reconstruct(scan, method_options("best"))
+    report = _report(scan, recon)
+    assert report.registered_fraction == 1.0
+    assert TOL.photo_short_rmse_mm[0] <= report.rmse_mm <= TOL.photo_short_rmse_mm[1], report.rmse_mm
