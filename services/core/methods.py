@@ -30,6 +30,7 @@ class MethodOptions:
     refine: bool = True  # global pose-graph refinement on loop closures (beyond the paper)
     self_calibrate: bool = True  # fit the tissue compliance from registration scales (beyond the paper)
     stiffening: bool = True  # let that fit's strain law stiffen with load when the scales show it
+    scale_prior: float = 0.005  # at the end each frame's scale is held to that fit's law, this relative sigma (0: off)
     fit_tilt: bool = True  # learn the probe's true tilt (effective kappa) from the matches' affines; undo it
     flat_field: bool = True  # divide out the IR ring's vignetting before blending
     min_inliers: int = 20  # unique RANSAC inliers for an accepted registration

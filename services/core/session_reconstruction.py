@@ -183,9 +183,23 @@ class SessionReconstruction:
             self.registrar.refine(final=True)
         if self.options.self_calibrate:
             self.compliance = self._fit_compliance()
+            if self.compliance is not None and self.options.refine and self.options.scale_prior > 0:
+                # the path held to the scales the law and its gauge say (fitted on the scales as registered, not
+                # refitted on the held ones, which would only return them): a chain's scale no longer wanders
+                self.registrar.refine_scales(self._expected_scales(self.compliance), self.options.scale_prior)
             self.gauge = self.compliance.gauge if self.compliance is not None else 1.0
         self.finished = True
         return self._restitch() if self.live else set()
+
+    def _expected_scales(self, fit: ComplianceFit) -> dict[int, float]:
+        """Return each placed frame's pose scale |a| as the fitted law and gauge say it is (rectified at the
+        calibration's compliance): g (1 - eps(F)) / (1 - c_n F)."""
+        c_n = self.calibration.compliance_per_n
+        out = {}
+        for i in self.registrar.order[1:]:
+            f = self.frames[i].load.fz_n
+            out[i] = fit.gauge * (1.0 - float(fit.strain(f))) / max(1.0 - c_n * f, 1e-3)
+        return out
 
     def _fit_compliance(self) -> ComplianceFit | None:
         placed = [i for i, r in self.results.items() if r.status == STATUS_OK and i in self.registrar.poses]

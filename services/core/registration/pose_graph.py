@@ -8,11 +8,11 @@ T_ij = T_i^-1 T_j, so a_j = a_i a_ij and t_j = t_i + a_i t_ij. Both equations ar
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.sparse import csr_matrix, diags, identity
+from scipy.sparse import csr_matrix, diags, identity, vstack
 from scipy.sparse.linalg import spsolve
 
 from services.core.similarity import Similarity
@@ -181,6 +181,7 @@ def optimise_poses(
     lever_mm: float = 20.0,
     robust_mm: float = 0.5,
     iterations: int = 10,
+    scale_priors: Mapping[int, tuple[float, float]] | None = None,
 ) -> GraphSolution:
     """Return poses minimising the robust (Cauchy) sum of edge misfits with node(s) `fixed` held at their poses.
 
@@ -207,6 +208,8 @@ def optimise_poses(
         p = initial[n]
         x0[col[n] : col[n] + 4] = [p.a.real, p.a.imag, p.t.real, p.t.imag]
     A0, b0 = _unit_system(initial, usable, col, lever_mm)
+    if scale_priors:
+        A0, b0 = _with_scale_priors(A0, b0, initial, col, scale_priors)
     n_edge_rows = 4 * len(usable)
     sigma = np.array([e.sigma_mm for e in usable])
     it = 0
@@ -229,6 +232,29 @@ def optimise_poses(
         weights = new_w
     resid = edge_residuals_mm(poses, usable, lever_mm)
     return GraphSolution(poses, weights, resid, it)
+
+
+def _with_scale_priors(
+    A: csr_matrix,
+    b: np.ndarray,
+    initial: dict[int, Similarity],
+    col: dict[int, int],
+    priors: Mapping[int, tuple[float, float]],
+) -> tuple[csr_matrix, np.ndarray]:
+    """Return (A, b) with one row per free node with a prior (target |a|, sigma): the component of a along its
+    initial direction, (u . a - target) / sigma, so the prior holds the pose's scale and leaves its rotation."""
+    nodes = [n for n in priors if n in col and abs(initial[n].a) > 0]
+    if not nodes:
+        return A, b
+    u = np.array([initial[n].a / abs(initial[n].a) for n in nodes], dtype=complex)
+    inv = np.array([1.0 / priors[n][1] for n in nodes])
+    k = np.arange(len(nodes))
+    c = np.array([col[n] for n in nodes], dtype=np.int64)
+    extra = csr_matrix(
+        (np.concatenate([u.real * inv, u.imag * inv]), (np.concatenate([k, k]), np.concatenate([c, c + 1]))),
+        shape=(len(nodes), A.shape[1]),
+    )
+    return vstack([A, extra]).tocsr(), np.concatenate([b, np.array([priors[n][0] for n in nodes]) * inv])
 
 
 def place_node(placed: dict[int, Similarity], edges: list[Edge], node: int, lever_mm: float = 20.0) -> Similarity:

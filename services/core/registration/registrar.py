@@ -483,6 +483,21 @@ class Registrar:
             return self._optimise(self.poses, self.edges, {self.order[0]})
         return self.local_refine()
 
+    def refine_scales(self, targets: dict[int, float], sigma: float) -> tuple[int, ...]:
+        """Re-optimise every pose with each frame's scale |a| held to its target with relative sigma `sigma`;
+        return the frames that moved.
+
+        Edges measure scale only relative to a neighbour, so along a chain with few loop closures (a hard scan's
+        rows) the scale wanders like a random walk; the tissue law fitted to the loads says what each frame's scale
+        is (SessionReconstruction._expected_scales), and holding every frame to it keeps the path's shape and the
+        gauge taken from the scales in step.
+        """
+        priors = {i: (t, sigma * t) for i, t in targets.items()}
+        solution = optimise_poses(self.poses, self.undeformed(self.edges), {self.order[0]}, scale_priors=priors)
+        moved = tuple(i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM)
+        self.poses.update(solution.poses)
+        return moved
+
     def local_refine(self) -> tuple[int, ...]:
         """Re-optimise the poses near the newest frame (the LOCAL_MAX nearest within LOCAL_RADIUS_WINDOWS window
         radii, and the newest LOCAL_RECENT frames), the frames they share edges with held where they are; return
