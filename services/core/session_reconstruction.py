@@ -192,14 +192,11 @@ class SessionReconstruction:
         return self._restitch() if self.live else set()
 
     def _expected_scales(self, fit: ComplianceFit) -> dict[int, float]:
-        """Return each placed frame's pose scale |a| as the fitted law and gauge say it is (rectified at the
-        calibration's compliance): g (1 - eps(F)) / (1 - c_n F)."""
-        c_n = self.calibration.compliance_per_n
-        out = {}
-        for i in self.registrar.order[1:]:
-            f = self.frames[i].load.fz_n
-            out[i] = fit.gauge * (1.0 - float(fit.strain(f))) / max(1.0 - c_n * f, 1e-3)
-        return out
+        """Return each placed frame's pose scale |a| as the fitted law and gauge say it is (frame 0 held)."""
+        placed = self.registrar.order[1:]
+        loads = np.array([self.frames[i].load.fz_n for i in placed])
+        expected = fit.expected_scales(loads, self.calibration.compliance_per_n)
+        return {i: float(a) for i, a in zip(placed, expected, strict=True)}
 
     def _fit_compliance(self) -> ComplianceFit | None:
         placed = [i for i, r in self.results.items() if r.status == STATUS_OK and i in self.registrar.poses]

@@ -95,6 +95,12 @@ class ComplianceFit:
         f = np.maximum(np.asarray(loads_n, float), 0.0)
         return self.compliance_per_n * f / (1.0 + self.stiffening_per_n * f)
 
+    def expected_scales(self, loads_n: np.ndarray, c_nominal: float) -> np.ndarray:
+        """Return the pose scales |a_k| (dimensionless) this law and gauge predict for frames at loads F_k (N)
+        rectified at the nominal compliance c_nominal: g (1 - eps(F)) / (1 - c_n F), fit_compliance's model."""
+        f = np.asarray(loads_n, float)
+        return self.gauge * (1.0 - self.strain(f)) / np.clip(1.0 - c_nominal * f, 1e-3, None)
+
     def young_modulus_kpa(self, poisson_ratio: float, area_m2: float) -> float:
         """Return E = nu / (c A) in kPa for the fitted zero-load compliance (the small-strain modulus)."""
         return poisson_ratio / (self.compliance_per_n * area_m2) / 1000.0

@@ -37,6 +37,8 @@ def test_recovers_compliance_and_gauge_noise_free() -> None:
     assert fit.gauge == pytest.approx(GAUGE, rel=1e-4)
     assert fit.residual_rms < 1e-4
     assert fit.young_modulus_kpa(0.5, 0.0048) == pytest.approx(16.1 * 0.94, rel=2e-3)
+    # the scales the fit predicts are the ones it was given (its own model, the fitted c within 2e-3: ~1e-4)
+    np.testing.assert_allclose(fit.expected_scales(loads, C_NOMINAL), _scales(loads, 0.0, 1), rtol=2e-4)
 
 
 def test_recovers_compliance_with_registration_noise() -> None:
