@@ -15,7 +15,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from services.core.simulation.scenarios import simulate
     from services.store.scan_folder import write_scan_folder
 
-    scan = simulate(args.scenario, args.seed, tissue=args.tissue, frames=args.frames, imu=args.imu)
+    texture = None
+    if args.texture is not None:
+        import cv2
+
+        texture = cv2.imread(str(args.texture), cv2.IMREAD_UNCHANGED)
+        if texture is None:
+            raise ValueError(f"--texture: cannot read an image from {args.texture}")
+    scan = simulate(args.scenario, args.seed, tissue=args.tissue, frames=args.frames, imu=args.imu, texture=texture)
     write_scan_folder(scan, args.out)
     length = scan.truth.get("path_length_mm", float("nan"))
     print(f"wrote {len(scan)} frames ({args.scenario}, seed {args.seed}, path {length:.0f} mm) to {args.out}")
@@ -176,6 +183,13 @@ def add_commands(command: Callable[[str, str], argparse.ArgumentParser]) -> None
         default=None,
         choices=["linear", "stiffening", "power", "toe"],
         help="a patient's tissue law with a hand's tilts (default: the calibration phantom)",
+    )
+    p.add_argument(
+        "--texture",
+        type=Path,
+        default=None,
+        metavar="PHOTO",
+        help="veins from a photograph's dark vessels, e.g. a fundus photograph (default: the procedural network)",
     )
     p.add_argument("--out", required=True, type=Path, help="scan folder to write (required)")
     p.set_defaults(func=cmd_simulate)

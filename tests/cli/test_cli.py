@@ -17,6 +17,7 @@ import pytest
 
 from cli.main import main
 from services.core.pipeline import PATH_COLUMNS
+from tests.services.core.synthetic_veins import vessel_photo
 from tests.tolerances import TOL
 
 pytestmark = pytest.mark.slow
@@ -40,6 +41,18 @@ def test_simulate_writes_a_scan_folder(scan_dir: Path) -> None:
     names = {p.name for p in scan_dir.iterdir()}
     assert {"calibration.json", "frames.csv", "frames", "forces.csv", "reference.csv"} <= names
     assert len(list((scan_dir / "frames").iterdir())) == 40
+
+
+def test_simulate_takes_its_veins_from_a_photograph(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    photo, _ = vessel_photo()
+    cv2.imwrite(str(tmp_path / "photo.png"), photo)
+    out = tmp_path / "scan"
+    assert main(["simulate", "--scenario", "short", "--texture", str(tmp_path / "photo.png"), "--out", str(out)]) == 0
+    assert json.loads((out / "truth.json").read_text())["texture"] == "photograph"
+    missing = tmp_path / "none.png"
+    assert main(["simulate", "--texture", str(missing), "--out", str(tmp_path / "other")]) == 2
+    assert f"--texture: cannot read an image from {missing}" in capsys.readouterr().err
+    assert not (tmp_path / "other").exists()
 
 
 def test_reconstruct_writes_the_path(outputs: Path) -> None:
