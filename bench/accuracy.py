@@ -39,8 +39,6 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import cv2
-import numpy as np
 from tqdm import tqdm
 
 from services.core.inputs.scan import Scan
@@ -52,6 +50,7 @@ from services.core.simulation.renderer import TISSUE_LAWS
 from services.core.simulation.scenarios import simulate
 from services.core.simulation.variants import FAINT_CONTRAST, ImagingVariant, scenario_imaging
 from services.store.scan_folder import read_scan_folder
+from services.store.texture_photo import read_texture_photo
 
 DEFAULT_SHARED = Path(__file__).resolve().parents[2] / "shared" / "scans"
 ALL_METHODS = ("best", "paper", "sift-chain")
@@ -93,19 +92,11 @@ class Cell:
         """Return the cell's Scan (read from its folder, or simulated)."""
         if self.folder is not None:
             return read_scan_folder(self.folder)
-        photo = None if self.texture is None else read_photo(self.texture)
+        photo = None if self.texture is None else read_texture_photo(self.texture)
         if self.look in TISSUE_CELLS:
             return simulate(self.scenario, self.seed, tissue=TISSUE_CELLS[self.look], texture=photo)
         imaging = LOOKS[self.look](scenario_imaging(self.scenario))
         return simulate(self.scenario, self.seed, dataclasses.replace(imaging, name=self.look), texture=photo)
-
-
-def read_photo(path: Path) -> np.ndarray:
-    """Return a texture photograph as stored (8/16-bit grayscale or BGR); SystemExit when it cannot be read."""
-    photo = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if photo is None:
-        raise SystemExit(f"--texture: cannot read an image from {path}")
-    return photo
 
 
 def shared_cells(root: Path) -> list[Cell]:
@@ -248,6 +239,11 @@ def main() -> int:
     cells = [] if args.no_shared else shared_cells(args.shared)
     if not args.no_shared and not cells:
         print(f"note: no shared scans with reference.csv under {args.shared}", file=sys.stderr)
+    if args.texture is not None:
+        try:
+            read_texture_photo(args.texture)  # a wrong path fails now, not after the shared scans' runs
+        except ValueError as exc:
+            parser.error(str(exc))
     if not args.no_sim:
         cells += sim_cells(scenarios, looks, seeds, args.texture)
 

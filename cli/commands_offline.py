@@ -14,14 +14,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     """Write a simulated scan folder (spec §3) with reference.csv."""
     from services.core.simulation.scenarios import simulate
     from services.store.scan_folder import write_scan_folder
+    from services.store.texture_photo import read_texture_photo
 
-    texture = None
-    if args.texture is not None:
-        import cv2
-
-        texture = cv2.imread(str(args.texture), cv2.IMREAD_UNCHANGED)
-        if texture is None:
-            raise ValueError(f"--texture: cannot read an image from {args.texture}")
+    texture = None if args.texture is None else read_texture_photo(args.texture)
     scan = simulate(args.scenario, args.seed, tissue=args.tissue, frames=args.frames, imu=args.imu, texture=texture)
     write_scan_folder(scan, args.out)
     length = scan.truth.get("path_length_mm", float("nan"))
