@@ -192,8 +192,8 @@ class SessionReconstruction:
         return self._restitch() if self.live else set()
 
     def _expected_scales(self, fit: ComplianceFit) -> dict[int, float]:
-        """Return each placed frame's pose scale |a| as the fitted law and gauge say it is (frame 0 held)."""
-        placed = self.registrar.order[1:]
+        """Return each placed frame's pose scale |a| as the fitted law and gauge say it is (frame 0's too)."""
+        placed = self.registrar.order
         loads = np.array([self.frames[i].load.fz_n for i in placed])
         expected = fit.expected_scales(loads, self.calibration.compliance_per_n)
         return {i: float(a) for i, a in zip(placed, expected, strict=True)}

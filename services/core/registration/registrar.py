@@ -491,9 +491,19 @@ class Registrar:
         rows) the scale wanders like a random walk; the tissue law fitted to the loads says what each frame's scale
         is (SessionReconstruction._expected_scales), and holding every frame to it keeps the path's shape and the
         gauge taken from the scales in step.
+
+        Frame 0, the path's origin, is set to its own target and held there (position and yaw unchanged). Held at
+        scale 1 while the others followed the law, its edges carried the gap between 1 and its law's scale into
+        every other frame's position (simulated hard s1, frame 0 at 30 N: 0.18 mm from frame 1 on). Left free
+        with a prior like the others, its weakly tied yaw moved too and turned the whole path (0.26 deg there).
         """
-        priors = {i: (t, sigma * t) for i, t in targets.items()}
-        solution = optimise_poses(self.poses, self.undeformed(self.edges), {self.order[0]}, scale_priors=priors)
+        first = self.order[0]
+        start = dict(self.poses)
+        if first in targets:
+            pose = self.poses[first]
+            start[first] = Similarity(pose.a / abs(pose.a) * targets[first], pose.t)
+        priors = {i: (t, sigma * t) for i, t in targets.items() if i != first}
+        solution = optimise_poses(start, self.undeformed(self.edges), {first}, scale_priors=priors)
         moved = tuple(i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM)
         self.poses.update(solution.poses)
         return moved

@@ -56,11 +56,18 @@ def test_the_scale_prior_holds_the_frames_to_the_tissue_law(scan: Scan, best: Re
         dev = [
             math.log(abs(p.a)) - math.log((1 - float(law.strain(loads[i]))) / (1 - c_n * loads[i]))
             for i, p in recon.poses.items()
-            if i != 0
         ]
         return float(np.std(dev))
 
     assert scatter(best) < 0.8 * scatter(free)  # measured 0.0014 against 0.0020
+    # frame 0, the origin, is set to the law's scale at its own load, not left at the gauge's 1 / g (to 1e-9: the
+    # law's formula against the held pose, only rounding between them)
+    assert best.compliance is not None and free.compliance is not None
+    load_0, c_n = best.rows[0].fz_n, scan.calibration.compliance_per_n
+    law_0 = (1 - float(best.compliance.strain(load_0))) / (1 - c_n * load_0)
+    assert abs(best.poses[0].a) == pytest.approx(law_0, rel=1e-9)
+    assert best.poses[0].t == 0j and best.poses[0].a.imag == 0.0
+    assert abs(free.poses[0].a) == pytest.approx(1 / free.compliance.gauge, rel=1e-9)
     assert BEST_RMSE_MM[0] <= _report(scan, free).rmse_mm <= BEST_RMSE_MM[1]
 
 

@@ -252,6 +252,32 @@ def test_long_scan_refines_locally_between_growing_global_passes() -> None:
     assert min(registrar.refine(final=True)) < 50  # the final refinement is global
 
 
+def test_the_scale_prior_sets_frame_0_to_its_own_target_and_keeps_it_the_origin() -> None:
+    """Frame 0 is held at the scale the tissue law gives it, not at 1: a chain registered from frame 0 at scale 1
+    (its image 3 % larger than the law's unit, as a frame rectified at 30 N with a compliance a few % off) comes out
+    at the truth. The edges and targets are exact; what is left is the pose graph's weak pull toward the registered
+    poses, 3 % larger (pose_graph.PRIOR_A, PRIOR_T_MM): tolerance 0.05 mm (0.021 measured at frame 7) and 1e-3
+    of a (2.9e-4 measured). Held at 1, frame 0 put frame 1 0.47 mm off and frame 7 1.13 mm."""
+    from services.core.registration.pose_graph import Edge
+
+    options = dataclasses.replace(method_options("best"), fit_tilt=False)
+    registrar = Registrar(options, px_per_mm=8.0, window_radius_mm=20.0, centre_px=(320.0, 240.0))
+    turn = np.exp(0.02j)
+    truth = {0: Similarity(0.97 + 0j, 0j)} | {k: Similarity(turn**k, complex(15.0 * k, 2.0 * k)) for k in range(1, 8)}
+    registered = {0: IDENTITY}
+    for k in range(1, 8):
+        relative = truth[k - 1].inverse().compose(truth[k])
+        registrar.edges.append(Edge(k - 1, k, relative, 0.05))
+        registered[k] = registered[k - 1].compose(relative)
+    registrar.poses = dict(registered)
+    registrar.order = list(range(8))
+    registrar.refine_scales({k: abs(p.a) for k, p in truth.items()}, 0.005)
+    assert registrar.poses[0].t == 0j and registrar.poses[0].a == pytest.approx(0.97, abs=1e-12)
+    for k in range(1, 8):
+        assert abs(registrar.poses[k].t - truth[k].t) < 0.05, k
+        assert abs(registrar.poses[k].a - truth[k].a) < 1e-3, k
+
+
 @pytest.mark.slow
 def test_a_hard_scans_rows_close_loops_onto_the_row_before() -> None:
     # 30 N, 60 % overlap: the chain drifts a few mm between passes over the same place, and a loop closure must
