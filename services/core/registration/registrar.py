@@ -494,8 +494,9 @@ class Registrar:
 
         Frame 0, the path's origin, is set to its own target and held there (position and yaw unchanged). Held at
         scale 1 while the others followed the law, its edges carried the gap between 1 and its law's scale into
-        every other frame's position (simulated hard s1, frame 0 at 30 N: 0.18 mm from frame 1 on). Left free
-        with a prior like the others, its weakly tied yaw moved too and turned the whole path (0.26 deg there).
+        every other frame's position (a simulated hard scan starting at 30 N: 0.18 mm from frame 1 on). Left free
+        with a prior like the others, its weakly tied yaw moved too and turned the whole path (0.26 deg on
+        simulated hard s1). docs/accuracy.md, "Frame 0 held to the law's scale".
         """
         first = self.order[0]
         start = dict(self.poses)
