@@ -500,9 +500,9 @@ class Registrar:
         """
         first = self.order[0]
         start = dict(self.poses)
-        if first in targets:
-            pose = self.poses[first]
-            start[first] = Similarity(pose.a / abs(pose.a) * targets[first], pose.t)
+        if first in targets:  # the whole placement rescaled about frame 0 (at the origin), so the graph's weak
+            ratio = targets[first] / abs(self.poses[first].a)  # pulls toward the start agree with frame 0's scale
+            start = {i: Similarity(p.a * ratio, p.t * ratio) for i, p in self.poses.items()}
         priors = {i: (t, sigma * t) for i, t in targets.items() if i != first}
         solution = optimise_poses(start, self.undeformed(self.edges), {first}, scale_priors=priors)
         moved = tuple(i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM)

@@ -255,9 +255,10 @@ def test_long_scan_refines_locally_between_growing_global_passes() -> None:
 def test_the_scale_prior_sets_frame_0_to_its_own_target_and_keeps_it_the_origin() -> None:
     """Frame 0 is held at the scale the tissue law gives it, not at 1: a chain registered from frame 0 at scale 1
     (its image 3 % larger than the law's unit, as a frame rectified at 30 N with a compliance a few % off) comes out
-    at the truth. The edges and targets are exact; what is left is the pose graph's weak pull toward the registered
-    poses, 3 % larger (pose_graph.PRIOR_A, PRIOR_T_MM): tolerance 0.05 mm (0.021 measured at frame 7) and 1e-3
-    of a (2.9e-4 measured). Held at 1, frame 0 put frame 1 0.47 mm off and frame 7 1.13 mm."""
+    at the truth. The edges and targets are exact and the start is rescaled with frame 0, so only the solver's
+    rounding is left: tolerance 1e-6 (mm, and of a; 1e-16 measured). Held at 1, frame 0 put frame 1 0.47 mm off
+    and frame 7 1.13 mm; rescaling frame 0 alone left the graph's weak pull toward the registered poses (0.021 mm
+    at frame 7)."""
     from services.core.registration.pose_graph import Edge
 
     options = dataclasses.replace(method_options("best"), fit_tilt=False)
@@ -274,8 +275,8 @@ def test_the_scale_prior_sets_frame_0_to_its_own_target_and_keeps_it_the_origin(
     registrar.refine_scales({k: abs(p.a) for k, p in truth.items()}, 0.005)
     assert registrar.poses[0].t == 0j and registrar.poses[0].a == pytest.approx(0.97, abs=1e-12)
     for k in range(1, 8):
-        assert abs(registrar.poses[k].t - truth[k].t) < 0.05, k
-        assert abs(registrar.poses[k].a - truth[k].a) < 1e-3, k
+        assert abs(registrar.poses[k].t - truth[k].t) < 1e-6, k
+        assert abs(registrar.poses[k].a - truth[k].a) < 1e-6, k
 
 
 @pytest.mark.slow
