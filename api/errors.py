@@ -30,6 +30,7 @@ from services.core.inputs.image_header import BadImageError
 from services.core.inputs.study import StudyContextError
 from services.core.method_options import without_values
 from services.jobs.reprocess import QueueFullError
+from services.log_format import failure_frames, failure_reason
 from services.store.session_export import NotFinishedError
 from services.store.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
 from services.store.stored_report import BadReferenceError, NoPathYetError, NothingToCompareError
@@ -236,7 +237,7 @@ def add_exception_handlers(app: FastAPI) -> None:
         return error_response(503, known[0], known[1], headers={"Retry-After": retry})
 
     async def unhandled(request: Request, exc: Exception) -> JSONResponse:
-        log.error("unhandled error", exc_info=(type(exc), exc, exc.__traceback__))
+        log.error("unhandled error: %s\n%s", failure_reason(exc), failure_frames(exc))
         return error_response(500, "internal_error", INTERNAL_ERROR_MESSAGE)
 
     app.add_exception_handler(APIError, api_error)
@@ -292,6 +293,7 @@ EXTRA_STATUSES: dict[tuple[str, str], tuple[int, ...]] = {
     ("post", f"{_S}/forces"): (409,),
     ("post", f"{_S}/reference"): (409, 415),
     ("post", f"{_S}/reprocess"): (409,),
+    ("post", f"{_S}/send"): (409,),
     ("post", "/v1/reprocess"): (404, 409),
 }
 

@@ -4,8 +4,12 @@ whitelisted fields — never labels, calibrations, tokens or raw URLs (no patien
 from __future__ import annotations
 
 import contextvars
+import errno
 import json
+import linecache
 import logging
+import traceback
+from pathlib import Path
 from typing import Any, TextIO
 
 request_id_var: contextvars.ContextVar[str] = contextvars.ContextVar("request_id", default="-")
@@ -67,3 +71,42 @@ def configure_json_logging(level: str, logger_name: str = "veinmosaic") -> None:
     if not any(isinstance(h.formatter, JsonFormatter) for h in root.handlers):
         root.addHandler(make_log_handler())
         root.propagate = False
+
+
+# The project's own packages: a message raised there is written to carry no patient data (tests check the routes
+# and stages); a library's message (pydicom, numpy, the standard library) may quote whatever value it choked on.
+_OWN_PACKAGES = tuple(str(Path(__file__).resolve().parents[1] / name) for name in ("services", "workers", "api", "cli"))
+
+
+def describe(exc: BaseException) -> str:
+    """Return a short description of a fault for logs: the type and errno name, never paths or contents."""
+    if isinstance(exc, OSError) and exc.errno is not None:
+        return f"{type(exc).__name__} {errno.errorcode.get(exc.errno, exc.errno)}"
+    return type(exc).__name__
+
+
+def _raised_in_own_code(exc: BaseException) -> bool:
+    """Return True if a `raise` statement of the project's own packages raised `exc` (not a call it made: int() or
+    a library called from there words its message itself)."""
+    tb = exc.__traceback__
+    if tb is None:
+        return False
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    filename = tb.tb_frame.f_code.co_filename
+    if not str(Path(filename).resolve()).startswith(_OWN_PACKAGES):
+        return False
+    return linecache.getline(filename, tb.tb_lineno).lstrip().startswith("raise")
+
+
+def failure_reason(exc: BaseException) -> str:
+    """Return what a job's failure is recorded and logged as: "Type: message" when the project's own code raised
+    it, else the type (and errno) alone, since a library's message may quote a patient's value it choked on."""
+    if _raised_in_own_code(exc):
+        return f"{type(exc).__name__}: {exc}"
+    return describe(exc)
+
+
+def failure_frames(exc: BaseException) -> str:
+    """Return the traceback's frames (file, line, function, source line) without the exception's message."""
+    return "".join(traceback.format_tb(exc.__traceback__)).rstrip()

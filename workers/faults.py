@@ -12,6 +12,11 @@ import random
 
 import redis
 
+from services.log_format import describe, failure_frames, failure_reason
+
+__all__ = ["describe", "failure_frames", "failure_reason"]  # re-exported: the workers' fault vocabulary
+
+
 TRANSIENT_ERRNOS: frozenset[int] = frozenset(
     code
     for code in (
@@ -53,13 +58,6 @@ def is_transient(exc: BaseException) -> bool:
             return True
         cur = cur.__cause__ or cur.__context__
     return False
-
-
-def describe(exc: BaseException) -> str:
-    """Return a short description of a fault for logs: the type and errno name, never paths or contents."""
-    if isinstance(exc, OSError) and exc.errno is not None:
-        return f"{type(exc).__name__} {errno.errorcode.get(exc.errno, exc.errno)}"
-    return type(exc).__name__
 
 
 class Backoff:

@@ -41,7 +41,7 @@ from services.settings import Settings
 from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.storage import SessionNotFoundError, SessionStore
 from workers.config import Context, WorkerConfig
-from workers.faults import Backoff, describe, is_transient
+from workers.faults import Backoff, describe, failure_frames, failure_reason, is_transient
 from workers.reconciler import Reconciler
 from workers.stages.prepare import Retry, handle_frame
 from workers.stages.register import RegisterStage
@@ -224,9 +224,10 @@ class Worker:
                 log.warning("job of kind %s met an infrastructure fault (%s); re-scheduled", kind, describe(exc))
                 self._requeue(stream, entry_id, fields, self.backoff.peek(), attempt)
                 return
-            log.error("job of kind %s failed: %s", fields.get("kind"), type(exc).__name__, exc_info=exc)
+            reason = failure_reason(exc)
+            log.error("job of kind %s failed: %s\n%s", fields.get("kind"), reason, failure_frames(exc))
             if failures + 1 >= cfg.max_deliveries:
-                self.dead_letter(stream, entry_id, fields, f"{type(exc).__name__}: {exc}")
+                self.dead_letter(stream, entry_id, fields, reason)
             else:
                 self._requeue(stream, entry_id, fields, 0.5 * (failures + 1), failures + 1)
             return
@@ -357,6 +358,8 @@ class Worker:
             queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
         elif kind in ("reprocess", "send") and fields.get("job"):
             jobs.update_job(ctx.r, ctx.prefix, fields["job"], state="failed", error=error[:300])
+            if kind == "reprocess":
+                queue.incr_metric(ctx.r, "jobs_failed_total", prefix=ctx.prefix)
             self.finish_job(fields["job"], "failed")
         queue.ack_delete(ctx.r, stream, entry_id)
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from services.core.mosaic.canvas import MosaicImage, force_to_color
 from services.core.mosaic.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
+from services.core.outputs.documents import folder_mosaic_json
 from services.core.outputs.plots import SheetIdentity, plot_coverage_map, plot_force_map
 from services.core.outputs.session_report import SessionReport, build_session_report
 from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
@@ -68,14 +69,9 @@ def write_reconstruction(
     (out / "layers.npz").write_bytes(layers_to_bytes(mosaic))
     (out / "force_map.png").write_bytes(plot_force_map(mosaic.force_n, mosaic.px_per_mm, mosaic.origin_px))
     (out / "coverage_map.png").write_bytes(plot_coverage_map(mosaic.coverage, mosaic.px_per_mm, mosaic.origin_px))
-    meta = mosaic.meta()
-    meta["method"] = recon.method
-    if recon.compliance is not None:
-        meta["compliance_per_n"] = recon.compliance.compliance_per_n
-        meta["gauge"] = recon.compliance.gauge
-    meta["tissue"] = recon.learned
-    if scan_digest:
-        meta["scan_digest"] = scan_digest
+    meta = folder_mosaic_json(
+        mosaic.meta(), method=recon.method, compliance=recon.compliance, tissue=recon.learned, scan_digest=scan_digest
+    )
     (out / "mosaic.json").write_text(json.dumps(meta, indent=2))
     extra = {
         "method": recon.method,

@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
+import ipaddress
 import json
 import logging
+from collections.abc import Callable
 
-from services.log_format import LOG_FIELDS, make_log_handler, request_id_var
+import pytest
+
+from services.core.inputs.calibration import default_calibration
+from services.core.inputs.image_header import BadImageError, ImageHeader, check_header
+from services.log_format import LOG_FIELDS, failure_frames, failure_reason, make_log_handler, request_id_var
 
 
 def test_only_whitelisted_extras_reach_the_line() -> None:
@@ -31,3 +38,40 @@ def test_only_whitelisted_extras_reach_the_line() -> None:
     assert "Jane" not in buf.getvalue() and "secret" not in buf.getvalue() and '"E"' not in buf.getvalue()
     assert "ValueError: boom" in second["exc"] and set(second) <= {"ts", "level", "logger", "msg", "request_id", "exc"}
     assert {"session", "seq", "route", "status"} <= set(LOG_FIELDS)
+
+
+# What a failed job or request is recorded and logged as: the project's own messages, never a library's.
+PATIENT = "Doe^Jane"  # a value a library or a builtin might quote back in its message
+
+
+def _caught(fn: Callable[[], object]) -> BaseException:
+    with pytest.raises(Exception) as info:
+        fn()
+    return info.value
+
+
+def test_a_message_the_projects_own_raise_wrote_is_kept() -> None:
+    header = ImageHeader(format="png", width=80, height=100, mode="L")
+    exc = _caught(lambda: check_header(header, 4096, (640, 480)))
+    assert isinstance(exc, BadImageError)
+    assert failure_reason(exc) == f"BadImageError: {exc}" and "calibration image_size" in failure_reason(exc)
+
+
+def test_a_librarys_message_is_reduced_to_its_type() -> None:
+    exc = _caught(lambda: ipaddress.ip_address(PATIENT))  # raised in the standard library, quoting its argument
+    assert PATIENT in str(exc)
+    assert failure_reason(exc) == "ValueError"
+
+
+def test_a_builtin_called_from_own_code_is_reduced_too() -> None:
+    calib = dataclasses.replace(default_calibration(), camera_matrix=[[1, 0, PATIENT], [0, 1, 2], [0, 0, 1]])
+    exc = _caught(lambda: calib.principal_point)  # float() inside services quotes its argument
+    assert PATIENT in str(exc)
+    assert failure_reason(exc) == "ValueError"
+
+
+def test_the_logged_frames_name_where_it_failed_but_not_the_message() -> None:
+    exc = _caught(lambda: ipaddress.ip_address(PATIENT))
+    frames = failure_frames(exc)
+    assert "ipaddress.py" in frames and "test_log_format.py" in frames
+    assert PATIENT not in frames.replace("ip_address(PATIENT)", "")  # source lines name variables, not values

@@ -137,7 +137,11 @@ def test_two_workers_out_of_order_equal_offline_then_reprocess(
     meta2 = results.read_mosaic_meta(sid, 2)
     assert meta2["status"] == "done" and meta2["frames"]["ok"] == 40
     assert (meta2["width"], meta2["height"]) == (meta["width"], meta["height"])
-    assert metric(backend, "jobs_done_total") == 1
+    assert metric(backend, "jobs_done_total") == 1 and metric(backend, "jobs_failed_total") == 0
+    (bad,) = jobs.enqueue_jobs(backend.r, backend.prefix, "", [sid], {"method": "no-such-method"})
+    wait_for(lambda: jobs.read_job(backend.r, backend.prefix, bad).get("state") == "failed", 30, "job failed")
+    assert "invalid options" in jobs.read_job(backend.r, backend.prefix, bad)["error"]
+    assert metric(backend, "jobs_failed_total") == 1 and results.current_version(sid) == 2
 
 
 def _key(name: str) -> tuple[int, int, int]:

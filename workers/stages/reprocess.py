@@ -33,7 +33,7 @@ from services.store.storage import SessionNotFoundError
 from services.store.stored_report import write_version_report
 from services.store.version_state import VersionState
 from workers.config import Context
-from workers.faults import is_transient
+from workers.faults import failure_frames, failure_reason, is_transient
 from workers.publisher import Publisher
 from workers.scan_from_store import scan_from_store
 
@@ -87,6 +87,12 @@ def write_report(ctx: Context, sid: str, v: int) -> dict[str, Any] | None:
         return None
 
 
+def _fail(ctx: Context, job_id: str, error: str) -> None:
+    """Mark a reprocess job failed with its reason and count it (jobs_failed_total on /metrics)."""
+    _set_job(ctx, job_id, state="failed", error=error[:300])
+    queue.incr_metric(ctx.r, "jobs_failed_total", prefix=ctx.prefix)
+
+
 def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], None]) -> None:
     """Run one reprocess job to completion (job hash state done or failed); JobInterruptedError on stop."""
     job_id, sid = fields.get("job", ""), fields.get("session", "")
@@ -95,10 +101,10 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         doc = json.loads(fields.get("options") or "{}")
         opts, calib = method_of(ctx.store, sid, doc)
     except SessionNotFoundError:
-        _set_job(ctx, job_id, state="failed", error="no such session")
+        _fail(ctx, job_id, "no such session")
         return
     except ValueError as exc:
-        _set_job(ctx, job_id, state="failed", error=f"invalid options: {exc}"[:300])
+        _fail(ctx, job_id, f"invalid options: {exc}")
         return
     v = ctx.results.create_version(sid, {**doc, "source": "reprocess", "job": job_id}, make_current=False)
     sv = ctx.version(sid, v)
@@ -135,8 +141,9 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
             shutil.rmtree(ctx.results.version_dir(sid, v), ignore_errors=True)
             _set_job(ctx, job_id, state="queued", done=0)
             raise
-        log.exception("reprocess job failed")
-        _set_job(ctx, job_id, state="failed", error=f"{type(exc).__name__}: {exc}"[:300])
+        reason = failure_reason(exc)
+        log.error("reprocess job failed: %s\n%s", reason, failure_frames(exc))
+        _fail(ctx, job_id, reason)
         Publisher(ctx).write_state(sid, v, VersionState(failed=True))  # the viewer's banner stops
         return
     seconds = time.perf_counter() - started

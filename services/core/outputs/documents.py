@@ -166,6 +166,32 @@ def mosaic_json(
             "method": method,
         }
     )
+    return _with_fit(doc, compliance, tissue)
+
+
+def folder_mosaic_json(
+    image: Mapping[str, Any],
+    *,
+    method: str,
+    compliance: ComplianceFit | None = None,
+    tissue: Mapping[str, Any] | None = None,
+    scan_digest: str | None = None,
+) -> dict[str, Any]:
+    """Return an offline output folder's mosaic.json (spec §4): the image part (MosaicImage.meta()), the method,
+    the compliance fit and what the scan taught of the tissue, and the scan's content digest (the key the DICOM
+    export's UIDs derive from) when known. The service's mosaic.json is `mosaic_json`."""
+    doc: dict[str, Any] = {k: image[k] for k in IMAGE_KEYS if k in image}
+    doc["method"] = method
+    doc = _with_fit(doc, compliance, tissue)
+    if scan_digest:
+        doc["scan_digest"] = scan_digest
+    return doc
+
+
+def _with_fit(
+    doc: dict[str, Any], compliance: ComplianceFit | None, tissue: Mapping[str, Any] | None
+) -> dict[str, Any]:
+    """Return doc with the compliance fit (compliance_per_n, gauge) and the learned tissue model added, if any."""
     if compliance is not None:
         doc["compliance_per_n"] = compliance.compliance_per_n
         doc["gauge"] = compliance.gauge

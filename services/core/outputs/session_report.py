@@ -33,7 +33,6 @@ from services.core.outputs.plots import (
 from services.core.outputs.scan_quality import FrameSummary, scan_warnings, summarize_frames
 from services.core.session_reconstruction import PathRow
 
-SHEET_NAMES = ("sheet.png", "sheet.pdf")
 ACCURACY_PLOTS = ("paths.png", "errors.png")
 PLOT_NAMES = ("paths", "errors")  # the report plots a results version keeps (ACCURACY_PLOTS without ".png")
 

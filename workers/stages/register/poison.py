@@ -11,6 +11,7 @@ import logging
 
 from services.jobs import dead_letters
 from workers.config import Context
+from workers.faults import failure_frames, failure_reason
 from workers.stages.register.held import HeldSession
 
 log = logging.getLogger("veinmosaic.worker")
@@ -25,7 +26,8 @@ class PoisonCounter:
     def registration_failed(self, held: HeldSession, seq: int, exc: Exception) -> None:
         """Count a registration failure of `seq`; after max_deliveries mark it poison; hand the session off."""
         ctx = self.ctx
-        log.error("registration failed: %s", type(exc).__name__, exc_info=exc, extra={"session": held.sid, "seq": seq})
+        reason = failure_reason(exc)
+        log.error("registration failed: %s\n%s", reason, failure_frames(exc), extra={"session": held.sid, "seq": seq})
         fails = dead_letters.count_registration_failure(ctx.r, held.sid, held.version, seq, ctx.prefix)
         if fails >= ctx.config.max_deliveries:
             ctx.results.mark_poison(held.sid, held.version, seq, f"registration failed: {type(exc).__name__}")
@@ -34,7 +36,7 @@ class PoisonCounter:
                 "session": held.sid,
                 "version": str(held.version),
                 "seq": str(seq),
-                "error": f"{type(exc).__name__}: {exc}"[:200],
+                "error": reason[:200],
             }
             dead_letters.dead_letter(ctx.r, entry, ctx.prefix)
         held.lease.release(ctx.r, mode="handoff", handoff_delay_s=0.5)  # a fresh holder retries

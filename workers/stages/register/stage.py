@@ -23,7 +23,7 @@ from services.jobs.leases import Lease
 from services.store.results_store import LIVE_VERSION
 from services.store.storage import SessionNotFoundError
 from workers.config import Context
-from workers.faults import describe, is_transient
+from workers.faults import describe, failure_frames, failure_reason, is_transient
 from workers.publisher import Publisher
 from workers.stages.register.completion import Completion
 from workers.stages.register.cursor import Cursor
@@ -139,7 +139,12 @@ class RegisterStage:
         if is_transient(exc):
             log.warning("infrastructure fault (%s); session handed off", describe(exc), extra={"session": held.sid})
         else:
-            log.error("serving a session failed; handed off", exc_info=exc, extra={"session": held.sid})
+            log.error(
+                "serving a session failed (%s); handed off\n%s",
+                failure_reason(exc),
+                failure_frames(exc),
+                extra={"session": held.sid},
+            )
         self.leases.hand_off_after_fault(held)
 
     # ----- take-over ------------------------------------------------------------------------------------------
