@@ -18,9 +18,7 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
-import numpy as np
-
-from services.core.mosaic.canvas import PLANES, TILE_PX, MosaicImage, SparseCanvas
+from services.core.mosaic.canvas import MosaicImage, SparseCanvas
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
 from services.core.outputs.documents import canvas_extent_mm, empty_revisions
 from services.core.physics.compliance import ComplianceFit
@@ -42,33 +40,6 @@ log = logging.getLogger("veinmosaic.worker")
 
 class JobInterruptedError(Exception):
     """The worker is stopping: the job goes back on the queue."""
-
-
-def canvas_from_mosaic(mosaic: MosaicImage) -> SparseCanvas:
-    """Return a SparseCanvas holding a rendered mosaic (unit weight per covered pixel) in canvas tile layout."""
-    canvas = SparseCanvas(mosaic.px_per_mm)
-    h, w = mosaic.vein.shape
-    ox, oy = (round(v) for v in mosaic.origin_px)  # the canvas pixel 0 is mosaic pixel origin_px
-    covered = np.isfinite(mosaic.force_n) & (mosaic.coverage > 0)
-    planes = np.zeros((h, w, PLANES), np.float32)
-    planes[..., 0] = np.where(covered, mosaic.vein / 255.0, 0)
-    planes[..., 1] = covered
-    planes[..., 2] = np.where(covered, np.nan_to_num(mosaic.force_n), 0)
-    planes[..., 3] = np.where(covered, mosaic.coverage, 0)
-    c0, r0 = (-ox) // TILE_PX, (-oy) // TILE_PX
-    c1, r1 = (w - 1 - ox) // TILE_PX, (h - 1 - oy) // TILE_PX
-    for r in range(r0, r1 + 1):
-        for c in range(c0, c1 + 1):
-            x0, y0 = c * TILE_PX + ox, r * TILE_PX + oy  # tile origin in mosaic pixels
-            tile = np.zeros((TILE_PX, TILE_PX, PLANES), np.float32)
-            sx0, sy0 = max(0, x0), max(0, y0)
-            sx1, sy1 = min(w, x0 + TILE_PX), min(h, y0 + TILE_PX)
-            if sx1 <= sx0 or sy1 <= sy0:
-                continue
-            tile[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = planes[sy0:sy1, sx0:sx1]
-            if np.any(tile[..., 1] > 0):
-                canvas.tiles[(c, r)] = tile
-    return canvas
 
 
 def _set_job(ctx: Context, job_id: str, **values: Any) -> None:
@@ -174,7 +145,7 @@ def write_version(
     pub.write_path(sid, v, rows)
     geometry = DziGeometry.for_mosaic(mosaic.px_per_mm, ctx.config.half_extent_mm)
     pyramid = TilePyramid(geometry)
-    canvas = canvas_from_mosaic(mosaic)
+    canvas = SparseCanvas.from_mosaic(mosaic)
     changed = pyramid.update(canvas, set(canvas.tiles))
     revisions = empty_revisions()
     pub.write_tiles(sid, v, pyramid, changed, 1, revisions, fresh=True, heartbeat=heartbeat)

@@ -169,6 +169,33 @@ class SparseCanvas:
             touched.append(key)
         return touched
 
+    @classmethod
+    def from_mosaic(cls, mosaic: MosaicImage) -> SparseCanvas:
+        """Return a canvas holding a rendered mosaic (unit weight per covered pixel): the inverse of render()."""
+        canvas = cls(mosaic.px_per_mm)
+        h, w = mosaic.vein.shape
+        ox, oy = (round(v) for v in mosaic.origin_px)  # the canvas pixel 0 is mosaic pixel origin_px
+        covered = np.isfinite(mosaic.force_n) & (mosaic.coverage > 0)
+        planes = np.zeros((h, w, PLANES), np.float32)
+        planes[..., 0] = np.where(covered, mosaic.vein / 255.0, 0)
+        planes[..., 1] = covered
+        planes[..., 2] = np.where(covered, np.nan_to_num(mosaic.force_n), 0)
+        planes[..., 3] = np.where(covered, mosaic.coverage, 0)
+        c0, r0 = (-ox) // TILE_PX, (-oy) // TILE_PX
+        c1, r1 = (w - 1 - ox) // TILE_PX, (h - 1 - oy) // TILE_PX
+        for r in range(r0, r1 + 1):
+            for c in range(c0, c1 + 1):
+                x0, y0 = c * TILE_PX + ox, r * TILE_PX + oy  # tile origin in mosaic pixels
+                tile = np.zeros((TILE_PX, TILE_PX, PLANES), np.float32)
+                sx0, sy0 = max(0, x0), max(0, y0)
+                sx1, sy1 = min(w, x0 + TILE_PX), min(h, y0 + TILE_PX)
+                if sx1 <= sx0 or sy1 <= sy0:
+                    continue
+                tile[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = planes[sy0:sy1, sx0:sx1]
+                if np.any(tile[..., 1] > 0):
+                    canvas.tiles[(c, r)] = tile
+        return canvas
+
     def extent_tiles(self) -> tuple[int, int, int, int] | None:
         """Return (col0, row0, col1, row1) inclusive of the tiles present, or None when empty."""
         if not self.tiles:
