@@ -107,7 +107,7 @@ def key_principal(request: Request) -> Principal | None:
 
 
 def remember(request: Request, principal: Principal) -> Principal:
-    """Leave the caller's principal in the ASGI scope for the audit log (api.audit); return it."""
+    """Return the caller's principal, left in the ASGI scope for the audit log (api.audit)."""
     request.scope[PRINCIPAL_KEY] = principal
     return principal
 
@@ -168,8 +168,11 @@ SECURITY_SCHEMES: dict[str, dict[str, str]] = {
 
 
 def document_security(schema: dict[str, Any]) -> dict[str, Any]:
-    """State in an OpenAPI document which credential each operation takes: a bearer key on /v1/ and /viewer/
-    routes, or a viewer token on the GET routes of one session (view_principal); none elsewhere."""
+    """Return the OpenAPI document `schema`, changed in place to state which credential each operation takes.
+
+    A bearer key on /v1/ and /viewer/ routes, or a viewer token on the GET routes of one session
+    (view_principal); none elsewhere.
+    """
     schema.setdefault("components", {})["securitySchemes"] = SECURITY_SCHEMES
     for path, item in schema.get("paths", {}).items():
         for method, operation in item.items():

@@ -43,7 +43,7 @@ def _success_models(operation: dict[str, Any]) -> Iterator[tuple[str, str, dict[
 
 
 def add_links(schema: dict[str, Any]) -> dict[str, Any]:
-    """Add to `schema` (in place, and return it) a link from each id's producers to each operation taking it.
+    """Return `schema` with a link (added in place) from each id's producers to each operation taking it.
 
     An id whose producing schema lacks its field yields no link (the links test names what went missing).
     """

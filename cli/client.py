@@ -46,7 +46,7 @@ class RetryLaterError(Exception):
 
 
 def retry_after_s(response: httpx.Response, now: float | None = None) -> float | None:
-    """Return the wait a Retry-After header asks for (seconds or an HTTP date), or None when absent or invalid."""
+    """Return the wait (s) a Retry-After header asks for (seconds or an HTTP date), None when absent or invalid."""
     value = response.headers.get("Retry-After", "").strip()
     if not value:
         return None
@@ -61,7 +61,7 @@ def retry_after_s(response: httpx.Response, now: float | None = None) -> float |
 
 
 def wait_for(state: RetryCallState) -> float:
-    """Return the wait before the next attempt: the answer's Retry-After (capped), else exponential back-off."""
+    """Return the wait (s) before the next attempt: the answer's Retry-After (capped), else exponential back-off."""
     error = state.outcome.exception() if state.outcome is not None else None
     if isinstance(error, RetryLaterError):
         asked = retry_after_s(error.response)
@@ -137,7 +137,7 @@ class VeinmosaicClient:
         return self.request("POST", "/v1/sessions", json=body).json()
 
     def upload_frame(self, session_id: str, seq: int, t_s: float, data: bytes, filename: str) -> int:
-        """Upload one frame; return the HTTP status (202 new, 200 already there)."""
+        """Return the HTTP status of uploading one frame (202 new, 200 already there)."""
         files = {"image": (filename, data, "application/octet-stream")}
         meta = json.dumps({"seq": int(seq), "t_s": float(t_s)})
         return self.request("POST", f"/v1/sessions/{session_id}/frames", files=files, data={"meta": meta}).status_code
@@ -158,7 +158,7 @@ class VeinmosaicClient:
         return self.request("GET", f"/v1/sessions/{session_id}").json()
 
     def post_reference(self, session_id: str, csv_text: str) -> dict[str, Any]:
-        """Upload reference.csv; return the accuracy report."""
+        """Return the accuracy report of uploading reference.csv."""
         headers = {"Content-Type": "text/csv"}
         return self.request(
             "POST", f"/v1/sessions/{session_id}/reference", content=csv_text.encode(), headers=headers
@@ -167,7 +167,7 @@ class VeinmosaicClient:
     def wait_done(
         self, session_id: str, timeout_s: float = 600.0, progress: Callable[[dict[str, Any]], None] | None = None
     ) -> dict[str, Any]:
-        """Poll until the session is done (or failed); return its final state; raise TimeoutError."""
+        """Return the session's final state, polling until it is done (or failed); raise TimeoutError."""
         deadline = time.monotonic() + timeout_s
         while True:
             state = self.session(session_id)
@@ -180,11 +180,11 @@ class VeinmosaicClient:
             time.sleep(0.5)
 
     def send(self, session_id: str, destination: str) -> str:
-        """Queue a send of the session's DICOM objects to a configured PACS destination; return the job id."""
+        """Return the job id of a send queued of the session's DICOM objects to a configured PACS destination."""
         return self.request("POST", f"/v1/sessions/{session_id}/send", json={"destination": destination}).json()["job"]
 
     def wait_job(self, job_id: str, timeout_s: float = 300.0) -> dict[str, Any]:
-        """Poll a job until it is done or failed; return its final state; raise TimeoutError."""
+        """Return a job's final state, polling until it is done or failed; raise TimeoutError."""
         deadline = time.monotonic() + timeout_s
         while True:
             job = self.request("GET", f"/v1/jobs/{job_id}").json()
@@ -205,7 +205,7 @@ def upload_scan_folder(
     on_session: Callable[[dict[str, Any]], None] | None = None,
     study: dict[str, str] | None = None,
 ) -> str:
-    """Upload a scan folder (spec §3) as a device would; return the session id. study: the examination's context.
+    """Return the session id of a scan folder (spec §3) uploaded as a device would. study: the examination's context.
 
     realtime > 0 paces frames at that multiple of the recorded frame rate (1.0 = as recorded); 0 = as fast
     as the server accepts. Frames go in time order with `parallel` in flight; forces lead them.

@@ -11,7 +11,7 @@ from cli import output
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    """Write a simulated scan folder (spec §3) with reference.csv."""
+    """Return the exit code 0 after writing a simulated scan folder (spec §3) with reference.csv."""
     from services.core.simulation.scenarios import simulate
     from services.store.scan_folder import write_scan_folder
     from services.store.texture_photo import read_texture_photo
@@ -25,7 +25,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    """Reconstruct a scan folder and write path, mosaic, layers, plots and report (see services.store.output_folder)."""
+    """Return the exit code 0 after reconstructing a scan folder and writing path, mosaic, layers, plots and report.
+
+    The outputs are services.store.output_folder's.
+    """
     from services.core.methods import method_options
     from services.core.outputs.dicom_export import scan_digest
     from services.core.pipeline import reconstruct
@@ -75,7 +78,10 @@ def _parse_options(pairs: list[str]) -> dict[str, object]:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    """Fit E and kappa from a calibration scan; print the fits and write an updated calibration.json."""
+    """Return the exit code 0 after fitting E and kappa from a calibration scan.
+
+    It prints the fits and writes an updated calibration.json.
+    """
     from services.core.calibration_fit import calibrate_scan, format_calibration_report
     from services.store.scan_folder import read_scan_folder
 
@@ -116,7 +122,10 @@ def _results_key(results: Path) -> tuple[str, str]:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    """Write a reconstruct output folder's layers (and its one-page report) as DICOM files of one study."""
+    """Return the exit code 0 after writing a reconstruct output folder's layers as DICOM files of one study.
+
+    Its one-page report too, when it has one.
+    """
     from datetime import UTC, datetime
 
     from services.core.inputs.study import parse_study

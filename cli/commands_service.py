@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 
 def cmd_send(args: argparse.Namespace) -> int:
-    """Send the DICOM files (*.dcm) of a results folder to a PACS; exit 1 unless the PACS stored every one."""
+    """Return the exit code of sending a results folder's DICOM files (*.dcm) to a PACS: 1 unless it stored all."""
     import dataclasses
 
     from services.pacs.destinations import DimseDestination, check_ae_title, parse_target
@@ -86,7 +86,10 @@ def _service(args: argparse.Namespace, settings: Settings, extra_env: dict[str, 
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    """Run the API and N workers (and an embedded Redis when REDIS_URL is unset) until interrupted."""
+    """Return the exit code of running the API and N workers until interrupted.
+
+    An embedded Redis runs too when REDIS_URL is unset.
+    """
     service = _service(args, _settings_for(args))
     with service:
         print(f"veinmosaic serving on {service.base_url} with {args.workers} worker(s); data in {service.data_dir}")
@@ -99,14 +102,14 @@ def worker_argv() -> list[str]:
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
-    """Become one worker process against the configured Redis and storage (exec: cli never imports workers)."""
+    """Return never: exec one worker process against the configured Redis and storage (cli never imports workers)."""
     argv = worker_argv()
     os.execv(argv[0], argv)
     return 0  # not reached
 
 
 def cmd_upload(args: argparse.Namespace) -> int:
-    """Upload a scan folder to a running server, as a hospital system would."""
+    """Return the exit code 0 after uploading a scan folder to a running server, as a hospital system would."""
     from cli.client import VeinmosaicClient, upload_scan_folder
 
     client = VeinmosaicClient(args.url, args.key)
@@ -126,7 +129,10 @@ def cmd_upload(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Serve, simulate a scan, upload it over HTTP, wait for the result and show it (report, images, viewer)."""
+    """Return the exit code of a demo: serve, simulate a scan, upload it over HTTP, wait for the result and show it.
+
+    Shown: the report, the images, the viewer.
+    """
     data_dir = args.data_dir
     settings = _settings_for(args)
     args.data_dir = data_dir  # the demo's own default: a throw-away data dir, not the configured one

@@ -88,7 +88,7 @@ def serve_command(port: int, workers: int) -> list[str]:
 def start_process(
     command: list[str], env: dict[str, str], log_path: Path | None = None, cwd: Path | None = None
 ) -> subprocess.Popen[bytes]:
-    """Start `command`; its stdout and stderr appended to log_path (discarded without one)."""
+    """Return the process started for `command`; its stdout and stderr appended to log_path (discarded without one)."""
     if log_path is None:
         return subprocess.Popen(command, cwd=cwd, env=env, stdout=subprocess.DEVNULL)
     with open(log_path, "ab") as out:  # the child keeps its own descriptor
@@ -207,7 +207,7 @@ class Service:
         return {c.name: c.process.pid for c in self.children}
 
     def backoff_s(self, failures: int) -> float:
-        """Return the delay before restarting a process after `failures` consecutive short-lived runs."""
+        """Return the delay (s) before restarting a process after `failures` consecutive short-lived runs."""
         s = self.settings
         return float(min(s.restart_max_s, s.restart_first_s * 2.0 ** min(failures, 20)))
 
@@ -358,7 +358,7 @@ class Service:
         self._embedded_wanted = False
 
     def wait(self) -> int:
-        """Supervise (restart what exits) until SIGINT/SIGTERM arrives; return the exit code 0."""
+        """Return the exit code 0 once SIGINT/SIGTERM arrives, supervising (restarting what exits) until then."""
         from services.log_format import configure_json_logging
 
         configure_json_logging(str(self.settings.log_level))

@@ -35,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the veinmosaic command line; return the exit code."""
+    """Return the exit code of running the veinmosaic command line."""
     from services.core.inputs.calibration import CalibrationError
     from services.store.scan_folder import ScanFormatError
 

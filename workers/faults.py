@@ -69,13 +69,13 @@ class Backoff:
         self.failures = 0
 
     def next(self) -> float:
-        """Return the delay before the next attempt and count one more failure."""
+        """Return the delay (s) before the next attempt and count one more failure."""
         delay = min(self.max_s, self.first_s * (2.0 ** min(self.failures, 30)))
         self.failures += 1
         return delay * random.uniform(0.8, 1.0)
 
     def peek(self) -> float:
-        """Return the delay next() would return (without jitter), without counting a failure."""
+        """Return the delay (s) next() would return (without jitter), without counting a failure."""
         return min(self.max_s, self.first_s * (2.0 ** min(self.failures, 30)))
 
     def reset(self) -> None:

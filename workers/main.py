@@ -247,7 +247,7 @@ class Worker:
         queue.ack_delete(self.ctx.r, stream, entry_id)
 
     def dispatch(self, stream: str, entry_id: str, fields: dict[str, str]) -> Retry | str | None:
-        """Run the stage an entry belongs to."""
+        """Return the outcome of running the stage an entry belongs to: a Retry (back after its delay), DONE or None."""
         ctx = self.ctx
         kind = fields.get("kind")
         sid = fields.get("session", "")
@@ -281,9 +281,12 @@ class Worker:
             self._published_held, self._published_at = held, now
 
     def run_job(self, stream: str, entry_id: str, fields: dict[str, str]) -> Retry | None:
-        """Run a job (reprocess or send) once: under its run lock, unless it is finished (then the entry is
-        dropped) or running in another worker (then the entry waits job_busy_retry_s and looks again). A send
-        may answer Retry (session not done, PACS unreachable): its entry comes back after the delay."""
+        """Return a Retry (the entry comes back after its delay) or None, running a job (reprocess or send) once.
+
+        It runs under its run lock, unless it is finished (then the entry is dropped) or running in another worker
+        (then the entry waits job_busy_retry_s and looks again). A send may answer Retry (session not done, PACS
+        unreachable): its entry comes back after the delay.
+        """
         ctx, job_id = self.ctx, fields.get("job", "")
         if self._job_settled(job_id):  # a second entry of a finished job (a reconciler race)
             log.info("entry of a finished job dropped")
@@ -377,7 +380,7 @@ def run_worker(
     config: WorkerConfig | None = None,
     **options: Any,
 ) -> int:
-    """Run one worker until SIGTERM/SIGINT (or `stop` is set, or max_seconds pass); return the exit code 0.
+    """Return the exit code 0 after running one worker until SIGTERM/SIGINT (or `stop` is set, or max_seconds pass).
 
     config: the worker's configuration made from the settings (WorkerConfig.from_settings, what main() passes);
     without it one is made from data_dir, redis_url, prefix, consumer and `options`, any other WorkerSettings
@@ -444,7 +447,7 @@ def worker_config(args: argparse.Namespace, settings: Settings) -> WorkerConfig:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run a worker configured by services.settings.Settings (read once, here) and the command line."""
+    """Return the exit code of a worker run as services.settings.Settings (read once, here) and the command line say."""
     from services.log_format import configure_json_logging
 
     args = build_parser().parse_args(argv)

@@ -79,7 +79,7 @@ class Publisher:
         fresh: bool = False,
         heartbeat: Callable[[], None] = lambda: None,
     ) -> Revisions:
-        """Render and write `tiles` of both layers; return {layer: {name: revision}} of what changed.
+        """Return {layer: {name: revision}} of what changed, rendering and writing `tiles` of both layers.
 
         A tile with no data any more is deleted (the API serves a blank one) and its revision recorded so that
         clients re-read it; in a `fresh` version (nothing written before) there is nothing to delete or record.
@@ -108,14 +108,16 @@ class Publisher:
         return changed
 
     def write_images(self, sid: str, v: int, mosaic: MosaicImage, raw_layers: bool = True) -> dict[str, Any]:
-        """Write mosaic.png, force.png, coverage.png (and raw_layers: layers.npz); return the image meta."""
+        """Return the image meta, writing mosaic.png, force.png, coverage.png (and raw_layers: layers.npz)."""
         self.ctx.results.write_mosaic_images(sid, v, mosaic, raw_layers=raw_layers)
         return mosaic.meta()
 
     def write_mosaic_json(self, sid: str, v: int, image: Mapping[str, Any], **fields: Any) -> dict[str, Any]:
-        """Write mosaic.json of version v and return it: documents.mosaic_json(image, results_version=v,
-        **fields), the one shape every producer writes (version, revisions, geometry, extent_mm, rows, status,
-        method, compliance)."""
+        """Return the mosaic.json of version v, written now: the one shape every producer writes.
+
+        It is documents.mosaic_json(image, results_version=v, **fields) (version, revisions, geometry, extent_mm,
+        rows, status, method, compliance).
+        """
         doc = mosaic_json(image, results_version=v, **fields)
         self.ctx.results.write_mosaic_meta(sid, v, doc)
         return doc

@@ -66,7 +66,10 @@ def known_frame_jobs(ctx: Context) -> set[tuple[str, int]]:
 
 
 def reconcile(ctx: Context) -> dict[str, int]:
-    """Re-enqueue stored frames with no job and no result, kick unheld sessions, rebuild lost counters."""
+    """Return the counts of one reconciliation (sessions, frames_requeued, kicks, counters_rebuilt, jobs_requeued).
+
+    It re-enqueues stored frames with no job and no result, kicks unheld sessions, rebuilds lost counters.
+    """
     started = time.monotonic()
     queue.ensure_groups(ctx.r, ctx.prefix)
     known = known_frame_jobs(ctx)
@@ -113,7 +116,7 @@ def reconcile(ctx: Context) -> dict[str, int]:
 
 
 def reconcile_jobs(ctx: Context) -> int:
-    """Re-enqueue every reprocess job with an open ledger record that Redis no longer holds; return how many."""
+    """Return how many reprocess jobs with an open ledger record that Redis no longer holds were re-enqueued."""
     records = ctx.store.jobs.open_jobs()
     if not records:
         return 0
@@ -158,7 +161,7 @@ class Reconciler:
         self.urgent = True  # at start-up
 
     def maybe_run(self) -> dict[str, int] | None:
-        """Run the reconciler when due and this worker wins the lock; return its stats, else None."""
+        """Return the reconciler's stats when it ran (due, and this worker won the lock), else None."""
         ctx, cfg = self.ctx, self.ctx.config
         now = time.monotonic()
         if now < self.next_check and not self.urgent:

@@ -101,7 +101,7 @@ async def events(
     last_event_id: Annotated[str | None, Header(alias="Last-Event-ID")] = None,
     last_event_id_q: Annotated[str | None, Query(alias="last_event_id", max_length=41)] = None,
 ) -> EventSourceResponse:
-    """Stream the session's progress as SSE: snapshot, then progress events, then done (see module doc)."""
+    """Return the session's progress as an SSE stream: snapshot, then progress events, then done (see module doc)."""
     sid, prefix = meta.id, settings.redis_prefix
     resume = last_event_id or last_event_id_q
     resume = resume.strip() if resume and _STREAM_ID.match(resume.strip()) else None

@@ -60,7 +60,7 @@ def upload_frame(
     settings: AppSettings,
     response: Response,
 ) -> FrameAccepted:
-    """Store one frame durably and queue it: 202; the same frame again 200; other bytes for its seq 409.
+    """Return the acceptance of one frame stored durably and queued: 202; the same frame again 200; other bytes 409.
 
     Nothing is decoded for a seq already stored (a duplicate or a 409 is decided by its digest) nor for a
     finished session (409); a new frame's header must state the calibrated size before it is decoded (422).
@@ -97,7 +97,7 @@ def upload_frame(
 
 @router.post("/{session_id}/forces", status_code=status.HTTP_202_ACCEPTED, response_model=ForcesAccepted)
 def upload_forces(body: ForceBatch, session: IngestSession, store: Store, settings: AppSettings) -> ForcesAccepted:
-    """Store one force batch (and IMU rows) as received; batches may overlap and come in any order."""
+    """Return the rows accepted of one force batch (and IMU rows) stored as received; batches may overlap, any order."""
     imu = body.imu or []
     if len(body.samples) + len(imu) > settings.max_force_samples:
         raise PayloadTooLarge(f"a batch holds at most {settings.max_force_samples} rows; split it")

@@ -70,7 +70,7 @@ class RedisMetrics:
         self.r, self.prefix = r, prefix
 
     def live_lag(self) -> tuple[list[float], int, int]:
-        """Return (the newest lags of every session placing frames in the last minute, sessions placing, of them
+        """Return (the newest lags (s) of every session placing frames in the last minute, sessions placing, of them
         behind by more than LAG_WARNING_S at p95); empty when Redis is down."""
         try:
             lags, behind = [], 0

@@ -59,7 +59,7 @@ def _store_and_report(store: SessionStore, rs: ResultsStore, sid: str, v: int, t
 async def post_reference(
     meta: IngestSession, request: Request, store: Store, rs: Results, settings: AppSettings
 ) -> JSONResponse:
-    """Store reference.csv (seq,x_mm,y_mm) and return the accuracy report of the current results version."""
+    """Return the accuracy report of the current results version after storing reference.csv (seq,x_mm,y_mm)."""
     media = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media not in REFERENCE_TYPES:
         raise UnsupportedMediaType("reference: expected a text/csv body (seq,x_mm,y_mm)")

@@ -83,7 +83,7 @@ def reprocess_session(
     r: RedisClient,
     settings: AppSettings,
 ) -> JobAccepted:
-    """Queue a reprocess of one session (a new results version; raw uploads untouched): 202 {"job"}."""
+    """Return 202 {"job"} of a reprocess of one session queued (a new results version; raw uploads untouched)."""
     options = _validated(body.options.document(), store.calibration(meta.id))
     _check_reprocessable(store, meta)
     (job_id,) = _enqueue(r, settings, principal, store, [meta.id], options)
@@ -95,7 +95,10 @@ def reprocess_session(
 def reprocess_batch(
     body: BatchReprocessRequest, principal: IngestPrincipal, store: Store, r: RedisClient, settings: AppSettings
 ) -> BatchAccepted:
-    """Queue a reprocess of several sessions (admin, or the owner of every one; else 404 naming none)."""
+    """Return 202 {"batch", "jobs"} of a reprocess of several sessions queued (admin, or the owner of every one).
+
+    Otherwise 404, naming none of them.
+    """
     sessions = list(dict.fromkeys(body.sessions))  # de-duplicated, order kept
     if not all(isinstance(sid, str) and _ID.match(sid) for sid in sessions):
         raise NotFound("no such session")

@@ -30,7 +30,7 @@ def send_session(
     r: RedisClient,
     settings: AppSettings,
 ) -> JobAccepted:
-    """Queue a send of the session's DICOM objects (each layer, the one-page report) to a destination: 202."""
+    """Return 202 {"job"} of a send queued of the session's DICOM objects (each layer, the report) to a destination."""
     if body.destination not in settings.pacs_destinations:
         configured = ", ".join(sorted(settings.pacs_destinations)) or "none are configured"
         raise Validation(f"destination: not a configured PACS destination ({configured})", code="unknown_destination")

@@ -37,7 +37,7 @@ def create_session(
     request: Request,
     response: Response,
 ) -> SessionCreated:
-    """Create a session owned by the calling key; 422 naming the field for a bad calibration."""
+    """Return the session created (201), owned by the calling key; 422 naming the field for a bad calibration."""
     width, height = body.calibration.image_size
     if max(width, height) > settings.max_frame_side:
         raise Validation(
@@ -100,8 +100,11 @@ def get_session(
 
 @router.post("/{session_id}/finish", status_code=status.HTTP_202_ACCEPTED, response_model=Accepted)
 def finish_session(meta: IngestSession, store: Store, r: RedisClient, settings: AppSettings) -> Accepted:
-    """Record that no more uploads come (idempotent) and queue the finish marker after the frame jobs; the first
-    finish also queues a send to each auto-send PACS destination (the job waits until the session is done)."""
+    """Return the session's id and status (202) after recording that no more uploads come (idempotent).
+
+    The finish marker is queued after the frame jobs; the first finish also queues a send to each auto-send PACS
+    destination (the job waits until the session is done).
+    """
     first = meta.finished_at is None
     meta = store.finish(meta.id)
     queue.enqueue_finish(r, meta.id, prefix=settings.redis_prefix)

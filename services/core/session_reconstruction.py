@@ -137,7 +137,7 @@ class SessionReconstruction:
         self.canvas = SparseCanvas(self.calibration.px_per_mm)
 
     def add(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:
-        """Register a frame (in index order); return its result and the canvas tiles that changed."""
+        """Return the result of registering a frame (in index order) and the canvas tiles that changed."""
         self.heartbeat()
         result = self.registrar.add(pf)
         self.heartbeat()
@@ -155,7 +155,7 @@ class SessionReconstruction:
         return result, touched
 
     def settle(self, limit: int) -> set[tuple[int, int]]:
-        """Re-paste up to `limit` moved frames not re-pasted yet (oldest first); return the canvas tiles changed."""
+        """Return the canvas tiles changed by re-pasting up to `limit` moved frames not re-pasted yet (oldest first)."""
         batch = list(itertools.islice(self.stale, limit))
         for i in batch:
             del self.stale[i]
@@ -178,7 +178,7 @@ class SessionReconstruction:
         return Similarity(pose.a / self.gauge, pose.t / self.gauge)
 
     def finish(self) -> set[tuple[int, int]]:
-        """Run the final refinement and compliance self-calibration; return the canvas tiles that changed."""
+        """Return the canvas tiles changed by running the final refinement and compliance self-calibration."""
         if self.options.refine:
             self.registrar.refine(final=True)
         if self.options.self_calibrate:

@@ -25,5 +25,5 @@ def dead_letter(r: redis.Redis, fields: Mapping[str, str], prefix: str = queue.D
 def count_registration_failure(
     r: redis.Redis, session_id: str, version: int, seq: int, prefix: str = queue.DEFAULT_PREFIX
 ) -> int:
-    """Count one more registration failure of frame `seq` of (session, version); return its failures so far."""
+    """Return the registration failures so far of frame `seq` of (session, version), counting one more now."""
     return int(r.hincrby(queue.regfail_key(session_id, version, prefix), str(int(seq)), 1))

@@ -47,7 +47,7 @@ def schedule(
 
 
 def move_due(r: redis.Redis, prefix: str, now: float | None = None, limit: int = 100) -> int:
-    """Move delayed jobs that are due onto their streams; return how many were moved."""
+    """Return how many delayed jobs that are due were moved onto their streams (by this call)."""
     now = time.time() if now is None else now
     return int(r.eval(_MOVE_DUE, 1, queue.delayed_key(prefix), repr(float(now)), int(limit)))
 

@@ -96,14 +96,14 @@ class Lease:
         ]
 
     def renew(self, r: redis.Redis, ttl_ms: int, watchdog_due: float | None) -> bool:
-        """Extend the lease (and push the watchdog kick to watchdog_due, Unix s); False if it is not ours."""
+        """Return True when the lease was extended (watchdog kick pushed to watchdog_due, Unix s), False if not ours."""
         keys = self.keys()[:2]
         member = watchdog_member(self.session_id, self.version, self.prefix) if watchdog_due is not None else ""
         due = repr(float(watchdog_due)) if watchdog_due is not None else "0"
         return bool(r.eval(_RENEW, 2, *keys, self.value, int(ttl_ms), due, member))
 
     def release(self, r: redis.Redis, mode: str = "normal", handoff_delay_s: float = 0.0) -> int:
-        """Release the lease: 1 released, 0 refused (work arrived meanwhile; flag cleared), -1 not ours any more.
+        """Return how releasing the lease went: 1 released, 0 refused (work arrived; flag cleared), -1 not ours.
 
         normal: refuse while the kick flag is set (the caller runs another pass), else release and drop the
         watchdog. handoff: release even so, and schedule the session's kick after handoff_delay_s so some
@@ -130,7 +130,7 @@ def acquire(
     prefix: str,
     kick_ttl_ms: int = 60_000,
 ) -> Lease | None:
-    """Take the lease (or keep ours, same token); None when another consumer holds it (kick flag set then).
+    """Return the lease taken (or ours kept, same token); None when another consumer holds it (kick flag set then).
 
     Taking it also sets the watchdog kick at now + 2 ttl (pushed forward by every renewal).
     """

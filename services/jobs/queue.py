@@ -92,7 +92,7 @@ def enqueue_frame(
     heal_after_ms: int = HEAL_AFTER_MS,
     count: str | None = None,
 ) -> bool:
-    """Put a frame job on the stream unless it was put there before; return True if it was added now.
+    """Return True if a frame job was put on the stream now (it is not when it was put there before).
 
     A frame enqueued before is enqueued again when its prepare job has not finished heal_after_ms after its
     last enqueue (a client re-sending after a failure heals a lost job); heal_after_ms=0 never does.
@@ -110,7 +110,7 @@ def enqueue_frame(
 def requeue_frame(
     r: redis.Redis, session_id: str, seq: int, prefix: str = DEFAULT_PREFIX, at_most_every_ms: int = 1
 ) -> bool:
-    """Put a frame job on the stream even if it was enqueued before, unless that was within at_most_every_ms.
+    """Return True if a frame job was put on the stream (even if enqueued before, unless within at_most_every_ms).
 
     For healing (a job lost with Redis data, a frame that waits too long): frame jobs are idempotent, so a
     second job for a frame costs a check and changes nothing. Returns True if a job was added.
@@ -125,7 +125,7 @@ def mark_frame_handled(r: redis.Redis, session_id: str, seq: int, prefix: str = 
 
 
 def enqueue_finish(r: redis.Redis, session_id: str, prefix: str = DEFAULT_PREFIX) -> bool:
-    """Put the session's finish marker on the stream once; return True if it was added now."""
+    """Return True if the session's finish marker was put on the stream now (it is put there once)."""
     return bool(r.eval(_ENQUEUE_ONCE, 4, *_enqueue_keys(session_id, prefix), "finish", session_id, "0", "0"))
 
 
@@ -146,7 +146,7 @@ def queue_depth(r: redis.Redis, prefix: str = DEFAULT_PREFIX) -> int:
 
 
 def record_frame_result(r: redis.Redis, session_id: str, seq: int, lost: bool, prefix: str = DEFAULT_PREFIX) -> bool:
-    """Count frame `seq` as processed (and lost if so) exactly once; return True if it was counted now."""
+    """Return True if frame `seq` was counted as processed (and lost if so) now; it is counted exactly once."""
     keys = [session_key(session_id, prefix), f"{session_key(session_id, prefix)}:done"]
     return bool(r.eval(_RECORD_ONCE, 2, *keys, str(int(seq)), "1" if lost else "0"))
 
@@ -358,7 +358,7 @@ def ack_delete(r: redis.Redis, stream: str, *entry_ids: str | bytes) -> None:
 
 
 def enqueue_register(r: redis.Redis, session_id: str, version: int, prefix: str = DEFAULT_PREFIX) -> str:
-    """Put a registration kick for (session, version) on the register stream; return the entry id."""
+    """Return the entry id of a registration kick for (session, version) put on the register stream."""
     entry = r.xadd(register_stream(prefix), {"kind": "register", "session": session_id, "version": str(version)})
     return entry.decode() if isinstance(entry, bytes) else str(entry)
 

@@ -26,9 +26,13 @@ JOB_TTL_S = queue.JOB_TTL_S
 class Ledger(Protocol):
     """The durable record of accepted jobs (services.store.storage.JobLedger)."""
 
-    def record(self, job_id: str, fields: dict[str, str]) -> None: ...
+    def record(self, job_id: str, fields: dict[str, str]) -> None:
+        """Record an accepted job durably (its Redis hash fields at creation); a no-op once it finished."""
+        ...
 
-    def discard(self, job_id: str) -> None: ...
+    def discard(self, job_id: str) -> None:
+        """Forget an open record (its job was never accepted: the 202 was not sent)."""
+        ...
 
 
 def new_id() -> str:
@@ -73,8 +77,10 @@ def enqueue_jobs(
     kind: str = "reprocess",
     max_depth: int | None = None,
 ) -> list[str]:
-    """Write one job hash per session and its stream entry (one MULTI), then record each job durably in the
-    ledger (the 202's promise: the reconciler re-enqueues a recorded job Redis lost); return the job ids.
+    """Return the ids of the jobs written: one job hash per session and its stream entry (one MULTI).
+
+    Each job is then recorded durably in the ledger (the 202's promise: the reconciler re-enqueues a recorded job
+    Redis lost).
 
     With max_depth, QueueFullError (nothing queued) when the jobs would take the stream beyond it. If the durable
     record fails (a full disk), the jobs are taken off Redis again and the OSError is raised.

@@ -45,7 +45,7 @@ def presentation_contexts(objects: Sequence[DicomObject]) -> list[tuple[str, lis
 
 
 def c_store(destination: DimseDestination, objects: Sequence[DicomObject], timeout_s: float) -> SendOutcome:
-    """Store `objects` by C-STORE over one association; return the outcome or raise PacsUnreachable/Rejected."""
+    """Return the outcome of storing `objects` by C-STORE over one association, or raise PacsUnreachable/Rejected."""
     started = time.monotonic()
     where = destination.describe()
     ae = AE(ae_title=destination.calling_ae)

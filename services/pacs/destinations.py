@@ -67,7 +67,7 @@ Destination = DicomWebDestination | DimseDestination
 
 
 def parse_destinations(text: str) -> dict[str, Destination]:
-    """Parse VEINMOSAIC_PACS_DESTINATIONS (a JSON object of named destinations); empty text: none."""
+    """Return the named destinations VEINMOSAIC_PACS_DESTINATIONS (a JSON object) holds; empty text: none."""
     if not text.strip():
         return {}
     try:
@@ -80,7 +80,7 @@ def parse_destinations(text: str) -> dict[str, Destination]:
 
 
 def destinations_from_doc(doc: object) -> dict[str, Destination]:
-    """Check a decoded destinations document ({name: {"dicomweb": ...} or {"dimse": {...}}}) and build it."""
+    """Return the destinations of a decoded document ({name: {"dicomweb": ...} or {"dimse": {...}}}), checked."""
     if not isinstance(doc, dict):
         raise DestinationError(f"PACS destinations: expected a JSON object of named destinations, got {_kind(doc)}")
     out: dict[str, Destination] = {}
@@ -92,7 +92,7 @@ def destinations_from_doc(doc: object) -> dict[str, Destination]:
 
 
 def destination_from_doc(name: str, entry: object) -> Destination:
-    """Build one named destination from its document; errors name the destination and the field."""
+    """Return one named destination built from its document; errors name the destination and the field."""
     where = f"PACS destination {name!r}"
     if not isinstance(entry, dict):
         raise DestinationError(f'{where}: expected an object with "dicomweb" or "dimse", got {_kind(entry)}')
@@ -122,7 +122,7 @@ def destination_from_doc(name: str, entry: object) -> Destination:
 
 
 def parse_target(text: str) -> Destination:
-    """Parse a command-line target: an http(s) DICOMweb base URL, or HOST:PORT:AET (C-STORE)."""
+    """Return the destination of a command-line target: an http(s) DICOMweb base URL, or HOST:PORT:AET (C-STORE)."""
     text = text.strip()
     if text.lower().startswith(("http://", "https://")):
         return DicomWebDestination(_url("--to", text))

@@ -102,7 +102,7 @@ def conclude(
     results: Mapping[str, int | str],
     started: float,
 ) -> SendOutcome:
-    """Turn per-instance results (a status code, or a reason text for a failure) into the outcome or an error.
+    """Return the outcome of per-instance results (a status code, or a reason text for a failure), or raise.
 
     Nothing stored (and something refused) raises PacsRejected; otherwise the outcome, whose `failed` lists
     what the PACS refused when it stored the rest.

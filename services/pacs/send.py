@@ -27,7 +27,7 @@ log = logging.getLogger("veinmosaic.pacs")
 def send_objects(
     destination: DicomWebDestination | DimseDestination, objects: Sequence[bytes], timeout_s: float
 ) -> SendOutcome:
-    """Store Part 10 `objects` at `destination` (timeout per network step); see the module doc for the outcomes."""
+    """Return the outcome of storing Part 10 `objects` at `destination` (timeout per network step; see module doc)."""
     if timeout_s <= 0:
         raise ValueError(f"timeout_s must be positive, got {timeout_s!r}")
     items = read_objects(objects)

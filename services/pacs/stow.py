@@ -43,7 +43,7 @@ def multipart_body(objects: Sequence[DicomObject], boundary: str) -> bytes:
 
 
 def stow(destination: DicomWebDestination, objects: Sequence[DicomObject], timeout_s: float) -> SendOutcome:
-    """Store `objects` by STOW-RS; return the per-instance outcome, or raise PacsUnreachable / PacsRejected."""
+    """Return the per-instance outcome of storing `objects` by STOW-RS, or raise PacsUnreachable / PacsRejected."""
     started = time.monotonic()
     where = destination.describe()
     boundary = f"veinmosaic-{uuid.uuid4().hex}"

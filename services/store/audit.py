@@ -109,7 +109,7 @@ class AuditLog:
         return str(json.loads(lines[-1])["hash"]), good
 
     def append(self, record: dict[str, Any]) -> dict[str, Any]:
-        """Append `record` (JSON-able, without prev/hash), chained and fsynced; return it with prev and hash."""
+        """Return `record` (JSON-able, without prev/hash) with prev and hash, appended chained and fsynced."""
         with self._lock:
             fd = self._open()
             fcntl.flock(fd, fcntl.LOCK_EX)
@@ -193,7 +193,7 @@ class AuditLog:
         return out
 
     def verify(self) -> Verification:
-        """Check the whole chain from the first record; report the first line that does not follow."""
+        """Return the check of the whole chain from the first record, naming the first line that does not follow."""
         prev, n = GENESIS, 0
         try:
             fh = open(self.path, "rb")  # noqa: SIM115 (closed by the with below)

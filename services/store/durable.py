@@ -94,7 +94,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 
 
 def write_once(path: Path, data: bytes, mode: int = 0o640) -> bool:
-    """Create `path` with `data` durably unless it exists; return True if this call created it.
+    """Return True if this call created `path` with `data` durably (False when it exists already).
 
     The bytes go to a fsynced temporary file that is hard-linked into place (link fails if the target
     exists), so concurrent writers never overwrite each other and readers never see a partial file.

@@ -127,7 +127,7 @@ class ResultsStore:
         fsync_dir(rdir)
 
     def create_version(self, sid: str, options: dict[str, Any], make_current: bool = True) -> int:
-        """Create the next free version (2, 3, ...; 1 is the live run's) and, by default, make it current.
+        """Return the next free version (2, 3, ...; 1 is the live run's), created now and, by default, made current.
 
         Reprocessing passes make_current=False and calls set_current when the version is complete, so the
         API keeps serving the previous complete version meanwhile.
@@ -153,7 +153,7 @@ class ResultsStore:
             atomic_write_bytes(rdir / "current", str(int(v)).encode())
 
     def ensure_version(self, sid: str, v: int, options: dict[str, Any]) -> bool:
-        """Create version v if missing (current when no version is current yet); return True if created now."""
+        """Return True if version v was created now (it was missing; current when no version is current yet)."""
         with self._locked(sid) as rdir:
             vdir = rdir / str(int(v))
             if (vdir / "options.json").exists():
@@ -172,7 +172,7 @@ class ResultsStore:
     def write_setup_once(
         self, sid: str, v: int, mask: np.ndarray, flat: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Write the setup unless one exists; return the stored one (the first writer's), so all agree."""
+        """Return the stored setup (the first writer's), writing this one unless one exists, so all agree."""
         write_once(self.version_dir(sid, v) / "setup.npz", self._setup_bytes(mask, flat))
         got = self.read_setup(sid, v)
         assert got is not None
@@ -210,7 +210,7 @@ class ResultsStore:
         return self.version_dir(sid, v) / "prepared" / f"{int(seq):06d}.npz"
 
     def write_prepared(self, sid: str, v: int, pf: PreparedFrame) -> bool:
-        """Store a prepared frame unless it is stored already (first writer wins); return True if written now."""
+        """Return True if the prepared frame was written now (not when stored already: the first writer wins)."""
         return write_once(self.prepared_path(sid, v, pf.seq), prepared_to_bytes(pf))
 
     def has_prepared(self, sid: str, v: int, seq: int) -> bool:

@@ -53,7 +53,7 @@ class SessionVersion:
         return self.results.has_version(self.sid, self.v)
 
     def ensure(self, options: Mapping[str, Any]) -> bool:
-        """Create the version with `options` unless it exists; return True if it was created now."""
+        """Return True if the version was created now with `options` (not when it exists)."""
         if self.exists():  # the common case, without taking the results directory's lock
             return False
         return self.results.ensure_version(self.sid, self.v, dict(options))

@@ -172,7 +172,7 @@ class SessionStore:
         now: float | None = None,
         study: StudyContext | None = None,
     ) -> SessionMeta:
-        """Create a session with a fresh unguessable id (uuid4 hex) and return its metadata."""
+        """Return the metadata of a session created now with a fresh unguessable id (uuid4 hex)."""
         session_id = uuid.uuid4().hex
         meta = SessionMeta(
             id=session_id,
@@ -218,7 +218,7 @@ class SessionStore:
         atomic_write_bytes(path / "session.json", _json_bytes(asdict(meta)))
 
     def finish(self, session_id: str, now: float | None = None) -> SessionMeta:
-        """Mark the session finished (status processing, frames_expected fixed); idempotent; return meta."""
+        """Return the meta of the session marked finished (status processing, frames_expected fixed); idempotent."""
         with self._locked(session_id) as path:
             meta = self.get_meta(session_id)
             if meta.finished_at is not None:
@@ -233,7 +233,7 @@ class SessionStore:
             return meta
 
     def set_status(self, session_id: str, status: str, error: str | None = None) -> SessionMeta:
-        """Set status (receiving/processing/done/failed; `error` a short non-patient message); return meta."""
+        """Return the meta with status set (receiving/processing/done/failed; `error` a short non-patient message)."""
         if status not in STATUSES:
             raise ValueError(f"status must be one of {STATUSES}, got {status!r}")
         with self._locked(session_id) as path:
@@ -260,7 +260,7 @@ class SessionStore:
         now: float | None = None,
         max_span_s: float | None = None,
     ) -> Literal["created", "duplicate"]:
-        """Store a frame durably; "duplicate" if that seq already holds the same bytes and t_s.
+        """Return "created" for a frame stored durably now; "duplicate" if that seq holds the same bytes and t_s.
 
         Raises ConflictError if seq holds different bytes or t_s, SessionClosedError after finish,
         ImplausibleTimeError if t_s is more than max_span_s from the session's time anchor (see time_anchor).
@@ -402,10 +402,11 @@ class SessionStore:
         imu: Sequence[Sequence[float]] | np.ndarray | None = None,
         max_span_s: float | None = None,
     ) -> tuple[str | None, str | None]:
-        """Store one batch of force samples (t_s, F1..F4 N) and optional IMU rows (t_s, tilt_x, tilt_y deg).
+        """Return the batch names (samples, IMU; None for an empty part) of one batch stored of forces and IMU rows.
 
-        Returns the batch names (None for an empty part). Raises ValueError for non-finite values or wrong
-        row lengths, SessionClosedError after finish, ImplausibleTimeError as put_frame does.
+        The force samples are (t_s, F1..F4 N), the optional IMU rows (t_s, tilt_x, tilt_y deg). Raises ValueError
+        for non-finite values or wrong row lengths, SessionClosedError after finish, ImplausibleTimeError as
+        put_frame does.
         """
         f = _finite_rows(samples, 5, "samples")
         m = _finite_rows(imu if imu is not None else [], 3, "imu")

@@ -71,7 +71,7 @@ def _backdrop(rs: ResultsStore, sid: str, v: int, mosaic_doc: dict[str, Any]) ->
 def write_version_report(
     rs: ResultsStore, sid: str, v: int, reference_text: str, frame_seqs: Iterable[int]
 ) -> dict[str, Any]:
-    """Evaluate version v's path against reference_text, write report.json and its plots; return report.json.
+    """Return report.json of version v's path evaluated against reference_text, written with its plots.
 
     frame_seqs: the session's stored frame seqs (the reference may name any of them). Raises BadReferenceError
     (bad reference), NoPathYetError (version v has no path rows), NothingToCompareError (no frame comparable).

@@ -68,7 +68,7 @@ def ensure_setup(ctx: Context, sv: SessionVersion, meta: SessionMeta) -> tuple[n
 
 
 def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
-    """Prepare frame `seq` of session `sid` (live version) and kick registration; DONE or Retry."""
+    """Return DONE or a Retry, preparing frame `seq` of session `sid` (live version) and kicking registration."""
     try:
         meta = ctx.store.get_meta(sid)
     except SessionNotFoundError:

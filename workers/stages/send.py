@@ -42,7 +42,7 @@ def retry_delay_s(attempt: int, first_s: float, max_s: float) -> float:
 
 
 def handle_send(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], None]) -> Retry | None:
-    """Run one send job's attempt: done, failed, or a Retry (session not done yet, or the PACS unreachable)."""
+    """Return a Retry (session not done yet, PACS unreachable) or None (done or failed) of one send job's attempt."""
     cfg, pub = ctx.config, Publisher(ctx)
     job_id, sid = fields.get("job", ""), fields.get("session", "")
     try:

@@ -131,7 +131,7 @@ class SparseCanvas:
         return [(c, r) for r in range(r0, r1 + 1) for c in range(c0, c1 + 1)]
 
     def paste(self, layers: FrameLayers, pose: Similarity | np.ndarray, sign: float = 1.0) -> list[tuple[int, int]]:
-        """Add (sign=+1) or remove (sign=-1) a frame at a pose; return the tile keys it touched.
+        """Return the tile keys touched by adding (sign=+1) or removing (sign=-1) a frame at a pose.
 
         The frame is warped once, into its bounding box on the canvas, and each tile adds its part: warping
         whole tiles one by one cost 2.5x the pixels (a frame spans up to 4 x 3 tiles) and 2x the time.

@@ -213,7 +213,7 @@ class TilePyramid:
             tiles[key] = planes
 
     def update(self, canvas: SparseCanvas, touched: set[tuple[int, int]] | list[tuple[int, int]]) -> set[TileKey]:
-        """Copy the touched canvas tiles in and recompute their ancestors; return every changed (level, col, row).
+        """Return every (level, col, row) changed by copying the touched canvas tiles in and recomputing ancestors.
 
         Canvas tiles outside the DZI canvas are ignored. A touched tile absent from the canvas is cleared.
         """

@@ -230,7 +230,7 @@ class Registrar:
         return abs(pose.t - predicted.t) <= limit and abs(np.angle(pose.a / predicted.a)) <= np.radians(25)
 
     def add(self, pf: PreparedFrame) -> FrameResult:
-        """Register one prepared frame; return its status, pose and which earlier frames moved."""
+        """Return the result of registering one prepared frame: its status, pose and which earlier frames moved."""
         self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)  # its view, once the model is fitted
         if pf.imu_tilt_deg is not None:
             self.imu_tilts[pf.index] = np.asarray(pf.imu_tilt_deg, np.float64)
@@ -426,7 +426,10 @@ class Registrar:
         return sum(1 for e in self.edges if e.view_affine is not None)
 
     def fit_tilt(self) -> ViewFit | None:
-        """Refit the view model (kappa, anisotropy) from every edge's affine (services.core.physics.tissue_model)."""
+        """Return the view model (kappa, anisotropy) refitted from every edge's affine, else the previous one.
+
+        The fit is services.core.physics.tissue_model's; None while no fit has succeeded yet.
+        """
         evidence = [
             AffineEvidence(e.i, e.j, e.view_affine, e.affine_sigma) for e in self.edges if e.view_affine is not None
         ]
@@ -462,7 +465,7 @@ class Registrar:
             return None
 
     def refine(self, final: bool = False) -> tuple[int, ...]:
-        """Re-optimise placed poses on the pose graph; return the frames that moved (> MOVED_MM).
+        """Return the frames that moved (> MOVED_MM) when re-optimising the placed poses on the pose graph.
 
         Global (every pose; the view model refitted once its evidence grew by VIEW_REFIT_GROWTH, and at the end)
         while the scan is short, at the end (final), and
@@ -484,8 +487,9 @@ class Registrar:
         return self.local_refine()
 
     def refine_scales(self, targets: dict[int, float], sigma: float) -> tuple[int, ...]:
-        """Re-optimise every pose with each frame's scale |a| held to its target with relative sigma `sigma`;
-        return the frames that moved.
+        """Return the frames that moved when re-optimising every pose, each frame's scale |a| held to its target.
+
+        Each target is held with relative sigma `sigma`.
 
         Edges measure scale only relative to a neighbour, so along a chain with few loop closures (a hard scan's
         rows) the scale wanders like a random walk; the tissue law fitted to the loads says what each frame's scale
@@ -510,9 +514,12 @@ class Registrar:
         return moved
 
     def local_refine(self) -> tuple[int, ...]:
-        """Re-optimise the poses near the newest frame (the LOCAL_MAX nearest within LOCAL_RADIUS_WINDOWS window
-        radii, and the newest LOCAL_RECENT frames), the frames they share edges with held where they are; return
-        the frames that moved. Its cost is bounded however long the scan (issue 15)."""
+        """Return the frames that moved when re-optimising the poses near the newest frame.
+
+        Near: the LOCAL_MAX nearest within LOCAL_RADIUS_WINDOWS window radii, and the newest LOCAL_RECENT frames;
+        the frames they share edges with are held where they are. Its cost is bounded however long the scan
+        (issue 15).
+        """
         newest = self.poses[self.order[-1]].t
         reach = LOCAL_RADIUS_WINDOWS * self.window_radius_mm
         placed = np.array(self.order)

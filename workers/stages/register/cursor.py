@@ -58,8 +58,10 @@ class Cursor:
         log.info("session taken over at cursor %d (token %d)", cursor, held.lease.token, extra={"session": held.sid})
 
     def register_ready(self, held: HeldSession, finished: bool) -> bool:
-        """Register frames from the cursor while they are available (for at most pass_budget_s), flushing when due;
-        return True when it caught up with the uploads, False when frames uploaded are still to be placed."""
+        """Return True when caught up with the uploads, False when frames uploaded are still to be placed.
+
+        It registers frames from the cursor while they are available (for at most pass_budget_s), flushing when due.
+        """
         ctx, cfg, sv = self.ctx, self.ctx.config, held.sv
         started = time.monotonic()
         seqs: list[int] | None = None

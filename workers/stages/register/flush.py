@@ -127,8 +127,10 @@ class Flusher:
         held.clocks.flush_interval = max(every, 2.0 * (held.clocks.flushed - now))
 
     def record_lags(self, held: HeldSession, seqs: list[int]) -> list[float]:
-        """Record each newly published frame's lag: now minus its upload's commit time (s; the live version only);
-        return the lags recorded."""
+        """Return the lags (s) recorded: for each newly published frame, now minus its upload's commit time.
+
+        Only the live version's lags are recorded (else none).
+        """
         if held.version != LIVE_VERSION or not seqs:
             return []
         now = time.time()

@@ -89,8 +89,11 @@ class RegisterStage:
 
     # ----- one session ----------------------------------------------------------------------------------------
     def step(self, held: HeldSession) -> bool:
-        """Serve a held session once, in order: renew the lease, register the frames that are ready, complete the
-        session once its last frame is in, flush when due, release it when idle; return False once not held."""
+        """Return False once the session is not held any more, else True, serving a held session once.
+
+        In order: renew the lease, register the frames that are ready, complete the session once its last frame is
+        in, flush when due, release it when idle.
+        """
         self.leases.renew_if_due(held, force=True)
         meta = self.ctx.store.get_meta(held.sid)
         finished = meta.finished_at is not None
