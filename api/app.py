@@ -162,6 +162,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.clock = time.time
+    app.state.queue_guard = queue.DepthGuard()  # the uploads' queue-full check (api.deps.QueueGuard)
     add_exception_handlers(app)
     for router in ROUTERS:
         app.include_router(router)

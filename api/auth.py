@@ -19,7 +19,7 @@ from fastapi import Request
 from itsdangerous import BadSignature, URLSafeSerializer
 
 from api.errors import Forbidden, NotFound, Unauthorized
-from services.store.storage import SessionMeta, SessionNotFoundError, SessionStore
+from services.store.storage import SessionMeta, SessionStore
 
 PRINCIPAL_KEY = "veinmosaic.principal"  # where the caller's Principal is left in the ASGI scope (api.audit reads it)
 
@@ -147,12 +147,9 @@ def _now(request: Request) -> float:
 
 def visible_session(store: SessionStore, principal: Principal, session_id: str) -> SessionMeta:
     """Return the session's metadata if `principal` may see it; 404 otherwise (existence never leaks)."""
-    try:
-        meta = store.get_meta(session_id)
-    except SessionNotFoundError:
-        raise NotFound("no such session") from None
+    meta = store.get_meta(session_id)  # SessionNotFoundError: 404 not_found "no such session" (api/errors.py)
     if not principal.can_see(meta):
-        raise NotFound("no such session")
+        raise NotFound("no such session")  # the same answer as a missing session
     return meta
 
 

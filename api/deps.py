@@ -36,12 +36,19 @@ async def get_redis(request: Request) -> redis.Redis:
     return request.app.state.redis
 
 
+async def get_queue_guard(request: Request) -> queue.DepthGuard:
+    """Return the application's queue-full check (api.app makes one per app)."""
+    return request.app.state.queue_guard
+
+
 AppSettings = Annotated[Settings, Depends(get_settings_dep)]
 Store = Annotated[SessionStore, Depends(get_store)]
 RedisClient = Annotated[redis.Redis, Depends(get_redis)]
+QueueGuard = Annotated[queue.DepthGuard, Depends(get_queue_guard)]
 
 IngestPrincipal = Annotated[Principal, Depends(require_scope("ingest"))]
 AdminPrincipal = Annotated[Principal, Depends(require_scope("admin"))]
+ReadPrincipal = Annotated[Principal, Depends(require_scope("ingest", "view"))]
 ViewPrincipal = Annotated[Principal, Depends(view_principal)]
 
 

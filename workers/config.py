@@ -13,6 +13,7 @@ from typing import Any
 import redis
 from pydantic import Field
 
+from services.jobs import reprocess as jobs
 from services.pacs.destinations import Destination
 from services.settings import Settings, WorkerSettings
 from services.store.audit import AuditLog
@@ -72,6 +73,10 @@ class Context:
     def version(self, sid: str, v: int = LIVE_VERSION) -> SessionVersion:
         """Return results version v of session sid (the live run's by default)."""
         return SessionVersion(self.store, self.results, sid, v)
+
+    def update_job(self, job_id: str, **values: Any) -> None:
+        """Set fields of a job's record (state, done, total, error, ...): services.jobs.reprocess.update_job."""
+        jobs.update_job(self.r, self.prefix, job_id, **values)
 
     def live_options(self) -> dict[str, str]:
         """Return the options a live version is made with: this worker's method."""

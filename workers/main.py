@@ -360,7 +360,7 @@ class Worker:
             queue.incr_metric(ctx.r, "frames_rejected_total", prefix=ctx.prefix)
             queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
         elif kind in ("reprocess", "send") and fields.get("job"):
-            jobs.update_job(ctx.r, ctx.prefix, fields["job"], state="failed", error=error[:300])
+            ctx.update_job(fields["job"], state="failed", error=error[:300])
             if kind == "reprocess":
                 queue.incr_metric(ctx.r, "jobs_failed_total", prefix=ctx.prefix)
             self.finish_job(fields["job"], "failed")

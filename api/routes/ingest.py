@@ -13,7 +13,7 @@ from fastapi import APIRouter, File, Form, Response, UploadFile, status
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from api.deps import AppSettings, IngestSession, RedisClient, Store
+from api.deps import AppSettings, IngestSession, QueueGuard, RedisClient, Store
 from api.errors import (
     BadRequest,
     Conflict,
@@ -27,9 +27,6 @@ from services.jobs import queue
 
 router = APIRouter(prefix="/v1/sessions", tags=["ingest"])
 log = logging.getLogger("veinmosaic.api")
-
-
-_depth_guard = queue.DepthGuard()
 
 
 def parse_meta(raw: str) -> FrameMeta:
@@ -58,6 +55,7 @@ def upload_frame(
     store: Store,
     r: RedisClient,
     settings: AppSettings,
+    guard: QueueGuard,
     response: Response,
 ) -> FrameAccepted:
     """Return the acceptance of one frame stored durably and queued: 202; the same frame again 200; other bytes 409.
@@ -78,7 +76,7 @@ def upload_frame(
         if not session.accepting_uploads or not store.get_meta(session.id).accepting_uploads:
             raise Conflict("session is finished; no more uploads are accepted", code="session_finished")
         check_frame_file(data, tuple(session.calibration["image_size"]), settings.max_frame_side)
-        if _depth_guard.depth(r, prefix, settings.queue_max_depth) >= settings.queue_max_depth:
+        if guard.depth(r, prefix, settings.queue_max_depth) >= settings.queue_max_depth:
             raise ServiceUnavailable(
                 "the processing queue is full; retry later", settings.retry_after_s, code="queue_full"
             )
@@ -90,7 +88,7 @@ def upload_frame(
     if duplicate:
         response.status_code = status.HTTP_200_OK
         return FrameAccepted(seq=frame.seq, status="duplicate")
-    _depth_guard.accepted(prefix)
+    guard.accepted(prefix)
     log.info("frame accepted", extra={"session": session.id, "seq": frame.seq, "bytes": len(data)})
     return FrameAccepted(seq=frame.seq, status="accepted")
 

@@ -17,7 +17,7 @@ from api.deps import (
     ViewSession,
 )
 from api.errors import Validation
-from api.results_access import get_results, reprocess_running, resolve_version, session_extent
+from api.results_access import Results, reprocess_running, resolve_version, session_extent
 from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
 from services.core.inputs.calibration import CalibrationError, parse_calibration
 from services.core.outputs.scan_quality import live_lag, scan_warnings, summarize_frames
@@ -45,7 +45,7 @@ def create_session(
         )
     try:
         calibration = parse_calibration(body.calibration.document())
-    except CalibrationError as exc:
+    except CalibrationError as exc:  # mapped here: the message keeps its "calibration: " prefix (not api/errors.py's)
         raise Validation(f"calibration: {exc}", code="invalid_calibration") from None
     study = body.study.context() if body.study is not None else None  # StudyContextError: 422 invalid_study
     assert principal.fingerprint is not None
@@ -69,11 +69,10 @@ def get_session(
     store: Store,
     r: RedisClient,
     settings: AppSettings,
-    request: Request,
+    results: Results,
 ) -> SessionState:
     """Return the session's status and frame counters (received from storage, processed/lost from workers)."""
     counters = queue.session_counters(r, meta.id, prefix=settings.redis_prefix)
-    results = get_results(request)
     version = resolve_version(results, meta.id, None)
     rows = results.read_path(meta.id, version) if version is not None else None
     frames = summarize_frames(rows) if rows else None

@@ -375,8 +375,9 @@ def incr_metric(r: redis.Redis, name: str, amount: float = 1, prefix: str = DEFA
 class DepthGuard:
     """The queue-full check, with at most one Redis round trip per `every_s` while the queue is under half full.
 
-    Far from the limit, the depth last read plus the uploads this process accepted since is a safe upper
-    bound for a short while (workers only shrink the queue); near the limit every upload reads it afresh.
+    Far from the limit, the depth last read plus the uploads this guard accepted since is a safe upper
+    bound for a short while (workers only shrink the queue); near the limit every upload reads it afresh. The API
+    keeps one per app (api.app).
     """
 
     def __init__(self, every_s: float = 0.25) -> None:

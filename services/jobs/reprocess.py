@@ -14,6 +14,8 @@ import contextlib
 import json
 import time
 import uuid
+from collections.abc import Mapping
+from types import MappingProxyType
 from typing import Any, Protocol
 
 import redis
@@ -40,16 +42,18 @@ def new_id() -> str:
     return uuid.uuid4().hex
 
 
+# the progress fields of a job waiting on the queue: a new job's, and a lost job's written again (requeue_job)
+_QUEUED_STATE: Mapping[str, str] = MappingProxyType(
+    {"state": "queued", "done": "0", "total": "0", "version": "", "error": ""}
+)
+
+
 def _job_fields(job_id: str, sid: str, owner: str, encoded: str, now: float, batch: str, kind: str) -> dict[str, str]:
     return {
         "id": job_id,
         "kind": kind,
-        "state": "queued",
-        "done": "0",
-        "total": "0",
+        **_QUEUED_STATE,
         "session": sid,
-        "version": "",
-        "error": "",
         "owner": owner,
         "created": repr(float(now)),
         "options": encoded,
@@ -131,9 +135,8 @@ def requeue_job(r: redis.Redis, prefix: str, fields: dict[str, str], ttl_s: int 
     """Write a job's record as queued again (from its creation fields, e.g. the ledger's) and its stream entry, in
     one MULTI: the reconciler's re-enqueue of a job Redis lost."""
     job_id = fields["id"]
-    state = {"state": "queued", "done": "0", "total": "0", "version": "", "error": ""}
     pipe = r.pipeline(transaction=True)
-    pipe.hset(queue.job_key(job_id, prefix), mapping={**fields, **state})
+    pipe.hset(queue.job_key(job_id, prefix), mapping={**fields, **_QUEUED_STATE})
     pipe.expire(queue.job_key(job_id, prefix), ttl_s)
     kind = fields.get("kind") or "reprocess"
     pipe.xadd(

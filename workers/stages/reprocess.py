@@ -25,7 +25,6 @@ from services.core.physics.compliance import ComplianceFit
 from services.core.pipeline import reconstruct
 from services.core.session_reconstruction import PathRow
 from services.jobs import queue
-from services.jobs import reprocess as jobs
 from services.store.session_version import method_of
 from services.store.storage import SessionNotFoundError
 from services.store.stored_report import write_version_report
@@ -42,10 +41,6 @@ class JobInterruptedError(Exception):
     """The worker is stopping: the job goes back on the queue."""
 
 
-def _set_job(ctx: Context, job_id: str, **values: Any) -> None:
-    jobs.update_job(ctx.r, ctx.prefix, job_id, **values)
-
-
 def write_report(ctx: Context, sid: str, v: int) -> dict[str, Any] | None:
     """Write version v's report (report.json + plots) against the session's reference; None without one."""
     text = ctx.results.read_reference(sid)
@@ -60,7 +55,7 @@ def write_report(ctx: Context, sid: str, v: int) -> dict[str, Any] | None:
 
 def _fail(ctx: Context, job_id: str, error: str) -> None:
     """Mark a reprocess job failed with its reason and count it (jobs_failed_total on /metrics)."""
-    _set_job(ctx, job_id, state="failed", error=error[:300])
+    ctx.update_job(job_id, state="failed", error=error[:300])
     queue.incr_metric(ctx.r, "jobs_failed_total", prefix=ctx.prefix)
 
 
@@ -79,13 +74,13 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         return
     v = ctx.results.create_version(sid, {**doc, "source": "reprocess", "job": job_id}, make_current=False)
     sv = ctx.version(sid, v)
-    _set_job(ctx, job_id, state="running", version=v, started=time.time())
+    ctx.update_job(job_id, state="running", version=v, started=time.time())
     try:
         heartbeat()
         poison = sv.unusable_seqs()  # decodes every frame the live run did not prepare
         heartbeat()
         scan = scan_from_store(ctx.store, sid, calib, exclude_seqs=poison)
-        _set_job(ctx, job_id, total=len(scan) + len(poison), done=0)
+        ctx.update_job(job_id, total=len(scan) + len(poison), done=0)
         last = [0.0]
 
         def progress(done: int, total: int) -> None:
@@ -94,7 +89,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
             now = time.monotonic()
             if now - last[0] >= 0.5 or done == total:
                 last[0] = now
-                _set_job(ctx, job_id, done=done)
+                ctx.update_job(job_id, done=done)
                 heartbeat()
 
         recon = reconstruct(scan, opts, progress=progress)
@@ -105,12 +100,12 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         write_report(ctx, sid, v)
         ctx.results.set_current(sid, v)
     except JobInterruptedError:
-        _set_job(ctx, job_id, state="queued", done=0)  # back on the queue; the half-made version is never current
+        ctx.update_job(job_id, state="queued", done=0)  # back on the queue; the half-made version is never current
         raise
     except Exception as exc:
         if is_transient(exc):  # the worker re-schedules the job; it starts over in a fresh version
             shutil.rmtree(ctx.results.version_dir(sid, v), ignore_errors=True)
-            _set_job(ctx, job_id, state="queued", done=0)
+            ctx.update_job(job_id, state="queued", done=0)
             raise
         reason = failure_reason(exc)
         log.error("reprocess job failed: %s\n%s", reason, failure_frames(exc))
@@ -118,7 +113,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         Publisher(ctx).write_state(sid, v, VersionState(failed=True))  # the viewer's banner stops
         return
     seconds = time.perf_counter() - started
-    _set_job(ctx, job_id, state="done", done=len(rows), finished=time.time())
+    ctx.update_job(job_id, state="done", done=len(rows), finished=time.time())
     queue.incr_metric(ctx.r, "jobs_done_total", prefix=ctx.prefix)
     queue.incr_metric(ctx.r, "job_seconds_sum", seconds + 1e-9, prefix=ctx.prefix)
     queue.incr_metric(ctx.r, "job_seconds_count", prefix=ctx.prefix)

@@ -14,7 +14,6 @@ import json
 import logging
 import time
 from collections.abc import Callable
-from typing import Any
 
 from services.jobs import queue
 from services.jobs import reprocess as jobs
@@ -26,10 +25,6 @@ from workers.publisher import Publisher
 from workers.stages.prepare import Retry
 
 log = logging.getLogger("veinmosaic.worker")
-
-
-def _set_job(ctx: Context, job_id: str, **values: Any) -> None:
-    jobs.update_job(ctx.r, ctx.prefix, job_id, **values)
 
 
 def _attempts(ctx: Context, job_id: str) -> int:
@@ -51,51 +46,51 @@ def handle_send(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], No
         name = ""
     destination = cfg.pacs_destinations.get(name)
     if destination is None:
-        _set_job(ctx, job_id, state="failed", error="destination not configured on the worker")
+        ctx.update_job(job_id, state="failed", error="destination not configured on the worker")
         pub.audit_send(sid, job_id, name, "failed", 0)
         return None
     try:
         meta = ctx.store.get_meta(sid)
     except SessionNotFoundError:
-        _set_job(ctx, job_id, state="failed", error="no such session")
+        ctx.update_job(job_id, state="failed", error="no such session")
         return None
     version = finished_version(ctx.results, sid) if meta.status == "done" else None
     if version is None:
         if meta.status == "failed":
-            _set_job(ctx, job_id, state="failed", error="the session failed: no results to send")
+            ctx.update_job(job_id, state="failed", error="the session failed: no results to send")
             pub.audit_send(sid, job_id, name, "failed", 0)
             return None
-        _set_job(ctx, job_id, state="queued", error="waiting for the session's results")
+        ctx.update_job(job_id, state="queued", error="waiting for the session's results")
         return Retry(cfg.pacs_wait_s, "session not done")
     attempt = _attempts(ctx, job_id) + 1
-    _set_job(ctx, job_id, state="running", version=version, attempts=attempt, error="", started=time.time())
+    ctx.update_job(job_id, state="running", version=version, attempts=attempt, error="", started=time.time())
     heartbeat()
     objects = session_objects(ctx.store, ctx.results, sid, version)
-    _set_job(ctx, job_id, total=len(objects), done=0)
+    ctx.update_job(job_id, total=len(objects), done=0)
     heartbeat()
     try:
         outcome = send_objects(destination, list(objects.values()), timeout_s=cfg.pacs_timeout_s)
     except PacsUnreachable as exc:
         if attempt >= cfg.pacs_max_attempts:
             error = f"destination unreachable after {attempt} attempts: {exc}"
-            _set_job(ctx, job_id, state="failed", error=error[:300])
+            ctx.update_job(job_id, state="failed", error=error[:300])
             pub.audit_send(sid, job_id, name, "failed", 0, version)
             return None
         delay = retry_delay_s(attempt, cfg.pacs_retry_first_s, cfg.pacs_retry_max_s)
-        _set_job(ctx, job_id, state="queued", error=f"destination unreachable ({exc}); retry in {delay:.1f} s"[:300])
+        ctx.update_job(job_id, state="queued", error=f"destination unreachable ({exc}); retry in {delay:.1f} s"[:300])
         pub.audit_send(sid, job_id, name, "retry", 0, version)
         log.warning("PACS unreachable; send retried in %.1f s (attempt %d)", delay, attempt, extra={"session": sid})
         return Retry(delay, "PACS unreachable")
     except PacsRejected as exc:
-        _set_job(ctx, job_id, state="failed", error=f"the destination refused the objects: {exc}"[:300])
+        ctx.update_job(job_id, state="failed", error=f"the destination refused the objects: {exc}"[:300])
         pub.audit_send(sid, job_id, name, "rejected", 0, version)
         return None
     if not outcome.ok:  # some objects stored, others refused (a retry would be refused again)
         refused = ", ".join(f"{uid}: {why}" for uid, why in outcome.failed.items())
-        _set_job(ctx, job_id, state="failed", done=outcome.sent, error=f"the destination refused {refused}"[:300])
+        ctx.update_job(job_id, state="failed", done=outcome.sent, error=f"the destination refused {refused}"[:300])
         pub.audit_send(sid, job_id, name, "partly rejected", outcome.sent, version)
         return None
-    _set_job(ctx, job_id, state="done", done=outcome.sent, finished=time.time())
+    ctx.update_job(job_id, state="done", done=outcome.sent, finished=time.time())
     pub.audit_send(sid, job_id, name, "done", outcome.sent, version)
     queue.incr_metric(ctx.r, "pacs_sends_total", prefix=ctx.prefix)
     log.info("sent %d DICOM objects", outcome.sent, extra={"session": sid})
