@@ -20,8 +20,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.mosaic.canvas import MosaicImage, force_to_color
-from services.core.mosaic.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
+from services.core.mosaic.canvas import MosaicImage
+from services.core.mosaic.layer_images import layers_from_bytes, mosaic_image_files
 from services.core.outputs.documents import folder_mosaic_json
 from services.core.outputs.plots import SheetIdentity, plot_coverage_map, plot_force_map
 from services.core.outputs.session_report import SessionReport, build_session_report
@@ -63,10 +63,8 @@ def write_reconstruction(
     out.mkdir(parents=True, exist_ok=True)
     (out / "path.csv").write_text(path_csv(recon.rows))
     mosaic = recon.mosaic
-    cv2.imwrite(str(out / "mosaic.png"), mosaic.vein)
-    cv2.imwrite(str(out / "force.png"), force_to_color(mosaic.force_n))
-    cv2.imwrite(str(out / "coverage.png"), coverage_to_color(mosaic.coverage))
-    (out / "layers.npz").write_bytes(layers_to_bytes(mosaic))
+    for name, data in mosaic_image_files(mosaic).items():
+        (out / name).write_bytes(data)
     (out / "force_map.png").write_bytes(plot_force_map(mosaic.force_n, mosaic.px_per_mm, mosaic.origin_px))
     (out / "coverage_map.png").write_bytes(plot_coverage_map(mosaic.coverage, mosaic.px_per_mm, mosaic.origin_px))
     meta = folder_mosaic_json(

@@ -33,8 +33,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.core.mosaic.canvas import MosaicImage, force_to_color
-from services.core.mosaic.layer_images import coverage_to_color, layers_from_bytes, layers_to_bytes
+from services.core.mosaic.canvas import MosaicImage
+from services.core.mosaic.layer_images import layers_from_bytes, mosaic_image_files
 from services.core.outputs.documents import LAYERS
 from services.core.registration.frame_prep import PreparedFrame
 from services.core.session_reconstruction import PathRow, path_rows_json
@@ -45,13 +45,6 @@ from services.store.version_state import VersionState
 
 IMAGE_NAMES = ("mosaic.png", "force.png", "coverage.png", "paths.png", "errors.png", "layers.npz")
 LIVE_VERSION = 1
-
-
-def _png(image: np.ndarray) -> bytes:
-    ok, buf = cv2.imencode(".png", image)
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buf.tobytes()
 
 
 _SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
@@ -325,11 +318,8 @@ class ResultsStore:
 
     def write_mosaic_images(self, sid: str, v: int, mosaic: MosaicImage, raw_layers: bool = True) -> None:
         """Write mosaic.png, force.png, coverage.png and (raw_layers) layers.npz of a rendered mosaic."""
-        self.write_image(sid, v, "mosaic.png", _png(mosaic.vein))
-        self.write_image(sid, v, "force.png", _png(force_to_color(mosaic.force_n)))
-        self.write_image(sid, v, "coverage.png", _png(coverage_to_color(mosaic.coverage)))
-        if raw_layers:
-            self.write_image(sid, v, "layers.npz", layers_to_bytes(mosaic))
+        for name, data in mosaic_image_files(mosaic, raw_layers).items():
+            self.write_image(sid, v, name, data)
 
     def read_mosaic_layers(self, sid: str, v: int) -> MosaicImage | None:
         """Return the finished mosaic of version v with force in N and coverage, or None when not written."""

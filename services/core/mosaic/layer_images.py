@@ -15,7 +15,7 @@ import io
 import cv2
 import numpy as np
 
-from services.core.mosaic.canvas import MosaicImage
+from services.core.mosaic.canvas import MosaicImage, force_to_color
 
 COVERAGE_FULL_SCALE = 10  # frames: the top of the colour scale (more saturates)
 FORCE_QUANTUM_N = 0.01  # the force plane's resolution in the raw layers (1 cN)
@@ -59,3 +59,26 @@ def layers_from_bytes(data: bytes, vein: np.ndarray) -> MosaicImage:
     if vein.shape != cov.shape:
         raise ValueError(f"layers: vein mosaic {vein.shape} and layers {cov.shape} differ in size")
     return MosaicImage(vein, force, cov, px_per_mm, origin)
+
+
+def _png(image: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def mosaic_image_files(mosaic: MosaicImage, raw_layers: bool = True) -> dict[str, bytes]:
+    """Return the whole-mosaic files by name: mosaic.png (8-bit veins), force.png (TURBO over 0..30 N),
+    coverage.png (VIRIDIS, transparent where never scanned) and, with raw_layers, layers.npz (layers_to_bytes).
+
+    The one set the service's results versions and the offline output folder both write.
+    """
+    files = {
+        "mosaic.png": _png(mosaic.vein),
+        "force.png": _png(force_to_color(mosaic.force_n)),
+        "coverage.png": _png(coverage_to_color(mosaic.coverage)),
+    }
+    if raw_layers:
+        files["layers.npz"] = layers_to_bytes(mosaic)
+    return files
