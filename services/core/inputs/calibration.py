@@ -8,17 +8,19 @@ from typing import Any
 
 import numpy as np
 
-KNOWN_FIELDS = {
-    "image_size",
-    "camera_matrix",
-    "dist_coeffs",
-    "px_per_mm",
-    "young_modulus_kpa",
-    "poisson_ratio",
-    "hooke_n_per_mm",
-    "sensor_separation_mm",
-    "scanner_area_m2",
-}
+KNOWN_FIELDS = frozenset(
+    {
+        "image_size",
+        "camera_matrix",
+        "dist_coeffs",
+        "px_per_mm",
+        "young_modulus_kpa",
+        "poisson_ratio",
+        "hooke_n_per_mm",
+        "sensor_separation_mm",
+        "scanner_area_m2",
+    }
+)
 REQUIRED_FIELDS = ("image_size", "camera_matrix", "px_per_mm")
 
 

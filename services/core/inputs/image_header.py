@@ -14,6 +14,7 @@ import struct
 import warnings
 import zlib
 from dataclasses import dataclass
+from types import MappingProxyType
 
 import cv2
 import numpy as np
@@ -24,7 +25,7 @@ from PIL import Image
 # rectified frame, feature pyramid: about a dozen) stay near 200 MiB, inside the 400 MB per-process budget.
 DEFAULT_MAX_FRAME_SIDE = 2048
 GRAYSCALE_MODES = frozenset({"1", "L", "I;16", "I;16B", "I;16L", "I;16N"})
-FORMATS = {"PNG": "png", "TIFF": "tif", "JPEG": "jpg"}
+FORMATS = MappingProxyType({"PNG": "png", "TIFF": "tif", "JPEG": "jpg"})
 
 
 class BadImageError(ValueError):

@@ -10,19 +10,22 @@ import re
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from datetime import date
+from types import MappingProxyType
 from typing import Any
 
 # field -> (DICOM value representation, maximum length in characters); PN: per component group
-STUDY_FIELDS: dict[str, tuple[str, int]] = {
-    "patient_id": ("LO", 64),
-    "patient_name": ("PN", 64),
-    "patient_birth_date": ("DA", 10),
-    "patient_sex": ("CS", 1),
-    "accession_number": ("SH", 16),
-    "laterality": ("CS", 1),
-    "referring_physician": ("PN", 64),
-    "study_description": ("LO", 64),
-}
+STUDY_FIELDS: Mapping[str, tuple[str, int]] = MappingProxyType(
+    {
+        "patient_id": ("LO", 64),
+        "patient_name": ("PN", 64),
+        "patient_birth_date": ("DA", 10),
+        "patient_sex": ("CS", 1),
+        "accession_number": ("SH", 16),
+        "laterality": ("CS", 1),
+        "referring_physician": ("PN", 64),
+        "study_description": ("LO", 64),
+    }
+)
 SEXES = ("M", "F", "O")
 LATERALITIES = ("L", "R")
 _CONTROL = re.compile(r"[\x00-\x1f\x7f\\]")  # control characters and the DICOM value separator

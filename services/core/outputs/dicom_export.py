@@ -40,6 +40,7 @@ from collections.abc import Collection
 from dataclasses import dataclass
 from datetime import datetime, tzinfo
 from importlib import metadata
+from types import MappingProxyType
 
 import numpy as np
 from pydicom import dcmread
@@ -61,12 +62,14 @@ FORCE_WINDOW_N = (0.0, 30.0)  # the viewer's force scale, N
 MANUFACTURER = "veinmosaic"
 MODEL_NAME = "veinmosaic NIR vein mosaic"
 DEFAULT_STUDY_DESCRIPTION = "NIR vein mosaic and force map"
-_SERIES = {  # object -> (series number, description)
-    "vein": (1, "NIR vein mosaic (undeformed, 850 nm)"),
-    "force": (2, "Force map: local load (N)"),
-    "coverage": (3, "Coverage: frames that saw each point"),
-    "report": (4, "One-page report"),
-}
+_SERIES = MappingProxyType(
+    {  # object -> (series number, description)
+        "vein": (1, "NIR vein mosaic (undeformed, 850 nm)"),
+        "force": (2, "Force map: local load (N)"),
+        "coverage": (3, "Coverage: frames that saw each point"),
+        "report": (4, "One-page report"),
+    }
+)
 _SAFE_ID = re.compile(r"[^A-Za-z0-9._-]")
 
 

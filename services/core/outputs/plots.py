@@ -13,6 +13,7 @@ import textwrap
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
+from types import MappingProxyType
 from typing import Any, Literal
 
 import matplotlib
@@ -522,8 +523,8 @@ SHEET_SIZE_IN = (8.27, 11.69)  # A4 portrait
 SHEET_DPI = 150  # the PNG: 1240 x 1754 px
 SHEET_TITLE = "NIR vein mosaic: scan report"
 NOT_GIVEN = "not given"
-SEX_NAMES = {"M": "male", "F": "female", "O": "other"}
-LATERALITY_NAMES = {"L": "left breast", "R": "right breast"}
+SEX_NAMES = MappingProxyType({"M": "male", "F": "female", "O": "other"})
+LATERALITY_NAMES = MappingProxyType({"L": "left breast", "R": "right breast"})
 _MARGIN, _TOP, _BOTTOM = 0.6, 0.45, 0.4  # inches
 _CONTENT_W = SHEET_SIZE_IN[0] - 2 * _MARGIN
 _MAP_GAP = 0.35  # between the force and the coverage cells

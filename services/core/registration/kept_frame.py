@@ -23,11 +23,11 @@ from services.core.registration.frame_prep import PreparedFrame
 # row differences are small numbers that Huffman codes well without LZ77's search: on a simulated raster frame
 # (640 x 480) 2.9 ms to encode and 2.1 to decode for 112 kB, against 7.1 / 3.7 ms and 130 kB for zlib level 1
 # with adaptive filters (what this was before); levels 6 and higher cost 5-10x the time for 1-3 % less memory.
-PNG_PARAMS = [
+PNG_PARAMS = (
     cv2.IMWRITE_PNG_COMPRESSION, 1,
     cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
     cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP,
-]  # fmt: skip
+)  # fmt: skip
 
 
 @dataclass(frozen=True)

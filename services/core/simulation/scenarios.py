@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from types import MappingProxyType
 
 import cv2
 import numpy as np
@@ -40,13 +41,15 @@ NOMINAL_KAPPA_N_PER_MM = 18.0
 # a texture photograph's pixel on the skin: a fundus photograph's widest vessels (~15 px) become ~5 mm veins
 TEXTURE_MM_PER_PX = 0.375
 TRUE_KAPPA_N_PER_MM = (0.1, 0.3)  # the effective kappa of a hand on tissue, log-uniform (draw_hand_kappa)
-HAND_TILT_DEG = {
-    "raster": 10.0,
-    "revisit": 10.0,
-    "hard": 15.0,
-    "short": 7.0,
-    "exam": 10.0,
-}  # as the shared scans' README
+HAND_TILT_DEG = MappingProxyType(
+    {
+        "raster": 10.0,
+        "revisit": 10.0,
+        "hard": 15.0,
+        "short": 7.0,
+        "exam": 10.0,
+    }
+)  # as the shared scans' README
 FORCE_RATE_HZ = 100.0
 FORCE_NOISE_N = 0.03
 FORCE_OFFSET_N = 0.1  # per-sensor constant offset, uniform in [-0.1, 0.1] N
