@@ -1,5 +1,7 @@
 """JSON-lines logging shared by the API and the workers: one object per line, request and session ids, and only
-whitelisted fields — never labels, calibrations, tokens or raw URLs (no patient data in logs)."""
+whitelisted fields — never labels, calibrations, tokens or raw URLs (no patient data in logs). What a failure is
+logged and recorded as (describe, failure_reason, failure_frames) follows the same rule: the project's own
+messages, never a library's."""
 
 from __future__ import annotations
 
