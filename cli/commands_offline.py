@@ -131,6 +131,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from services.core.inputs.study import parse_study
     from services.core.outputs.dicom_export import STUDY_OBJECTS, ExportInfo, export_study
     from services.store.output_folder import read_results_mosaic
+    from services.store.session_export import software_version
 
     results = Path(args.results)
     study = parse_study({name: getattr(args, name) or None for name in STUDY_OPTIONS})  # names a bad field only
@@ -146,6 +147,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         acquired=acquired,
         exported=datetime.now(UTC),
         method=str(meta.get("method") or ""),
+        software=software_version(),
     )
     wanted = list(dict.fromkeys(args.layer or STUDY_OBJECTS))
     sheet = results / "sheet.pdf"

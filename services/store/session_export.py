@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Sequence
 from datetime import UTC, datetime
+from importlib import metadata
 
 from services.core.mosaic.canvas import MosaicImage
 from services.core.outputs.dicom_export import ExportInfo, export_study
@@ -71,6 +72,14 @@ def session_sheet(
     return report.images[f"sheet.{fmt}"]
 
 
+def software_version() -> str:
+    """Return the installed veinmosaic package's version ('unknown' when it is not installed)."""
+    try:
+        return metadata.version("veinmosaic")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
 def export_info(store: SessionStore, rs: ResultsStore, sid: str, version: int, with_study: bool = True) -> ExportInfo:
     """Return what identifies a session's DICOM study: the session id as key, its study context, dates, method."""
     meta = store.get_meta(sid)
@@ -81,6 +90,7 @@ def export_info(store: SessionStore, rs: ResultsStore, sid: str, version: int, w
         exported=datetime.now(UTC),
         method=str((rs.read_options(sid, version) or {}).get("method") or ""),
         results_version=version,
+        software=software_version(),
     )
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import re
 import zlib
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -155,6 +156,7 @@ def test_export_each_layer_is_dicom_with_known_pixels(ready: tuple[TestClient, d
         assert [float(v) for v in ds.PixelSpacing] == [0.125, 0.125]  # mm: 1 / 8 px/mm
         assert (ds.Rows, ds.Columns) == (H, W)
         assert ds.StudyInstanceUID == study_uid(sid)  # one study per session
+        assert ds.SoftwareVersions == metadata.version("veinmosaic")  # the installed package's, read by the store
         assert re.fullmatch(r"\d{8}", ds.StudyDate) and ds.AcquisitionDateTime.startswith(ds.StudyDate)
         for name in ("PatientName", "PatientID", "PatientBirthDate", "PatientSex"):
             # the session's label is not patient identity: nothing is invented or copied into the file

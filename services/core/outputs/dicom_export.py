@@ -39,7 +39,6 @@ import re
 from collections.abc import Collection
 from dataclasses import dataclass
 from datetime import datetime, tzinfo
-from importlib import metadata
 from types import MappingProxyType
 
 import numpy as np
@@ -73,14 +72,6 @@ _SERIES = MappingProxyType(
 _SAFE_ID = re.compile(r"[^A-Za-z0-9._-]")
 
 
-def software_version() -> str:
-    """Return the installed veinmosaic package version ('unknown' when not installed)."""
-    try:
-        return metadata.version("veinmosaic")
-    except metadata.PackageNotFoundError:
-        return "unknown"
-
-
 @dataclass(frozen=True)
 class ExportInfo:
     """What identifies an export: the key (session id or scan digest), study context, dates (aware), results."""
@@ -91,6 +82,7 @@ class ExportInfo:
     study: StudyContext | None = None
     method: str = ""
     results_version: int = 1
+    software: str = "unknown"  # the producing software's version (DICOM SoftwareVersions): the caller's to read
 
     def __post_init__(self) -> None:
         if not self.key:
@@ -220,7 +212,7 @@ def _base(info: ExportInfo, obj: str, sop_class: str, sop_uid: str) -> Dataset:
     ds.SeriesDate, ds.SeriesTime = acq_date, acq_time
     # General Equipment and SC Equipment
     ds.Manufacturer, ds.ManufacturerModelName = MANUFACTURER, MODEL_NAME
-    ds.SoftwareVersions = software_version()
+    ds.SoftwareVersions = info.software
     ds.ConversionType = "WSD"  # produced by a workstation from the probe's frames
     ds.SecondaryCaptureDeviceManufacturer = MANUFACTURER
     ds.SecondaryCaptureDeviceManufacturerModelName = MODEL_NAME

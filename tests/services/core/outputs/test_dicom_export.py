@@ -28,7 +28,6 @@ from services.core.outputs.dicom_export import (
     export_layer,
     export_study,
     scan_digest,
-    software_version,
     study_uid,
 )
 
@@ -65,7 +64,13 @@ def _mosaic() -> MosaicImage:
 
 
 def _info(**kw: object) -> ExportInfo:
-    args: dict[str, object] = {"key": "sess-1", "acquired": ACQUIRED, "exported": EXPORTED, "method": "best"}
+    args: dict[str, object] = {
+        "key": "sess-1",
+        "acquired": ACQUIRED,
+        "exported": EXPORTED,
+        "method": "best",
+        "software": "9.8.7",
+    }
     return ExportInfo(**{**args, **kw})  # type: ignore[arg-type]
 
 
@@ -127,7 +132,7 @@ def test_every_layer_reads_back_with_pixels_spacing_and_one_study() -> None:
         assert d.StudyDate == "20250304" and d.StudyTime == "102030" and d.TimezoneOffsetFromUTC == "+0100"
         assert d.AcquisitionDateTime == "20250304102030"
         assert d.InstanceCreationDate == "20250305" and d.InstanceCreationTime == "090000"  # in the same zone
-        assert d.Manufacturer == "veinmosaic" and d.ManufacturerModelName and d.SoftwareVersions == software_version()
+        assert d.Manufacturer == "veinmosaic" and d.ManufacturerModelName and d.SoftwareVersions == "9.8.7"
         assert d.StudyID == "sess-1"  # the session's id, as the sheet names it
     for layer in EXPORT_LAYERS:
         d = ds[layer]
