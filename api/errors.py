@@ -214,7 +214,7 @@ def add_exception_handlers(app: FastAPI) -> None:
             status, code, message = 500, "internal_error", "internal error"
         headers = {"Retry-After": str(request.app.state.settings.retry_after_s)} if status == 503 else None
         if message is None:  # the exception's own message, less any submitted value it quotes
-            message = without_values(str(exc)) if isinstance(exc, CalibrationError) else str(exc)
+            message = f"calibration: {without_values(str(exc))}" if isinstance(exc, CalibrationError) else str(exc)
         return error_response(status, code, message, headers=headers)
 
     async def request_validation(request: Request, exc: Exception) -> JSONResponse:

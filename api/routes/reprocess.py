@@ -32,8 +32,8 @@ _ID = re.compile(r"^[0-9a-f]{32}$")
 def _validated(options: dict[str, Any], calibration: Calibration) -> dict[str, Any]:
     try:
         return method_options.validate_options(options, calibration)
-    except CalibrationError as exc:  # mapped here: the message keeps its "calibration: " prefix (not api/errors.py's)
-        raise Validation(f"calibration: {exc}", code="invalid_calibration") from None
+    except CalibrationError:  # api/errors.py maps it: 422 invalid_calibration
+        raise
     except ValueError as exc:  # any ValueError of the options check; too broad for api/errors.py's table
         raise Validation(str(exc), code="invalid_options") from None
 

@@ -19,7 +19,7 @@ from api.deps import (
 from api.errors import Validation
 from api.results_access import Results, reprocess_running, resolve_version, session_extent
 from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
-from services.core.inputs.calibration import CalibrationError, parse_calibration
+from services.core.inputs.calibration import parse_calibration
 from services.core.outputs.scan_quality import live_lag, scan_warnings, summarize_frames
 from services.jobs import queue
 from services.jobs import reprocess as jobs
@@ -43,10 +43,7 @@ def create_session(
         raise Validation(
             f"calibration: image_size: at most {settings.max_frame_side} pixels a side", code="invalid_calibration"
         )
-    try:
-        calibration = parse_calibration(body.calibration.document())
-    except CalibrationError as exc:  # mapped here: the message keeps its "calibration: " prefix (not api/errors.py's)
-        raise Validation(f"calibration: {exc}", code="invalid_calibration") from None
+    calibration = parse_calibration(body.calibration.document())  # CalibrationError: 422 invalid_calibration
     study = body.study.context() if body.study is not None else None  # StudyContextError: 422 invalid_study
     assert principal.fingerprint is not None
     meta = store.create_session(principal.fingerprint, body.label, calibration, study=study)
