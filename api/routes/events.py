@@ -28,6 +28,7 @@ from sse_starlette import EventSourceResponse, ServerSentEvent
 from api.deps import AppSettings, RedisClient, Store, ViewSession
 from api.errors import ServiceUnavailable
 from api.results_access import Results, resolve_version
+from services.core.outputs.documents import path_rows_from_json, path_tail
 from services.jobs import queue
 from services.jobs.redis_backend import read_embedded_url
 from services.store.results_store import ResultsStore
@@ -64,14 +65,14 @@ def snapshot(store: SessionStore, rs: ResultsStore, r: redis.Redis, sid: str, pr
     meta = store.get_meta(sid)
     v = resolve_version(rs, sid, None)
     mosaic = rs.read_mosaic_meta(sid, v) if v is not None else None
-    rows = (rs.read_path(sid, v) if v is not None else None) or []
+    rows = path_rows_from_json((rs.read_path(sid, v) if v is not None else None) or [])
     counters = queue.session_counters(r, sid, prefix=prefix)
     return {
         "session": sid,
         "status": meta.status,
         "results_version": v,
         "mosaic": None if mosaic is None else {**mosaic, "results_version": v},
-        "path": [[d["seq"], d.get("x_mm"), d.get("y_mm"), d.get("status")] for d in rows],
+        "path": path_tail(rows, (row.seq for row in rows)),  # the progress events' path_tail shape, every row
         "frames_received": store.count_frames(sid),
         "frames_processed": counters["processed"],
         "frames_lost": counters["lost"],
