@@ -57,8 +57,8 @@ def stow(destination: DicomWebDestination, objects: Sequence[DicomObject], timeo
             resp = client.post(destination.stow_url, content=multipart_body(objects, boundary), headers=headers)
     except httpx.TimeoutException:
         raise PacsUnreachable(f"{where}: no answer within {timeout_s:g} s") from None
-    except httpx.TransportError as exc:  # refused, reset, DNS, TLS: the text names no patient data
-        raise PacsUnreachable(f"{where}: cannot connect ({type(exc).__name__}: {exc})") from None
+    except httpx.TransportError as exc:  # refused, reset, DNS, TLS: its type only (its text may quote the URL)
+        raise PacsUnreachable(f"{where}: cannot connect ({type(exc).__name__})") from None
     status = resp.status_code
     if status >= 500 or status in _RETRY_STATUSES:
         raise PacsUnreachable(f"{where}: HTTP {status} (a fault of the PACS or a proxy; worth retrying)")
