@@ -113,6 +113,24 @@ def test_unique_pairs_merges_repeated_matches() -> None:
     assert keep2.tolist() == [True, True]
 
 
+def test_unique_pairs_is_greedy_over_kept_matches_only() -> None:
+    # b repeats a (kept), c repeats b but not a: b goes, so c has no kept neighbour and stays
+    ends = np.array([[0.0, 0.0], [1.5, 0.0], [3.0, 0.0]])
+    assert unique_pairs(ends, ends + 100.0, radius=2.0).tolist() == [True, False, True]
+    # the plain O(n^2) walk in order, on clustered random matches: the same mask exactly
+    rng = np.random.default_rng(7)
+    src = rng.uniform(0, 30, (300, 2))
+    dst = src * 1.01 + rng.uniform(-1.5, 1.5, (300, 2))
+    kept: list[int] = []
+    for i in range(len(src)):
+        if not any(np.all(np.abs(src[i] - src[j]) <= 2.0) and np.all(np.abs(dst[i] - dst[j]) <= 2.0) for j in kept):
+            kept.append(i)
+    expected = np.zeros(len(src), bool)
+    expected[kept] = True
+    assert 0 < expected.sum() < len(src)  # the draw has duplicates to merge
+    assert np.array_equal(unique_pairs(src, dst, radius=2.0), expected)
+
+
 def test_inlier_count_is_honest_after_dedupe() -> None:
     rng = np.random.default_rng(4)
     truth = Similarity(cmath.exp(0.2j), 1.0 + 0.5j)
