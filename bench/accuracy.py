@@ -8,7 +8,9 @@
 
 Every (scan, method) prints: registered %, RMSE mm (over the registered frames only: read it with the
 registered %), final drift mm, error ratio %, s/frame (wall time of the whole offline pipeline), and the worse
-axis's tilt RMS error in degrees where the reference has tilts (the shared scans, the tissue-* cells).
+axis's tilt RMS error in degrees where the reference has tilts (the shared scans, the tissue-* cells), and where
+the error lies (evaluation.GlobalError): the path's scale % (+ too large) and turn deg about frame 0, and the RMSE
+left after that similarity (the path's shape).
 Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe: a patient as on the shared scans (a hand's tilt,
 a tissue law of that shape with x/y anisotropy), not an imaging look.
 
@@ -150,6 +152,12 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
         path_length_mm=report.path_length_mm,
         s_per_frame=recon.seconds / len(scan),
     )
+    if report.global_error is not None:  # where the error lies: the path's scale and turn, and its shape
+        row.update(
+            scale_pct=report.global_error.scale_pct,
+            turn_deg=report.global_error.turn_deg,
+            after_similarity_mm=report.global_error.after_similarity_mm,
+        )
     if scan.reference_angles_deg is not None:
         angles = evaluate_angles(path_angles_deg(recon.rows), recon.registered, scan.reference_angles_deg)
         row["tilt_rmse_deg"] = max(angles.get("tilt_x_rmse_deg", math.nan), angles.get("tilt_y_rmse_deg", math.nan))
@@ -158,7 +166,8 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
 
 HEADER = (
     f"{'source':<6} | {'scan / cell':<28} | {'method':<10} | {'registered %':>12} | {'RMSE mm':>8} |"
-    f" {'final drift mm':>14} | {'error ratio %':>13} | {'s/frame':>7} | {'tilt RMS deg':>12}"
+    f" {'final drift mm':>14} | {'error ratio %':>13} | {'s/frame':>7} | {'tilt RMS deg':>12} |"
+    f" {'scale %':>7} | {'turn deg':>8} | {'after sim. mm':>13}"
 )
 
 
@@ -177,7 +186,9 @@ def table_line(row: dict[str, Any]) -> str:
     return (
         f"{head} {fmt(row['registered_pct'], '12.1f')} | {fmt(row['rmse_mm'], '8.3f')} |"
         f" {fmt(row['final_drift_mm'], '14.3f')} | {fmt(row['error_ratio_pct'], '13.4f')} |"
-        f" {fmt(row['s_per_frame'], '7.3f')} | {fmt(row.get('tilt_rmse_deg'), '12.2f')}"
+        f" {fmt(row['s_per_frame'], '7.3f')} | {fmt(row.get('tilt_rmse_deg'), '12.2f')} |"
+        f" {fmt(row.get('scale_pct'), '+7.2f')} | {fmt(row.get('turn_deg'), '+8.3f')} |"
+        f" {fmt(row.get('after_similarity_mm'), '13.3f')}"
     )
 
 

@@ -49,6 +49,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     )
     if report.accuracy is not None:
         print(report.accuracy.summary())
+        if report.accuracy.global_error is not None:
+            print(report.accuracy.global_error.summary())
     if "angles" in report.doc:
         a = report.doc["angles"]
         print(

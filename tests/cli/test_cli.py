@@ -83,6 +83,11 @@ def test_reconstruct_writes_the_report(outputs: Path) -> None:
     # CSV forces written with repr) must not cost accuracy
     assert TOL.best_short_rmse_mm[0] <= report["rmse_mm"] <= TOL.best_short_rmse_mm[1]
     assert report["registered_fraction"] == 1.0
+    # where the error lies: what one similarity about frame 0 leaves is at most the RMSE over |b| (the fit
+    # includes the identity; 1 % covers |b|), and a well-registered 40-frame scan's scale and turn are small
+    g = report["global_error"]
+    assert 0 < g["after_similarity_mm"] <= 1.01 * report["rmse_mm"]
+    assert abs(g["scale_pct"]) < 0.5 and abs(g["turn_deg"]) < 0.5
     for name in ("paths.png", "errors.png"):
         assert cv2.imread(str(outputs / name)) is not None
 
@@ -91,6 +96,7 @@ def test_reconstruct_prints_a_summary(scan_dir: Path, tmp_path: Path, capsys: py
     assert main(["reconstruct", str(scan_dir), "--out", str(tmp_path), "--method", "sift-chain"]) == 0
     out = capsys.readouterr().out
     assert "40/40 frames registered" in out and "RMSE" in out
+    assert "of which one similarity about frame 0" in out and "left after it" in out
 
 
 def test_malformed_forces_exit_2_naming_file_and_line(

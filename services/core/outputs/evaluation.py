@@ -19,6 +19,8 @@ class AccuracyReport:
     no reference. error_ratio_pct = 100 * final_drift_mm / path_length_mm (NaN for a zero-length path).
     With fewer than MIN_COMPARED frames compared (e.g. only frame 0, the origin by definition) the figures
     are NaN: an error of 0 there says nothing about the method, so it must not read as a perfect score.
+    global_error: where the error lies (GlobalError: the path's scale and turn about frame 0, and what is left
+    after them), None with too few frames compared.
     """
 
     rmse_mm: float
@@ -31,6 +33,7 @@ class AccuracyReport:
     n_registered: int
     n_with_reference: int
     errors_mm: np.ndarray
+    global_error: GlobalError | None = None
 
     @property
     def n_compared(self) -> int:
@@ -74,7 +77,56 @@ class AccuracyReport:
             "n_compared": self.n_compared,
             "meaningful": self.meaningful,
             "errors_mm": [num(float(e)) for e in self.errors_mm],
+            "global_error": None if self.global_error is None else self.global_error.to_dict(),
         }
+
+
+@dataclass(frozen=True)
+class GlobalError:
+    """How much of a path's error is one global map about frame 0 (issue 14's decomposition).
+
+    The estimate is fitted as estimate ~ b * reference about frame 0 (b complex: a similarity without
+    translation, least squares over the compared frames). scale_pct = 100 (|b| - 1): + when the estimated path
+    is larger than the reference; turn_deg: arg(b), the estimate turned from the reference in the sense of
+    spec §4's yaw (x toward y). after_similarity_mm: the RMSE (mm) left once the estimate is mapped back by 1/b;
+    after_linear_mm: that left after the best 2x2 linear map (scale, turn, stretch and shear). A small
+    after_similarity_mm against the RMSE means the path's shape is right and its level or turn is not.
+    """
+
+    scale_pct: float
+    turn_deg: float
+    after_similarity_mm: float
+    after_linear_mm: float
+
+    def summary(self) -> str:
+        """Return a one-line human summary: the path's scale and turn about frame 0 and the RMSE left after them."""
+        return (
+            f"of which one similarity about frame 0: the path {self.scale_pct:+.2f} % in scale (+ = too large),"
+            f" turned {self.turn_deg:+.3f} deg; {self.after_similarity_mm:.3f} mm left after it (the path's shape)"
+        )
+
+    def to_dict(self) -> dict[str, float | None]:
+        """Return the four figures as a JSON-able dict (%, deg, mm, mm; None where not defined)."""
+        fields = ("scale_pct", "turn_deg", "after_similarity_mm", "after_linear_mm")
+        return {name: (v if math.isfinite(v := float(getattr(self, name))) else None) for name in fields}
+
+
+def global_error(estimate_mm: np.ndarray, reference_mm: np.ndarray) -> GlobalError | None:
+    """Return the GlobalError (%, deg, mm) of compared rows (finite (N, 2) pairs), None if they span no extent."""
+    est = np.asarray(estimate_mm, np.float64).reshape(-1, 2)
+    ref = np.asarray(reference_mm, np.float64).reshape(-1, 2)
+    e = est[:, 0] + 1j * est[:, 1]
+    r = ref[:, 0] + 1j * ref[:, 1]
+    spread = float(np.vdot(r, r).real)
+    if len(r) < MIN_COMPARED or spread <= 1e-12:
+        return None
+    b = complex(np.vdot(r, e) / spread)  # least squares of e ~ b r
+    if abs(b) < 1e-12:
+        return None
+    after_similarity = float(np.sqrt(np.mean(np.abs(r - e / b) ** 2)))
+    linear, _, rank, _ = np.linalg.lstsq(est, ref, rcond=None)  # ref ~ est @ linear
+    after_linear = float(np.sqrt(np.mean(np.sum((ref - est @ linear) ** 2, axis=1)))) if rank == 2 else math.nan
+    return GlobalError(100.0 * (abs(b) - 1.0), math.degrees(math.atan2(b.imag, b.real)), after_similarity, after_linear)
 
 
 def _as_path(name: str, value: np.ndarray) -> np.ndarray:
@@ -139,6 +191,7 @@ def evaluate_path(estimate_mm: np.ndarray, registered: np.ndarray, reference_mm:
         n_registered=int(reg.sum()),
         n_with_reference=int(has_ref.sum()),
         errors_mm=errors,
+        global_error=global_error(est[compared], ref[compared]),
     )
 
 

@@ -103,6 +103,7 @@ def test_only_frame_zero_registered_is_not_a_perfect_score() -> None:
     assert not report.meaningful and math.isnan(report.rmse_mm) and math.isnan(report.final_drift_mm)
     doc = report.to_dict()
     assert doc["rmse_mm"] is None and doc["meaningful"] is False and doc["registered_fraction"] == 0.25
+    assert report.global_error is None and doc["global_error"] is None  # one frame spans no extent
     assert report.summary() == "accuracy not measurable: 1/4 frames registered (25.0 %), 1 compared with the reference"
 
 
@@ -128,3 +129,42 @@ def test_angle_errors_known_answer() -> None:
 def test_angle_errors_skip_unknown_angles() -> None:
     est = np.zeros((3, 3))
     assert evaluate_angles(est, np.ones(3, bool), np.full((3, 3), NAN)) == {}
+
+
+def _raster(n: int = 120) -> np.ndarray:
+    """Return a 6-row serpentine (4 mm steps, rows 25 mm apart, 0.5 mm jitter) starting at the origin (mm)."""
+    rng = np.random.default_rng(3)
+    x = np.tile(np.r_[np.arange(20), np.arange(19, -1, -1)] * 4.0, 3)[:n]
+    y = np.repeat(np.arange(n // 20 + 1) * 25.0, 20)[:n]
+    path = np.c_[x, y] + rng.normal(0.0, 0.5, (n, 2))
+    return path - path[0]
+
+
+def test_a_global_scale_and_turn_is_recovered_and_leaves_nothing() -> None:
+    reference = _raster()
+    b = 1.01 * np.exp(1j * np.radians(0.3))  # the estimate 1 % too large and turned 0.3 deg (x toward y)
+    turned = (reference[:, 0] + 1j * reference[:, 1]) * b
+    report = evaluate_path(np.c_[turned.real, turned.imag], np.ones(len(reference), bool), reference)
+    g = report.global_error
+    assert g is not None and report.rmse_mm > 0.2  # the error is real ...
+    # ... and all of it one similarity: exact up to float64 rounding on ~100 mm coordinates (1e-9)
+    assert g.scale_pct == pytest.approx(1.0, abs=1e-9) and g.turn_deg == pytest.approx(0.3, abs=1e-9)
+    assert g.after_similarity_mm < 1e-9 and g.after_linear_mm < 1e-9
+    assert json.loads(json.dumps(report.to_dict()))["global_error"]["turn_deg"] == pytest.approx(0.3, abs=1e-9)
+    assert "+1.00 % in scale" in g.summary() and "turned +0.300 deg" in g.summary()
+
+
+def test_a_shape_error_is_left_after_the_similarity_and_a_shear_after_it_too() -> None:
+    reference = _raster()
+    noisy = reference.copy()
+    noisy[1:, 1] += np.random.default_rng(5).normal(0.0, 0.2, len(reference) - 1)
+    report = evaluate_path(noisy, np.ones(len(reference), bool), reference)
+    g = report.global_error
+    assert g is not None
+    # zero-mean noise of 0.2 mm (y only) on a ~100 mm path: no global map to speak of (0.05 % / 0.05 deg at
+    # most, a few times the fit's standard error), and the similarity leaves the RMSE within 5 %
+    assert abs(g.scale_pct) < 0.05 and abs(g.turn_deg) < 0.05
+    assert g.after_similarity_mm == pytest.approx(report.rmse_mm, rel=0.05)
+    sheared = reference @ np.array([[1.0, 0.0], [0.01, 1.0]])  # x += 0.01 y: not a similarity, but linear
+    g2 = evaluate_path(sheared, np.ones(len(reference), bool), reference).global_error
+    assert g2 is not None and g2.after_similarity_mm > 0.1 and g2.after_linear_mm < 1e-9
