@@ -103,7 +103,8 @@ def write_version_report(
 
 
 def report_is_stale(report: dict[str, Any] | None, mosaic_doc: dict[str, Any] | None) -> bool:
-    """Return True when a stored report.json is missing or was made from another mosaic.json version."""
-    if report is None:
+    """Return True when a stored report.json is missing, was made from another mosaic.json version, or predates a
+    field every report now has (global_error, where the accuracy figures' error lies)."""
+    if report is None or "global_error" not in report:
         return True
     return int(report.get("mosaic_version", -1)) != int((mosaic_doc or {}).get("version", 0))

@@ -1,4 +1,5 @@
-"""Probe-path accuracy against a reference track (spec §4): RMSE, max error, final drift, error ratio."""
+"""Probe-path accuracy against a reference track (spec §4): RMSE, max error, final drift, error ratio, and where
+the error lies (the path's scale and turn about frame 0, and the RMSE left after them)."""
 
 from __future__ import annotations
 

@@ -383,6 +383,7 @@ def test_reference_report_and_plots(ready: tuple[TestClient, str, dict], bundle:
     assert math.isclose(report["rmse_mm"], expected.rmse_mm, abs_tol=1e-5)
     assert report["rmse_mm"] < 2.0  # the short scan registers to about a millimetre or better
     assert expected.global_error is not None  # where the error lies, as the offline report.json has it
+    # the same fit on the same frames; the CSV's 6 decimals move a ~50 mm path's scale by ~1e-6 %, 1e-3 % is loose
     assert math.isclose(report["global_error"]["scale_pct"], expected.global_error.scale_pct, abs_tol=1e-3)
     assert report["n_frames"] == 40 and report["registered_fraction"] == 1.0 and report["results_version"] == 1
     assert set(report["plots"]) == {"paths", "errors"}

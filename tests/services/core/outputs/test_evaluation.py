@@ -150,7 +150,8 @@ def test_a_global_scale_and_turn_is_recovered_and_leaves_nothing() -> None:
     # ... and all of it one similarity: exact up to float64 rounding on ~100 mm coordinates (1e-9)
     assert g.scale_pct == pytest.approx(1.0, abs=1e-9) and g.turn_deg == pytest.approx(0.3, abs=1e-9)
     assert g.after_similarity_mm < 1e-9 and g.after_linear_mm < 1e-9
-    assert json.loads(json.dumps(report.to_dict()))["global_error"]["turn_deg"] == pytest.approx(0.3, abs=1e-9)
+    doc = json.loads(json.dumps(report.to_dict(), allow_nan=False))  # as report.json is written
+    assert doc["global_error"]["turn_deg"] == pytest.approx(0.3, abs=1e-9)
     assert "+1.00 % in scale" in g.summary() and "turned +0.300 deg" in g.summary()
 
 
@@ -168,3 +169,12 @@ def test_a_shape_error_is_left_after_the_similarity_and_a_shear_after_it_too() -
     sheared = reference @ np.array([[1.0, 0.0], [0.01, 1.0]])  # x += 0.01 y: not a similarity, but linear
     g2 = evaluate_path(sheared, np.ones(len(reference), bool), reference).global_error
     assert g2 is not None and g2.after_similarity_mm > 0.1 and g2.after_linear_mm < 1e-9
+
+
+def test_a_straight_path_has_no_linear_map_and_stays_json() -> None:
+    reference = np.c_[np.arange(10.0) * 4.0, np.zeros(10)]
+    estimate = reference * 1.002  # 0.2 % too large along a line: a similarity, but no 2x2 map is determined
+    doc = evaluate_path(estimate, np.ones(10, bool), reference).to_dict()
+    g = json.loads(json.dumps(doc, allow_nan=False))["global_error"]
+    assert g["after_linear_mm"] is None
+    assert g["scale_pct"] == pytest.approx(0.2, abs=1e-9) and g["after_similarity_mm"] < 1e-9
