@@ -49,8 +49,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     )
     if report.accuracy is not None:
         print(report.accuracy.summary())
-        if report.accuracy.global_error is not None:
-            print(report.accuracy.global_error.summary())
+        output.print_global_error(report.doc.get("global_error"))
     if "angles" in report.doc:
         a = report.doc["angles"]
         print(

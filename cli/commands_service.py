@@ -218,6 +218,7 @@ def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
             + (f", {100 * registered:.1f} % registered" if registered is not None else "")
         )
         print(f"accuracy vs the simulator's ground truth: {report.get('accuracy_summary', '')}")
+        output.print_global_error(report.get("global_error"))
         output.print_warnings(state.get("warnings", []))
         print(f"images, scaled force and coverage maps, one-page report (sheet.pdf) and DICOM files in {out.resolve()}")
         print("viewer:")

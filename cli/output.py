@@ -28,3 +28,20 @@ def print_warnings(warnings: list[dict[str, str]]) -> None:
     """Print each warning on its own line, to stdout (it is part of the result) and flagged WARNING."""
     for w in warnings:
         print(f"WARNING: {w['message']}")
+
+
+def print_global_error(doc: dict[str, float | None] | None) -> None:
+    """Print where a report's error lies (report.json's global_error: scale %, turn deg, mm left), if it has one."""
+    if not doc or any(doc.get(k) is None for k in ("scale_pct", "turn_deg", "after_similarity_mm")):
+        return
+    from services.core.outputs.evaluation import GlobalError
+
+    linear = doc.get("after_linear_mm")
+    print(
+        GlobalError(
+            float(doc["scale_pct"] or 0.0),
+            float(doc["turn_deg"] or 0.0),
+            float(doc["after_similarity_mm"] or 0.0),
+            float("nan") if linear is None else float(linear),
+        ).summary()
+    )

@@ -69,7 +69,8 @@ class FakeClient:
 
     def post_reference(self, sid: str, text: str) -> dict[str, Any]:
         """Return a report without plots."""
-        return {"accuracy_summary": "RMSE 0.5 mm", "plots": {}}
+        error = {"scale_pct": 0.25, "turn_deg": -0.1, "after_similarity_mm": 0.2, "after_linear_mm": None}
+        return {"accuracy_summary": "RMSE 0.5 mm", "global_error": error, "plots": {}}
 
     def request(self, method: str, url: str) -> Any:
         """Return a response whose content names the URL."""
@@ -119,6 +120,7 @@ def test_demo_prints_the_viewer_url_alone_and_says_it_stops(
     assert "stops the service" in lines[-1] and "--hold keeps it serving" in lines[-1], lines[-1]
     assert "held" not in demo  # and it did not wait
     assert any("deleted when the demo ends" in line for line in lines)  # says what happens to its data
+    assert any("+0.25 % in scale" in line and "turned -0.100 deg" in line for line in lines)  # where the error lies
     for name in ("mosaic.png", "sheet.pdf", "vein.dcm", "force.dcm", "coverage.dcm"):
         assert (tmp_path / "out" / name).is_file(), name
 
