@@ -47,9 +47,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         f"{f.n_ok}/{f.n_frames} frames registered ({100 * f.registered_fraction:.1f} %; {f.n_lost} lost, "
         f"{f.n_rejected} rejected) in {recon.seconds:.1f} s; outputs in {args.out}"
     )
-    if report.accuracy is not None:
-        print(report.accuracy.summary())
+    if report.accuracy is not None:  # the RMSE and angle lines come last: scripts read the last two
         output.print_global_error(report.doc.get("global_error"))
+        print(report.accuracy.summary())
     if "angles" in report.doc:
         a = report.doc["angles"]
         print(

@@ -102,8 +102,8 @@ class GlobalError:
     def summary(self) -> str:
         """Return a one-line human summary: the path's scale and turn about frame 0 and the RMSE left after them."""
         return (
-            f"of which one similarity about frame 0: the path {self.scale_pct:+.2f} % in scale (+ = too large),"
-            f" turned {self.turn_deg:+.3f} deg; {self.after_similarity_mm:.3f} mm left after it (the path's shape)"
+            f"where the error lies: the path {self.scale_pct:+.2f} % in scale (+ = too large) and turned"
+            f" {self.turn_deg:+.3f} deg about frame 0; {self.after_similarity_mm:.3f} mm left after that (its shape)"
         )
 
     def to_dict(self) -> dict[str, float | None]:
