@@ -34,14 +34,10 @@ def print_global_error(doc: dict[str, float | None] | None) -> None:
     """Print where a report's error lies (report.json's global_error: scale %, turn deg, mm left), if it has one."""
     if not doc or any(doc.get(k) is None for k in ("scale_pct", "turn_deg", "after_similarity_mm")):
         return
+    from dataclasses import fields
+
     from services.core.outputs.evaluation import GlobalError
 
-    linear = doc.get("after_linear_mm")
-    print(
-        GlobalError(
-            float(doc["scale_pct"] or 0.0),
-            float(doc["turn_deg"] or 0.0),
-            float(doc["after_similarity_mm"] or 0.0),
-            float("nan") if linear is None else float(linear),
-        ).summary()
-    )
+    names = {f.name for f in fields(GlobalError)}
+    figures = {k: float("nan") if v is None else float(v) for k, v in doc.items() if k in names}
+    print(GlobalError(**{"after_linear_mm": float("nan"), **figures}).summary())

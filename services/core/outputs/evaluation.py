@@ -89,9 +89,11 @@ class GlobalError:
     The estimate is fitted as estimate ~ b * reference about frame 0 (b complex: a similarity without
     translation, least squares over the compared frames). scale_pct = 100 (|b| - 1): + when the estimated path
     is larger than the reference; turn_deg: arg(b), the estimate turned from the reference in the sense of
-    spec §4's yaw (x toward y). after_similarity_mm: the RMSE (mm) left once the estimate is mapped back by 1/b;
-    after_linear_mm: that left after the best 2x2 linear map (scale, turn, stretch and shear). A small
-    after_similarity_mm against the RMSE means the path's shape is right and its level or turn is not.
+    spec §4's yaw (x toward y). after_similarity_mm: the RMSE (mm) left once the estimate is mapped back by 1/b,
+    in the reference's millimetres; after_linear_mm: that left after the best 2x2 linear map of the estimate onto
+    the reference (reference ~ M estimate: scale, turn, stretch and shear; NaN for a straight path, which does not
+    determine one). A small after_similarity_mm against the RMSE means the path's shape is right and its level or
+    turn is not.
     """
 
     scale_pct: float
