@@ -139,7 +139,7 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
     bar.set_description(f"{cell.name} {method}")
     try:
         recon = reconstruct(scan, method_options(method), progress=lambda done, _total: bar.update(done - bar.n))
-        report = evaluate_path(recon.estimate_mm, recon.registered, scan.reference_mm)
+        report = evaluate_path(recon.estimate_mm, recon.registered, scan.by_seq(scan.reference_mm))
     except Exception as exc:  # a bench reports a crash as a row and carries on with the other cells
         row["error"] = f"{type(exc).__name__}: {exc}"
         return row

@@ -40,7 +40,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     with output.bar(f"reconstruct ({args.method})", len(scan)) as bar:
         recon = reconstruct(scan, options, progress=output.sized(bar))
     report = write_reconstruction(
-        recon, args.out, scan.reference_track, scan_digest=scan_digest(scan), label=Path(args.scan).resolve().name
+        recon,
+        args.out,
+        scan.by_seq(scan.reference_track),
+        scan_digest=scan_digest(scan),
+        label=Path(args.scan).resolve().name,
     )
     f = report.frames
     print(

@@ -104,7 +104,7 @@ def prepare_scan_frame(
     """Return frame `index` of a scan prepared for registration (see frame_prep.prepare_frame)."""
     return prepare_frame(
         scan.frame(index),
-        index=index,
+        index=int(scan.frame_seq[index]),  # registration indexes frames by seq, as a live session does
         seq=int(scan.frame_seq[index]),
         t_s=float(scan.frame_t_s[index]),
         forces_n=forces_n,
@@ -135,10 +135,12 @@ def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = 
     forces = frame_forces(scan)  # 1. forces at frame times
     mask, flat = window_setup(scan, options)  # 2-3. the window's field of view; the IR ring's vignetting
     session = SessionReconstruction(calib, options, window_radius_mm(mask, calib))
-    for pf in prepared_frames(scan, forces, mask, flat, options):  # 4. rectify + features (parallel)
-        session.add(pf)  # 5. register against what is placed (+ refinement on loop closures)
+    for done, pf in enumerate(prepared_frames(scan, forces, mask, flat, options), 1):  # 4. rectify + features
+        for dropped in range(len(session.results), pf.index):  # seqs the camera dropped: missing, as live
+            session.lose(dropped)
+        session.add(pf)  # 5. contact, then register against what is placed (+ refinement on loop closures)
         if progress:
-            progress(pf.index + 1, len(scan))
+            progress(done, len(scan))
     session.finish()  # 6-7. final global refinement; compliance self-calibration (path in true mm)
     mosaic = session.render()  # 8. stitch the vein and force layers
     return Reconstruction(

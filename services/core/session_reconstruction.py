@@ -7,6 +7,7 @@ session over replays the prepared frames it has not seen; registration is determ
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from collections.abc import Callable, Iterator, Sequence
@@ -15,17 +16,21 @@ from typing import Any
 
 import numpy as np
 
+from services.core.contact import ContactDetector
 from services.core.inputs.calibration import Calibration
 from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, blend_weight
 from services.core.physics.compliance import ComplianceFit, fit_compliance
 from services.core.physics.tissue_model import tilt_angles_rad
+from services.core.registration.atlas import Atlas
 from services.core.registration.frame_prep import PreparedFrame, load_map_n
 from services.core.registration.kept_frame import KeptFrame, keep_frame
 from services.core.registration.registrar import (
     REASON_BAD_FRAME,
+    REASON_FRAGMENT,
     REASON_MISSING,
+    REASON_NO_CONTACT,
     STATUS_LOST,
     STATUS_OK,
     STATUS_REJECTED,
@@ -64,6 +69,7 @@ PATH_COLUMNS = (
     "inliers",
     "status",
     "reason",
+    "stroke",
 )
 
 
@@ -83,6 +89,7 @@ class PathRow:
     inliers: int
     status: str
     reason: str = ""  # why a frame is lost or rejected (services.core.registration.registrar.REASONS); "" when ok
+    stroke: int | None = None  # the run of contact frames it belongs to, from 0; None off the skin or missing
 
 
 def path_rows_json(rows: Sequence[PathRow]) -> list[dict[str, Any]]:
@@ -109,7 +116,10 @@ class SessionReconstruction:
     options: MethodOptions
     window_radius_mm: float
     live: bool = False  # paste as frames arrive and move frames when refinement moves them
-    registrar: Registrar = field(init=False)
+    atlas: Atlas = field(init=False)  # the main map (`registrar`) and the fragments not joined to it yet
+    contact: ContactDetector = field(default_factory=ContactDetector)
+    strokes: dict[int, int] = field(default_factory=dict)  # contact frame -> its stroke (from 0)
+    in_fragment: dict[int, FrameResult] = field(default_factory=dict)  # placed on a fragment: its own result
     canvas: SparseCanvas = field(init=False)
     results: dict[int, FrameResult] = field(default_factory=dict)
     frames: dict[int, KeptFrame] = field(default_factory=dict)  # compact: row data, and pixels if pasteable
@@ -125,7 +135,12 @@ class SessionReconstruction:
     pixels: Callable[[int], tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        self.registrar = Registrar(
+        self.atlas = Atlas(self._new_map, self.window_radius_mm)
+        self.canvas = SparseCanvas(self.calibration.px_per_mm)
+
+    def _new_map(self) -> Registrar:
+        """Return an empty map (registration state) with this session's calibration and options."""
+        return Registrar(
             self.options,
             self.calibration.px_per_mm,
             self.window_radius_mm,
@@ -134,15 +149,20 @@ class SessionReconstruction:
             kappa_prior_n_per_mm=self.calibration.hooke_n_per_mm,
             compliance_per_n=self.calibration.compliance_per_n,
         )
-        self.canvas = SparseCanvas(self.calibration.px_per_mm)
+
+    @property
+    def registrar(self) -> Registrar:
+        """Return the main map: every placed frame's pose, in the first contact frame's coordinates."""
+        return self.atlas.main
 
     def add(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:
-        """Return the result of registering a frame (in index order) and the canvas tiles that changed."""
+        """Return the result of a frame (in index order: contact, then registration) and the canvas tiles changed."""
         self.heartbeat()
-        result = self.registrar.add(pf)
+        result = self._register(pf)
         self.heartbeat()
         self.results[pf.index] = result
-        kept = keep_frame(pf, result.status == STATUS_OK and not result.blurred, keep_pixels=self.pixels is None)
+        pasteable = (result.status == STATUS_OK or pf.index in self.in_fragment) and not result.blurred
+        kept = keep_frame(pf, pasteable, keep_pixels=self.pixels is None)
         self.frames[pf.index] = kept
         touched: set[tuple[int, int]] = set()
         if self.live:
@@ -153,6 +173,31 @@ class SessionReconstruction:
             touched |= self._sync_canvas((pf.index, *now))
             touched |= self.settle(REPAINT_PER_FRAME)
         return result, touched
+
+    def _register(self, pf: PreparedFrame) -> FrameResult:
+        """Return a frame's result: rejected off the skin, else placed on the atlas (a join places more frames)."""
+        if not self.contact.decide(pf.load.fz_n, pf.focus).contact:
+            return FrameResult(pf.index, STATUS_REJECTED, None, 0, False, reason=REASON_NO_CONTACT)
+        landing = not self.strokes or self._previous_status(pf.index) == REASON_NO_CONTACT
+        self.strokes[pf.index] = max(self.strokes.values(), default=-1) + int(landing)
+        placed = self.atlas.add(pf, landing)
+        result = placed.result
+        if result.status == STATUS_OK and not placed.on_main:  # waits on a fragment until it joins the map
+            self.in_fragment[pf.index] = result
+            result = FrameResult(pf.index, STATUS_LOST, None, result.inliers, result.blurred, reason=REASON_FRAGMENT)
+        for i in placed.joined:
+            self.results[i] = self.in_fragment.pop(i)
+        if placed.joined or placed.moved:
+            result = dataclasses.replace(result, moved=(*result.moved, *placed.joined, *placed.moved))
+        return result
+
+    def _previous_status(self, index: int) -> str:
+        """Return the reason of the newest frame before `index` that arrived ("" when placed or none)."""
+        for i in range(index - 1, -1, -1):
+            r = self.results.get(i)
+            if r is not None and r.reason != REASON_MISSING:
+                return r.reason
+        return ""
 
     def settle(self, limit: int) -> set[tuple[int, int]]:
         """Return the canvas tiles changed by re-pasting up to `limit` moved frames not re-pasted yet (oldest first)."""
@@ -383,6 +428,7 @@ class SessionReconstruction:
                     inliers=r.inliers,
                     status=r.status,
                     reason=r.reason,
+                    stroke=self.strokes.get(index),
                 )
             )
         return rows

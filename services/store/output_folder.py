@@ -29,6 +29,8 @@ from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
 
 
 def _cell(value: Any) -> str:
+    if value is None:
+        return ""
     if isinstance(value, float):
         return "" if not math.isfinite(value) else f"{value:.4f}"
     return str(value)

@@ -6,6 +6,7 @@ PREPARED_FORMAT is recorded in the file (array "format"); a file without it is f
 from __future__ import annotations
 
 import io
+import math
 
 import numpy as np
 
@@ -14,8 +15,10 @@ from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
 from services.store.file_formats import PREPARED_STORED, check_format, npz_bytes
 
-PREPARED_FORMAT = 2  # 2: the IMU's tilts at the frame time (array "imu_tilt_deg", absent without an IMU)
-READABLE_FORMATS = (0, 1, 2)
+# 2: the IMU's tilts at the frame time (array "imu_tilt_deg", absent without an IMU); 3: the focus measure
+# (array "focus"; NaN, unknown, when read from an older file)
+PREPARED_FORMAT = 3
+READABLE_FORMATS = (0, 1, 2, 3)
 
 
 def prepared_to_bytes(pf: PreparedFrame) -> bytes:
@@ -46,6 +49,7 @@ def prepared_to_bytes(pf: PreparedFrame) -> bytes:
         descriptors=desc_stored,
         desc_width=np.array([desc.shape[1] if desc.ndim == 2 else 128], np.int64),
         sizes_px=np.asarray(pf.features.sizes_px, np.float64),
+        focus=np.array([pf.focus], np.float64),
     )
 
 
@@ -74,6 +78,7 @@ def prepared_from_bytes(data: bytes, what: str = "prepared frame") -> PreparedFr
         vein_mask=z["vein_mask"],
         sharpness=sharpness,
         imu_tilt_deg=z["imu_tilt_deg"] if "imu_tilt_deg" in z.files else None,
+        focus=float(z["focus"][0]) if "focus" in z.files else math.nan,
     )
 
 

@@ -15,7 +15,7 @@ from services.core.inputs.calibration import Calibration
 class Scan:
     """A scan: frames are fetched through `frame_loader(index)` so a folder need not fit in memory.
 
-    Arrays: frame_seq (N,) int, frame_t_s (N,) s, force_t_s (M,) s, forces_n (M, 4) N as F1..F4,
+    Arrays: frame_seq (N,) int, increasing (a gap where the camera dropped a frame), frame_t_s (N,) s, force_t_s (M,) s, forces_n (M, 4) N as F1..F4,
     imu_t_s (K,) s and imu_tilt_deg (K, 2) as (tilt_x, tilt_y) deg or None, mask (H, W) uint8 0/255 or None,
     reference_mm (N, 2) in frame 0's coordinates (mm) with NaN rows where unknown, or None;
     reference_angles_deg (N, 3) yaw, tilt_x, tilt_y (deg, spec §4) where the reference has them, or None.
@@ -43,6 +43,20 @@ class Scan:
 
     def __len__(self) -> int:
         return len(self.frame_seq)
+
+    @property
+    def n_seqs(self) -> int:
+        """Return the number of seqs from 0 to the last frame's: the path's rows, dropped frames included."""
+        return int(self.frame_seq[-1]) + 1 if len(self.frame_seq) else 0
+
+    def by_seq(self, values: np.ndarray | None) -> np.ndarray | None:
+        """Return per-frame rows (N, k) spread over seqs 0..n_seqs-1 (n_seqs, k), NaN rows for dropped seqs."""
+        if values is None:
+            return None
+        rows = np.asarray(values, np.float64)
+        out = np.full((self.n_seqs, *rows.shape[1:]), np.nan)
+        out[np.asarray(self.frame_seq, np.int64)] = rows
+        return out
 
     def frame(self, index: int) -> np.ndarray:
         """Return frame `index` (position in frame_seq, not seq) as a 2-D uint8 or uint16 array."""

@@ -47,6 +47,7 @@ def path_row_from_json(d: Mapping[str, Any]) -> PathRow:
     values["inliers"] = int(values["inliers"] or 0)
     values["status"] = str(values["status"])
     values["reason"] = str(values.get("reason") or "")
+    values["stroke"] = None if values.get("stroke") is None else int(values["stroke"])
     return PathRow(**values)
 
 

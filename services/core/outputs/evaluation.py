@@ -22,6 +22,9 @@ class AccuracyReport:
     are NaN: an error of 0 there says nothing about the method, so it must not read as a perfect score.
     global_error: where the error lies (GlobalError: the path's scale and turn about frame 0, and what is left
     after them), None with too few frames compared.
+    registered_fraction: the share of the frames with a reference (spec §4: every frame that touched the skin)
+    that is registered; n_registered_without_reference: registered frames the reference has no row for (on a
+    clinical scan, frames taken in the air: none should be).
     """
 
     rmse_mm: float
@@ -35,6 +38,7 @@ class AccuracyReport:
     n_with_reference: int
     errors_mm: np.ndarray
     global_error: GlobalError | None = None
+    n_registered_without_reference: int = 0
 
     @property
     def n_compared(self) -> int:
@@ -75,6 +79,7 @@ class AccuracyReport:
             "n_frames": int(self.n_frames),
             "n_registered": int(self.n_registered),
             "n_with_reference": int(self.n_with_reference),
+            "n_registered_without_reference": int(self.n_registered_without_reference),
             "n_compared": self.n_compared,
             "meaningful": self.meaningful,
             "errors_mm": [num(float(e)) for e in self.errors_mm],
@@ -189,12 +194,13 @@ def evaluate_path(estimate_mm: np.ndarray, registered: np.ndarray, reference_mm:
         final_drift_mm=final_drift,
         path_length_mm=length,
         error_ratio_pct=ratio,
-        registered_fraction=float(reg.sum()) / n,
+        registered_fraction=float(np.count_nonzero(reg & has_ref)) / max(int(has_ref.sum()), 1),
         n_frames=n,
         n_registered=int(reg.sum()),
         n_with_reference=int(has_ref.sum()),
         errors_mm=errors,
         global_error=global_error(est[compared], ref[compared]),
+        n_registered_without_reference=int(np.count_nonzero(reg & ~has_ref)),
     )
 
 

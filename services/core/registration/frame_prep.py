@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from services.core.contact import focus_measure
 from services.core.inputs.calibration import Calibration
 from services.core.methods import MethodOptions
 from services.core.physics.camera import px_to_mm
@@ -37,6 +39,7 @@ class PreparedFrame:
     vein_mask: np.ndarray  # (h, w) uint8 0/255, where the vein map is valid (the window less a margin)
     sharpness: float  # variance of the Laplacian inside the window, grey levels^2
     imu_tilt_deg: np.ndarray | None = None  # (2,) reference tilts (tilt_x, tilt_y) deg at the frame time, if an IMU
+    focus: float = math.nan  # the window's fine-detail contrast (services.core.contact.focus_measure); NaN: unknown
 
 
 def to_unit_float(raw: np.ndarray) -> np.ndarray:
@@ -138,6 +141,7 @@ def prepare_frame(
         vein_mask=vein.mask,
         sharpness=sharpness,
         imu_tilt_deg=_imu_or_none(imu_tilt_deg),
+        focus=focus_measure(image, rect_mask),
     )
 
 

@@ -39,6 +39,8 @@ REASON_BLUR = "blur"  # a motion-blurred frame that could not be registered
 REASON_IMPLAUSIBLE = "implausible_jump"  # a pose too far from the motion prediction
 REASON_MISSING = "missing"  # the frame never arrived (declared lost by the queue)
 REASON_BAD_FRAME = "bad_frame"  # the frame's content could not be processed (undecodable, wrong size)
+REASON_NO_CONTACT = "no_contact"  # taken with the window off the skin (rejected; services.core.contact)
+REASON_FRAGMENT = "unjoined_fragment"  # placed on a fragment that has not joined the map (atlas)
 REASONS = (
     REASON_FEW_KEYPOINTS,
     REASON_FEW_INLIERS,
@@ -47,6 +49,8 @@ REASONS = (
     REASON_IMPLAUSIBLE,
     REASON_MISSING,
     REASON_BAD_FRAME,
+    REASON_NO_CONTACT,
+    REASON_FRAGMENT,
 )
 LOCAL_REFINE_FROM = 400  # placed frames: below this every refinement is global
 GLOBAL_GROWTH = 1.25  # ... from it, a global pass when the placed frames grew by this factor since the last one
@@ -110,7 +114,7 @@ class FrameResult:
     reason: str = ""  # one of REASONS when status is not ok
 
 
-@dataclass
+@dataclass(eq=False)  # a map is itself (services.core.registration.atlas keeps several): compared by identity
 class Registrar:
     """The growing registration state of one session (frames fed in index order)."""
 
@@ -131,6 +135,7 @@ class Registrar:
     loops_since_refine: int = 0
     last_global_refine: int = 0  # placed frames at the last global refinement
     last_view_evidence: int = 0  # edges with affine evidence at the last view fit
+    run_start: int = 0  # the first frame of the current run (placed after a landing or a relocalisation)
     # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
     forces: dict[int, np.ndarray] = field(default_factory=dict)  # every frame seen: sensor forces F1..F4 (N)
@@ -156,6 +161,8 @@ class Registrar:
         if len(self.order) < 2:
             return p1
         prev = self.order[-2]
+        if prev < self.run_start:  # the run began after a jump (a landing, a relocalisation): no velocity yet
+            return p1
         p0 = self.poses[prev]
         dt = self.times[last] - self.times[prev]
         if dt <= 0:
@@ -170,11 +177,12 @@ class Registrar:
             return False
         return pf.sharpness < self.options.blur_ratio * float(np.median(history))
 
-    def _candidates(self, predicted: Similarity, count: int, radius_mm: float) -> list[int]:
-        """Return placed frames near the prediction: the latest first, then the nearest, older ones mixed in."""
+    def _candidates(self, predicted: Similarity, count: int, radius_mm: float, latest: int | None = None) -> list[int]:
+        """Return placed frames near the prediction: the latest (or `latest`) first, then the nearest, older ones
+        mixed in."""
         if not self.order:
             return []
-        latest = self.order[-1]
+        latest = self.order[-1] if latest is None else latest
         placed = np.array(self.order)
         centres = np.array([self.poses[i].t for i in self.order])
         dist = np.abs(centres - predicted.t)
@@ -288,11 +296,32 @@ class Registrar:
                 best = fit
         return best
 
-    def _add_keyframes(self, pf: PreparedFrame, predicted: Similarity, lost_for: int, blurred: bool) -> FrameResult:
-        latest = self.order[-1]
+    def relocate(self, pf: PreparedFrame, other: int, match: Match) -> FrameResult:
+        """Return the result of registering a frame relocalised on placed frame `other` (match: frame mm -> other mm).
+
+        The frame is registered as any other (matched against `other` and the placed frames near it), with the
+        relocalisation's match standing for the match to the latest frame; it starts a new run (no velocity).
+        """
+        self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)
+        if pf.imu_tilt_deg is not None:
+            self.imu_tilts[pf.index] = np.asarray(pf.imu_tilt_deg, np.float64)
+        self.run_start = pf.index
+        predicted = self.poses[other].compose(match.relative)
+        return self._add_keyframes(pf, predicted, 0, self._is_blurred(pf), latest=other, found=match)
+
+    def _add_keyframes(
+        self,
+        pf: PreparedFrame,
+        predicted: Similarity,
+        lost_for: int,
+        blurred: bool,
+        latest: int | None = None,
+        found: Match | None = None,
+    ) -> FrameResult:
+        latest = self.order[-1] if latest is None else latest
         edges: list[Edge] = []
         anchor: Similarity | None = None
-        found = self._pairwise(pf, latest)
+        found = self._pairwise(pf, latest) if found is None else found
         if found is not None and self.options.direct_refine:
             refined = self._direct(pf, latest, [found.relative], recentre=False)
             if refined is not None:
@@ -308,7 +337,7 @@ class Registrar:
         radius = 1.6 * self.window_radius_mm * (1 + (lost_for if anchor is None else 0))
         count = self.options.neighbours + (4 if anchor is None else 0)
         weak: list[Edge] = []
-        for other in self._candidates(centre, count, radius)[1:]:
+        for other in self._candidates(centre, count, radius, latest)[1:]:
             # agreeing with the match to the latest frame (LOOP_GATE_MM below) is evidence in itself: an anchored
             # match needs a share of the inliers (options.confirmed_inlier_share). Such a weak edge is kept only
             # when no other frame matched in full: it ties a hard scan's row to the row before where nothing else

@@ -43,8 +43,10 @@ def test_unregistered_and_unknown_frames_are_skipped() -> None:
     # Path length over known reference rows 0, 1, 3, 4: 1 + 2 + 1 = 4 mm (the gap is bridged).
     assert report.path_length_mm == pytest.approx(4.0, abs=1e-12)
     assert report.error_ratio_pct == pytest.approx(100 * 0.5 / 4.0, abs=1e-12)
-    assert report.registered_fraction == pytest.approx(3 / 5)
+    # Registered share of the frames with a reference (0, 1 of 0, 1, 3, 4); frame 2 is registered without one
+    assert report.registered_fraction == pytest.approx(2 / 4)
     assert (report.n_registered, report.n_with_reference, report.n_compared) == (3, 4, 2)
+    assert report.n_registered_without_reference == 1
     assert np.isnan(report.errors_mm[2:]).all()
 
 

@@ -1,0 +1,206 @@
+"""The session's maps: the main map (the first contact frame's) and the fragments that have not joined it yet.
+
+A clinician scans in strokes and sets the probe down anywhere. Each contact frame is tracked on the map it is
+on (the active map); a landing frame, or a frame its map lost, is searched in every map through the place index
+(services.core.registration.place_index) and verified by a RANSAC similarity. A frame found nowhere starts a
+fragment: a map of its own, with its own pose graph, on which the next frames chain (consecutive contact frames
+overlap by ~90 %). When a frame of one map matches a frame of another, the two join by one similarity (the
+younger into the older; fragments into the main map) and every frame of the joined one is placed: this is
+ORB-SLAM3's Atlas, for a flat map. Frames of a fragment that never joins are not placed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from services.core.registration.frame_prep import PreparedFrame
+from services.core.registration.place_index import PlaceIndex
+from services.core.registration.registrar import (
+    REASON_BLUR,
+    REASON_FEW_KEYPOINTS,
+    STATUS_LOST,
+    STATUS_OK,
+    FrameResult,
+    Match,
+    Registrar,
+)
+
+CANDIDATES = 3  # frames the place index proposes that are verified geometrically
+MIN_VOTES = 6  # ... each with at least this many descriptor votes
+INDEX_SPACING_WINDOWS = 0.25  # a placed frame is indexed when this many window radii from the last one indexed
+RECENT_JOIN_FRAMES = 3  # the newest frames of another map (by seq) are always tried for a join: a run just lost
+MAX_RELATIVE_SCALE = 1.35  # a verified match's relative scale must lie within this factor of 1
+FRAGMENT_MIN_FEATURES = 2  # x min_inliers: a frame needs this many features to start a fragment
+
+
+@dataclass(frozen=True)
+class AtlasResult:
+    """One frame's registration result, whether it lies on the main map, and the frames a join placed or moved."""
+
+    result: FrameResult
+    on_main: bool
+    joined: tuple[int, ...] = ()  # frames that joined the main map with this frame (placed now)
+    moved: tuple[int, ...] = ()  # main-map frames that the join's refinement moved
+
+
+@dataclass
+class Atlas:
+    """Every map of a session, their frames' owner, the place index over them and the map being tracked."""
+
+    new_map: Callable[[], Registrar]
+    window_radius_mm: float
+    maps: list[Registrar] = field(default_factory=list)  # maps[0] is the main map (empty before the first frame)
+    owner: dict[int, Registrar] = field(default_factory=dict)  # placed frame -> the map it is on
+    index: PlaceIndex = field(default_factory=PlaceIndex)
+    active: Registrar | None = None
+    _last_indexed: dict[int, complex] = field(default_factory=dict)  # id(map) -> centre of its last indexed frame
+
+    def __post_init__(self) -> None:
+        self.maps = [self.new_map()]
+
+    @property
+    def main(self) -> Registrar:
+        """Return the main map: the first contact frame's coordinates (it has no frame before that one)."""
+        return self.maps[0]
+
+    def fragments(self) -> list[Registrar]:
+        """Return the maps that have not joined the main map (newest last)."""
+        return self.maps[1:]
+
+    def add(self, pf: PreparedFrame, landing: bool) -> AtlasResult:
+        """Return the result of a contact frame: tracked on the active map, else relocalised, else a new fragment.
+
+        landing: the frame starts a stroke (the probe was just set down), so nothing is predicted from motion.
+        """
+        if self.active is None:
+            return self._start_map(pf, self.main)
+        result: FrameResult | None = None
+        if not landing:
+            result = self.active.add(pf)
+            if result.status != STATUS_OK and result.reason == REASON_BLUR:
+                return AtlasResult(result, False)
+        placed = self.active if result is not None and result.status == STATUS_OK else None
+        if placed is None:
+            found = self._relocalise(pf)
+            if found is not None:
+                target, other, match = found
+                result = target.relocate(pf, other, match)
+                placed = target if result.status == STATUS_OK else None
+        if placed is None:
+            if len(pf.features) < FRAGMENT_MIN_FEATURES * self.active.options.min_inliers:
+                lost = result or FrameResult(pf.index, STATUS_LOST, None, 0, False, reason=REASON_FEW_KEYPOINTS)
+                return AtlasResult(lost, False)
+            return self._start_map(pf, self.new_map())
+        assert result is not None
+        self.active = placed
+        self.owner[pf.index] = placed
+        self._index(pf, placed)
+        joined, moved = self._join(pf) if len(self.maps) > 1 else ((), ())
+        return AtlasResult(result, self.owner[pf.index] is self.main, joined, moved)
+
+    def _start_map(self, pf: PreparedFrame, fresh: Registrar) -> AtlasResult:
+        """Return the result of a frame that starts a map of its own: the empty main map, or a new fragment."""
+        result = fresh.add(pf)
+        if fresh not in self.maps:
+            self.maps.append(fresh)
+        self.active = fresh
+        self.owner[pf.index] = fresh
+        self._index(pf, fresh)
+        return AtlasResult(result, fresh is self.main)
+
+    def _index(self, pf: PreparedFrame, on: Registrar) -> None:
+        """Add a placed frame to the place index when it lies far enough from its map's last indexed frame."""
+        centre = on.poses[pf.index].t
+        last = self._last_indexed.get(id(on))
+        if last is None or abs(centre - last) >= INDEX_SPACING_WINDOWS * self.window_radius_mm:
+            self.index.add(pf.index, pf.features.descriptors)
+            self._last_indexed[id(on)] = centre
+
+    def _verify(self, pf: PreparedFrame, other: int) -> Match | None:
+        """Return the geometrically verified match of a frame on placed frame `other` (its map's RANSAC), or None."""
+        on = self.owner[other]
+        match = on._pairwise(pf, other)
+        if match is None or not 1 / MAX_RELATIVE_SCALE <= abs(match.relative.a) <= MAX_RELATIVE_SCALE:
+            return None
+        if abs(match.relative.t) >= 2 * self.window_radius_mm:  # the windows cannot overlap
+            return None
+        return match
+
+    def _relocalise(self, pf: PreparedFrame, exclude: Registrar | None = None) -> tuple[Registrar, int, Match] | None:
+        """Return (map, placed frame, match) of the best verified place-index candidate (not on `exclude`), or None."""
+        allowed = None if exclude is None else {f for f in self.index.frames if self.owner.get(f) is not exclude}
+        best: tuple[Registrar, int, Match] | None = None
+        for other, votes in self.index.query(pf.features.descriptors, CANDIDATES, allowed):
+            if votes < MIN_VOTES:
+                break
+            match = self._verify(pf, other)
+            if match is not None and (best is None or match.inliers > best[2].inliers):
+                best = (self.owner[other], other, match)
+        return best
+
+    def _join(self, pf: PreparedFrame) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """Join another map to the placed frame's map when the frame matches one of its frames.
+
+        Returns (frames that joined the main map now, main-map frames the join's refinement moved).
+        """
+        on = self.owner[pf.index]
+        found = self._relocalise(pf, exclude=on)
+        if found is None:
+            for other_map in self.maps:
+                if other_map is on:
+                    continue
+                for other in other_map.order[-RECENT_JOIN_FRAMES:]:
+                    if other >= pf.index - RECENT_JOIN_FRAMES - 1 and (match := self._verify(pf, other)):
+                        found = (other_map, other, match)
+                        break
+                if found is not None:
+                    break
+        if found is None:
+            return (), ()
+        other_map, other, match = found
+        was_main = on is self.main or other_map is self.main
+        target, source = (on, other_map) if self.maps.index(on) < self.maps.index(other_map) else (other_map, on)
+        moved = merge_maps(target, source, pf, other, match, on is target)
+        self.maps.remove(source)
+        for i in source.order:
+            self.owner[i] = target
+        if self.active is source:
+            self.active = target
+        if not was_main:
+            return (), ()
+        newly = tuple(source.order) if target is self.main else ()
+        return newly, tuple(i for i in moved if i not in set(newly))
+
+
+def merge_maps(
+    target: Registrar, source: Registrar, pf: PreparedFrame, other: int, match: Match, pf_on_target: bool
+) -> tuple[int, ...]:
+    """Move every frame of `source` onto `target` by one similarity and tie them with the join edge; refine.
+
+    The join: frame pf matches placed frame `other` (match: pf mm -> other mm); one of the two is on target, the
+    other on source. Returns the frames the refinement moved (> the registrar's MOVED_MM).
+    """
+    if pf_on_target:  # other's pose in target coordinates = P_t(pf) R^-1
+        in_target = target.poses[pf.index].compose(match.relative.inverse())
+        to_target = in_target.compose(source.poses[other].inverse())
+    else:  # pf's pose in target coordinates = P_t(other) R
+        in_target = target.poses[other].compose(match.relative)
+        to_target = in_target.compose(source.poses[pf.index].inverse())
+    for i in source.order:
+        target.poses[i] = to_target.compose(source.poses[i])
+    target.features.update(source.features)
+    target.times.update(source.times)
+    target.stretches.update(source.stretches)
+    target.veins.update(source.veins)
+    target.forces.update(source.forces)
+    target.imu_tilts.update(source.imu_tilts)
+    target.sharpness.extend(source.sharpness)
+    target.edges.extend(source.edges)
+    target.order = sorted(set(target.order) | set(source.order))
+    target.run_start = max(target.run_start, source.run_start)
+    target.edges.append(target._edge(pf, other, match))
+    target.last_global_refine = 0  # the next refinement is global: the joined frames are held by one edge
+    if not target.options.refine:
+        return ()
+    return target.refine()
