@@ -15,8 +15,9 @@ from services.core.inputs.calibration import Calibration
 class Scan:
     """A scan: frames are fetched through `frame_loader(index)` so a folder need not fit in memory.
 
-    Arrays: frame_seq (N,) int, increasing (a gap where the camera dropped a frame), frame_t_s (N,) s, force_t_s (M,) s, forces_n (M, 4) N as F1..F4,
-    imu_t_s (K,) s and imu_tilt_deg (K, 2) as (tilt_x, tilt_y) deg or None, mask (H, W) uint8 0/255 or None,
+    Arrays: frame_seq (N,) int, increasing (a gap where the camera dropped a frame), frame_t_s (N,) s,
+    force_t_s (M,) s, forces_n (M, 4) N as F1..F4, imu_t_s (K,) s and imu_tilt_deg (K, 2) as (tilt_x, tilt_y)
+    deg or None, mask (H, W) uint8 0/255 or None,
     reference_mm (N, 2) in frame 0's coordinates (mm) with NaN rows where unknown, or None;
     reference_angles_deg (N, 3) yaw, tilt_x, tilt_y (deg, spec §4) where the reference has them, or None.
     """
