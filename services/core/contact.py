@@ -33,7 +33,9 @@ CLEAR_LOAD_N = 1.0  # a frame this far above the tare is surely in contact: its 
 FOCUS_FRAMES = 50  # the reference focus: the median over the newest this many surely-in-contact frames
 FOCUS_MIN_REFERENCE = 5  # frames needed before the image may overrule the load
 FOCUS_ON = 0.85  # focus at least this share of the reference: the image says contact
-FOCUS_OFF = 0.55  # focus below this share of it: the image says the air
+FOCUS_OFF = 0.55  # focus below this share of it: the image says the air ...
+LIFT_LOAD_N = 2.0  # ... and overrules the load only below this much above the tare (a lift the logger lags;
+# a frame under a clear load whose focus is low is motion-blurred skin, not the air)
 FOCUS_FINE_SIGMA_PX = 1.0  # focus_measure's band: detail between these two blur scales (rectified pixels)
 FOCUS_COARSE_SIGMA_PX = 4.0
 FOCUS_PERCENTILE = 90.0
@@ -100,7 +102,7 @@ class ContactDetector:
         if known:
             if not load_on and ratio >= FOCUS_ON:
                 contact, by = True, "image"
-            elif load_on and ratio < FOCUS_OFF:
+            elif load_on and ratio < FOCUS_OFF and above < LIFT_LOAD_N:
                 contact, by = False, "image"
             elif load_on == (ratio >= FOCUS_ON):
                 by = "load+image"

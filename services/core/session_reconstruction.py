@@ -186,7 +186,8 @@ class SessionReconstruction:
             self.in_fragment[pf.index] = result
             result = FrameResult(pf.index, STATUS_LOST, None, result.inliers, result.blurred, reason=REASON_FRAGMENT)
         for i in placed.joined:
-            self.results[i] = self.in_fragment.pop(i)
+            if i != pf.index:  # the joining frame itself may have been on the fragment: it is placed now
+                self.results[i] = self.in_fragment.pop(i)
         if placed.joined or placed.moved:
             result = dataclasses.replace(result, moved=(*result.moved, *placed.joined, *placed.moved))
         return result

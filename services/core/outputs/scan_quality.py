@@ -16,6 +16,8 @@ import numpy as np
 WARN_FRACTION = 0.05  # more than this fraction of frames lost or rejected is a warning
 STATUS_OK, STATUS_LOST, STATUS_REJECTED = "ok", "lost", "rejected"
 UNKNOWN_REASON = "unknown"  # a lost/rejected row without a reason (older results)
+NO_CONTACT = "no_contact"  # rejected: taken in the air between strokes; neither placed nor counted as not placed
+WAITING = "unjoined_fragment"  # placed on a fragment that has not joined the map (lost unless it joins)
 
 
 @dataclass(frozen=True)
@@ -30,23 +32,33 @@ class FrameSummary:
     rejected_reasons: Mapping[str, int] = field(default_factory=dict)
 
     @property
+    def n_no_contact(self) -> int:
+        """Return the number of frames taken with the window off the skin (rejected, no_contact)."""
+        return int(self.rejected_reasons.get(NO_CONTACT, 0))
+
+    @property
+    def n_on_skin(self) -> int:
+        """Return the number of frames that may have touched the skin: all but those taken in the air."""
+        return self.n_frames - self.n_no_contact
+
+    @property
     def n_not_placed(self) -> int:
-        """Return the number of frames lost or rejected."""
-        return self.n_lost + self.n_rejected
+        """Return the number of frames lost or rejected, those taken in the air apart."""
+        return self.n_lost + self.n_rejected - self.n_no_contact
 
     @property
     def registered_fraction(self) -> float:
-        """Return the fraction of frames placed (0 for an empty scan)."""
-        return self.n_ok / self.n_frames if self.n_frames else 0.0
+        """Return the fraction of the frames on the skin that was placed (0 when there are none)."""
+        return self.n_ok / self.n_on_skin if self.n_on_skin else 0.0
 
     @property
     def not_placed_fraction(self) -> float:
-        """Return the fraction of frames lost or rejected (0 for an empty scan)."""
-        return self.n_not_placed / self.n_frames if self.n_frames else 0.0
+        """Return the fraction of the frames on the skin lost or rejected (0 when there are none)."""
+        return self.n_not_placed / self.n_on_skin if self.n_on_skin else 0.0
 
     @property
     def reasons(self) -> dict[str, int]:
-        """Return lost + rejected frames counted per reason, most frequent first."""
+        """Return lost + rejected frames counted per reason (no_contact too), most frequent first."""
         total = Counter(self.lost_reasons) + Counter(self.rejected_reasons)
         return dict(total.most_common())
 
@@ -57,6 +69,7 @@ class FrameSummary:
             "ok": self.n_ok,
             "lost": self.n_lost,
             "rejected": self.n_rejected,
+            "no_contact": self.n_no_contact,
             "registered_fraction": round(self.registered_fraction, 6),
             "lost_reasons": dict(self.lost_reasons),
             "rejected_reasons": dict(self.rejected_reasons),
@@ -99,17 +112,19 @@ def _reasons_text(reasons: Mapping[str, int]) -> str:
 
 def frames_warning(summary: FrameSummary) -> str | None:
     """Return the warning text when more than 5 % of the frames were lost or rejected, else None."""
-    if summary.n_frames == 0 or summary.not_placed_fraction <= WARN_FRACTION:
+    if summary.n_on_skin == 0 or summary.not_placed_fraction <= WARN_FRACTION:
         return None
     parts = []
     if summary.n_lost:
         parts.append(f"{summary.n_lost} lost ({_reasons_text(summary.lost_reasons)})")
-    if summary.n_rejected:
-        parts.append(f"{summary.n_rejected} rejected ({_reasons_text(summary.rejected_reasons)})")
+    rejected = {k: v for k, v in summary.rejected_reasons.items() if k != NO_CONTACT}
+    if rejected:
+        parts.append(f"{sum(rejected.values())} rejected ({_reasons_text(rejected)})")
+    air = f" ({summary.n_no_contact} frames taken off the skin are not counted)" if summary.n_no_contact else ""
     return (
-        f"{summary.n_not_placed} of {summary.n_frames} frames ({100 * summary.not_placed_fraction:.1f} %) were not "
-        f"placed: {'; '.join(parts)}. Only {100 * summary.registered_fraction:.1f} % registered; the path and the "
-        "mosaic miss those frames."
+        f"{summary.n_not_placed} of {summary.n_on_skin} frames ({100 * summary.not_placed_fraction:.1f} %) were not "
+        f"placed{air}: {'; '.join(parts)}. Only {100 * summary.registered_fraction:.1f} % registered; the path and "
+        "the mosaic miss those frames."
     )
 
 

@@ -14,9 +14,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
 from services.core.registration.place_index import PlaceIndex
+from services.core.registration.pose_graph import Edge
 from services.core.registration.registrar import (
+    LOOP_GATE_MM,
     REASON_BLUR,
     REASON_FEW_KEYPOINTS,
     STATUS_LOST,
@@ -32,6 +35,18 @@ INDEX_SPACING_WINDOWS = 0.25  # a placed frame is indexed when this many window 
 RECENT_JOIN_FRAMES = 3  # the newest frames of another map (by seq) are always tried for a join: a run just lost
 MAX_RELATIVE_SCALE = 1.35  # a verified match's relative scale must lie within this factor of 1
 FRAGMENT_MIN_FEATURES = 2  # x min_inliers: a frame needs this many features to start a fragment
+TIE_FRAMES = 8  # a join also matches this many joined frames nearest the join ...
+TIE_NEIGHBOURS = 3  # ... each onto this many of the map's frames nearest it: one edge alone leaves the joined
+# frames' scale and turn to a single match (on the shared clinical scan's first stroke, 2.7 mm at 100 mm)
+
+
+@dataclass(frozen=True)
+class PlacedFrame:
+    """A placed frame's matching evidence, read back from its map (registrar.FrameEvidence)."""
+
+    index: int
+    features: Features
+    stretch: float
 
 
 @dataclass(frozen=True)
@@ -117,10 +132,17 @@ class Atlas:
             self.index.add(pf.index, pf.features.descriptors)
             self._last_indexed[id(on)] = centre
 
-    def _verify(self, pf: PreparedFrame, other: int) -> Match | None:
-        """Return the geometrically verified match of a frame on placed frame `other` (its map's RANSAC), or None."""
+    def _verify(self, pf: PreparedFrame, other: int, weak: bool = False) -> Match | None:
+        """Return the geometrically verified match of a frame on placed frame `other` (its map's RANSAC), or None.
+
+        weak: when the features alone fail the inlier rule, a weaker feature match or a direct alignment of the
+        vein maps that reaches the acceptance correlation is taken (the registrar's fallback): frames far apart
+        or under other loads share fewer keypoints (on the shared clinical scan, 11 inliers at 24 mm).
+        """
         on = self.owner[other]
         match = on._pairwise(pf, other)
+        if match is None and weak and on.options.direct_fallback:
+            match = on._fallback(pf, other, on.poses[other])
         if match is None or not 1 / MAX_RELATIVE_SCALE <= abs(match.relative.a) <= MAX_RELATIVE_SCALE:
             return None
         if abs(match.relative.t) >= 2 * self.window_radius_mm:  # the windows cannot overlap
@@ -128,13 +150,16 @@ class Atlas:
         return match
 
     def _relocalise(self, pf: PreparedFrame, exclude: Registrar | None = None) -> tuple[Registrar, int, Match] | None:
-        """Return (map, placed frame, match) of the best verified place-index candidate (not on `exclude`), or None."""
+        """Return (map, placed frame, match) of the best verified place-index candidate (not on `exclude`), or None.
+
+        Without `exclude` (a landing, or a frame its map lost) the weaker verification is allowed too (_verify).
+        """
         allowed = None if exclude is None else {f for f in self.index.frames if self.owner.get(f) is not exclude}
         best: tuple[Registrar, int, Match] | None = None
         for other, votes in self.index.query(pf.features.descriptors, CANDIDATES, allowed):
             if votes < MIN_VOTES:
                 break
-            match = self._verify(pf, other)
+            match = self._verify(pf, other, weak=exclude is None)
             if match is not None and (best is None or match.inliers > best[2].inliers):
                 best = (self.owner[other], other, match)
         return best
@@ -197,10 +222,33 @@ def merge_maps(
     target.imu_tilts.update(source.imu_tilts)
     target.sharpness.extend(source.sharpness)
     target.edges.extend(source.edges)
-    target.order = sorted(set(target.order) | set(source.order))
+    target.order = [target.order[0], *sorted(set(target.order[1:]) | set(source.order))]  # the origin stays first
     target.run_start = max(target.run_start, source.run_start)
     target.edges.append(target._edge(pf, other, match))
+    target.edges.extend(_ties(target, set(source.order), pf.index))
     target.last_global_refine = 0  # the next refinement is global: the joined frames are held by one edge
     if not target.options.refine:
         return ()
     return target.refine()
+
+
+def _ties(target: Registrar, joined: set[int], at: int) -> list[Edge]:
+    """Return edges between the joined frames nearest frame `at` and the map's frames nearest each (after a merge).
+
+    Each match must agree with the merged poses within the registrar's LOOP_GATE_MM (a false match lands far).
+    """
+    centre = target.poses[at].t
+    newcomers = sorted(joined, key=lambda i: abs(target.poses[i].t - centre))[:TIE_FRAMES]
+    old = [i for i in target.order if i not in joined]
+    edges = []
+    for i in newcomers:
+        near = sorted(old, key=lambda j: abs(target.poses[j].t - target.poses[i].t))[:TIE_NEIGHBOURS]
+        view = PlacedFrame(i, target.features[i], target.stretches[i])
+        for j in near:
+            if abs(target.poses[j].t - target.poses[i].t) >= 1.6 * target.window_radius_mm:
+                continue
+            match = target._pairwise(view, j)
+            if match is None or abs(target.poses[j].compose(match.relative).t - target.poses[i].t) > LOOP_GATE_MM:
+                continue
+            edges.append(target._edge(view, j, match))
+    return edges

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 DESCRIPTORS_PER_FRAME = 160  # kept per indexed frame, evenly over its features (they are spread over the window)
+QUERY_DESCRIPTORS = 320  # a query uses at most this many of the new frame's descriptors
 BUFFER_FRAMES = 8  # frames searched by brute force before they become a shard
 NEIGHBOURS = 4  # each query descriptor looks at its nearest this many indexed descriptors ...
 DISTINCT_RATIO = 0.85  # ... and votes for the frame of each one nearer than this share of the farthest of them
@@ -46,7 +47,7 @@ class _Shard:
             - 2.0 * query @ self.descriptors.T
             + np.sum(self.descriptors**2, axis=1)[None, :]
         )
-        rows = np.argsort(d2, axis=1)[:, :k]
+        rows = np.argpartition(d2, k - 1, axis=1)[:, :k] if k < d2.shape[1] else np.argsort(d2, axis=1)
         return rows, np.sqrt(np.maximum(np.take_along_axis(d2, rows, axis=1), 0.0))
 
 
@@ -55,11 +56,11 @@ def _shard(descriptors: np.ndarray, frames: np.ndarray, tree: bool) -> _Shard:
     return _Shard(descriptors, frames, index)
 
 
-def index_descriptors(descriptors: np.ndarray) -> np.ndarray:
-    """Return the (at most DESCRIPTORS_PER_FRAME) rows of a frame's descriptors the index keeps, as float32."""
-    desc = np.asarray(descriptors, np.float32)
-    if len(desc) > DESCRIPTORS_PER_FRAME:
-        desc = desc[np.linspace(0, len(desc) - 1, DESCRIPTORS_PER_FRAME).round().astype(np.int64)]
+def index_descriptors(descriptors: np.ndarray, most: int = DESCRIPTORS_PER_FRAME) -> np.ndarray:
+    """Return at most `most` rows of a frame's descriptors, evenly over them, as contiguous float32."""
+    desc = np.asarray(descriptors, np.float32).reshape(len(descriptors), -1)
+    if len(desc) > most:
+        desc = desc[np.linspace(0, len(desc) - 1, most).round().astype(np.int64)]
     return np.ascontiguousarray(desc)
 
 
@@ -113,7 +114,7 @@ class PlaceIndex:
         vein crossing, so a ratio test against the second nearest alone would reject exactly the true ones.
         allowed: only these frames are counted (None: every indexed frame).
         """
-        query = np.ascontiguousarray(np.asarray(descriptors, np.float32))
+        query = index_descriptors(descriptors, QUERY_DESCRIPTORS)
         shards = self._all_shards()
         if len(query) == 0 or not shards:
             return []

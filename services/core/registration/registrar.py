@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -73,6 +74,17 @@ MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the p
 DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
 DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - correlation)
 ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
+
+
+class FrameEvidence(Protocol):
+    """What matching a frame needs of it: its index, features (mm) and centre stretch (a PreparedFrame has them)."""
+
+    @property
+    def index(self) -> int: ...
+    @property
+    def features(self) -> Features: ...
+    @property
+    def stretch(self) -> float: ...
 
 
 def _vein_scale(pf: PreparedFrame) -> float:
@@ -199,7 +211,7 @@ class Registrar:
                     chosen.append(pool.pop(0))
         return chosen
 
-    def _match(self, pf: PreparedFrame, train: Features, min_inliers: int | None = None) -> SimilarityFit | None:
+    def _match(self, pf: FrameEvidence, train: Features, min_inliers: int | None = None) -> SimilarityFit | None:
         """Return the similarity from the frame's mm to the train features' mm, or None on weak evidence."""
         same_place = 2.0 / self.px_per_mm
         iq, it = match_features(pf.features, train, self.options.ratio, same_point=same_place)
@@ -216,7 +228,7 @@ class Registrar:
         """Return the unique inliers a match to an older frame needs when the latest frame's match confirms it."""
         return max(3, round(self.options.min_inliers * self.options.confirmed_inlier_share))
 
-    def _pairwise(self, pf: PreparedFrame, other: int, min_inliers: int | None = None) -> Match | None:
+    def _pairwise(self, pf: FrameEvidence, other: int, min_inliers: int | None = None) -> Match | None:
         fit = self._match(pf, self.features[other], min_inliers)
         return None if fit is None else feature_match(fit)
 
@@ -399,7 +411,7 @@ class Registrar:
             return REASON_FEW_KEYPOINTS
         return REASON_LOW_CORRELATION if self.options.direct_fallback else REASON_FEW_INLIERS
 
-    def _edge(self, pf: PreparedFrame, other: int, match: Match) -> Edge:
+    def _edge(self, pf: FrameEvidence, other: int, match: Match) -> Edge:
         """Return the pose-graph edge of a match, its sigma from the evidence and the loads (heavier = looser).
 
         A feature edge's sigma is its RMS residual over sqrt(inliers); a direct edge (inliers 0) carries an
