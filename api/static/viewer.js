@@ -39,7 +39,7 @@
     dzi: null,
     pxPerMm: null,
     extentMm: null,
-    frames: { processed: 0, ok: 0, lost: 0, rejected: 0 },
+    frames: { processed: 0, ok: 0, lost: 0, rejected: 0, no_contact: 0, in_fragments: 0 },
     lag: null, // while live: {p50_s, p95_s, frames} from GET /v1/sessions/{id}
     framesKnown: false, // counters arrived (until then the status line says "loading results")
     received: null,
@@ -197,7 +197,8 @@
   const svg = document.createElementNS(SVG_NS, "svg");
   svg.setAttribute("id", "path-overlay");
   const group = document.createElementNS(SVG_NS, "g");
-  const line = document.createElementNS(SVG_NS, "polyline");
+  const strokeLines = document.createElementNS(SVG_NS, "g"); // one polyline per stroke: never joined through the air
+  strokeLines.setAttribute("id", "path-strokes");
   const marker = document.createElementNS(SVG_NS, "circle"); // the latest frame, while live
   marker.setAttribute("r", "5");
   marker.setAttribute("class", "now");
@@ -212,7 +213,7 @@
   const lostGroup = document.createElementNS(SVG_NS, "g");
   const measureGroup = document.createElementNS(SVG_NS, "g");
   measureGroup.setAttribute("class", "measure");
-  group.appendChild(line);
+  group.appendChild(strokeLines);
   svg.appendChild(group);
   svg.appendChild(lostGroup);
   svg.appendChild(startMark);
@@ -233,10 +234,14 @@
     return entry && entry[2] === "ok" && entry[0] !== null && entry[1] !== null && isFinite(entry[0]) && isFinite(entry[1]);
   }
 
+  function inTheAir(entry) {
+    return entry && entry[4] === "no_contact"; // taken off the skin between strokes: not a lost frame
+  }
+
   function drawPath() {
     if (!state.dzi || !state.pxPerMm) return;
     const seqs = Array.from(state.path.keys()).sort((a, b) => a - b);
-    const pts = [];
+    const strokes = new Map(); // stroke number (or "" when unknown) -> ["x,y", ...]
     const okSeqs = [];
     lastPoint = null;
     firstPoint = null;
@@ -244,15 +249,25 @@
       const entry = state.path.get(seq);
       if (!placed(entry)) continue;
       const p = dziPoint(entry[0], entry[1]);
-      pts.push(p[0].toFixed(1) + "," + p[1].toFixed(1));
+      const key = entry[3] === null || entry[3] === undefined ? "" : String(entry[3]);
+      if (!strokes.has(key)) strokes.set(key, []);
+      strokes.get(key).push(p[0].toFixed(1) + "," + p[1].toFixed(1));
       okSeqs.push(seq);
       if (!firstPoint) firstPoint = p;
       lastPoint = p;
     }
+    while (strokeLines.firstChild) strokeLines.removeChild(strokeLines.firstChild);
+    for (const [key, pts] of strokes) {
+      const line = document.createElementNS(SVG_NS, "polyline");
+      line.setAttribute("points", pts.join(" "));
+      line.setAttribute("data-stroke", key);
+      strokeLines.appendChild(line);
+    }
     // a frame not placed is marked between its placed neighbours (by seq): where the probe most likely was
     lostPoints = [];
     for (const seq of seqs) {
-      if (placed(state.path.get(seq))) continue;
+      const entry = state.path.get(seq);
+      if (placed(entry) || inTheAir(entry)) continue;
       let lo = null;
       let hi = null;
       for (const s of okSeqs) {
@@ -270,7 +285,6 @@
       }
       if (xy) lostPoints.push(dziPoint(xy[0], xy[1]).concat([seq]));
     }
-    line.setAttribute("points", pts.join(" "));
     placeOverlay();
   }
 
@@ -502,7 +516,7 @@
 
   function mergePath(rows) {
     for (const row of rows || []) {
-      state.path.set(row[0], [row[1], row[2], row[3]]);
+      state.path.set(row[0], [row[1], row[2], row[3], row[4], row[5]]); // x, y, status, stroke, reason
     }
   }
 
@@ -539,7 +553,7 @@
     lastPathLoad = Date.now();
     const rows = await getJson("/path", state.resultsVersion ? { v: state.resultsVersion } : {});
     if (!rows) return;
-    state.path = new Map(rows.map((r) => [r.seq, [r.x_mm, r.y_mm, r.status]]));
+    state.path = new Map(rows.map((r) => [r.seq, [r.x_mm, r.y_mm, r.status, r.stroke, r.reason]]));
     state.rows = new Map(rows.map((r) => [r.seq, r]));
     drawPath();
   }
@@ -570,7 +584,7 @@
       }
     }
     if (data.mosaic_version !== undefined) state.mosaicVersion = data.mosaic_version;
-    for (const k of ["processed", "ok", "lost", "rejected"]) {
+    for (const k of ["processed", "ok", "lost", "rejected", "no_contact", "in_fragments"]) {
       if (data[k] !== undefined) {
         state.frames[k] = data[k];
         state.framesKnown = true;
@@ -665,7 +679,11 @@
       text += state.status === "receiving" && !state.dzi ? " · waiting for the first frames" : " · loading results…";
     } else {
       text += " · " + f.processed + " frames processed (" + f.ok + " placed, " + f.lost + " lost";
-      text += f.rejected ? ", " + f.rejected + " rejected)" : ")";
+      const rejected = f.rejected - (f.no_contact || 0);
+      text += rejected ? ", " + rejected + " rejected)" : ")";
+      if (f.no_contact) text += " · " + f.no_contact + " off the skin";
+      // frames placed on a fragment of the map that has not joined it yet: they appear once it joins
+      if (f.in_fragments) text += " · " + f.in_fragments + (state.status === "done" ? " in unjoined fragments" : " waiting in fragments");
     }
     if (state.received !== null) text += " · " + state.received + " received";
     if (state.lag && state.status !== "done") {

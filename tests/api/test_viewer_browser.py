@@ -88,7 +88,9 @@ CANVAS_JS = """() => {
     origin: v.state.dzi.origin_px,
     ppm: v.state.pxPerMm,
     pathPoints: v.state.path.size,
-    polyline: document.querySelector("#path-overlay polyline").getAttribute("points").split(" ").filter(Boolean).length,
+    polyline: Array.from(document.querySelectorAll("#path-overlay polyline"))
+      .map((l) => l.getAttribute("points").split(" ").filter(Boolean).length).reduce((a, b) => a + b, 0),
+    strokes: document.querySelectorAll("#path-overlay polyline").length,
   };
 }"""
 

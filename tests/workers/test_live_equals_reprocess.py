@@ -125,7 +125,14 @@ def test_live_and_reprocess_serve_the_same_documents(
 
     (mosaic1, report1, extent1), (mosaic2, report2, extent2) = live, again
     assert mosaic1["status"] == mosaic2["status"] == "done"
-    assert mosaic1["frames"] == {"processed": 40, "ok": 40, "lost": 0, "rejected": 0}
+    assert mosaic1["frames"] == {
+        "processed": 40,
+        "ok": 40,
+        "lost": 0,
+        "rejected": 0,
+        "no_contact": 0,
+        "in_fragments": 0,
+    }
     assert "compliance_per_n" in mosaic1 and mosaic1["width"] > 0
     assert_same(without(mosaic1, PER_VERSION_MOSAIC), without(mosaic2, PER_VERSION_MOSAIC), "mosaic")
     assert mosaic1["extent_mm"] == pytest.approx(mosaic2["extent_mm"], abs=VALUE_TOL)

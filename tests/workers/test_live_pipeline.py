@@ -109,7 +109,14 @@ def test_two_workers_out_of_order_equal_offline_then_reprocess(
     log = order_log(backend, sid)
     assert [seq for _, seq, _ in log] == list(range(40)) and len({t for t, _, _ in log}) == 1
     meta = results.read_mosaic_meta(sid, 1)
-    assert meta["status"] == "done" and meta["frames"] == {"processed": 40, "ok": 40, "lost": 0, "rejected": 0}
+    assert meta["status"] == "done" and meta["frames"] == {
+        "processed": 40,
+        "ok": 40,
+        "lost": 0,
+        "rejected": 0,
+        "no_contact": 0,
+        "in_fragments": 0,
+    }
     assert meta["dzi"]["max_level"] == 12 and meta["dzi"]["origin_px"] == [1792, 1792]
     assert meta["width"] > 0 and meta["extent_mm"][0] < 0 < meta["extent_mm"][2]
     # a tile left empty when refinement moved frames out of it keeps its new revision (the viewer must learn it

@@ -24,7 +24,14 @@ import numpy as np
 from services.core.mosaic.canvas import FORCE_FULL_SCALE_N, TILE_PX, SparseCanvas
 from services.core.mosaic.deepzoom import MIN_WEIGHT, DziGeometry
 from services.core.physics.compliance import ComplianceFit
-from services.core.registration.registrar import REASON_BAD_FRAME, STATUS_LOST, STATUS_OK, STATUS_REJECTED
+from services.core.registration.registrar import (
+    REASON_BAD_FRAME,
+    REASON_FRAGMENT,
+    REASON_NO_CONTACT,
+    STATUS_LOST,
+    STATUS_OK,
+    STATUS_REJECTED,
+)
 from services.core.session_reconstruction import PATH_COLUMNS, PathRow
 
 LAYERS = ("vein", "force")
@@ -63,9 +70,21 @@ def rejected_row(seq: int, t_s: float = math.nan, reason: str = REASON_BAD_FRAME
 
 
 def frame_counts(rows: Sequence[PathRow]) -> dict[str, int]:
-    """Return {"processed", "ok", "lost", "rejected"}: frame counts of path rows."""
+    """Return {"processed", "ok", "lost", "rejected", "no_contact", "in_fragments"}: frame counts of path rows.
+
+    no_contact: rejected frames taken off the skin (between strokes); in_fragments: lost frames placed on a
+    fragment that has not joined the map (yet, while live).
+    """
     c = Counter(r.status for r in rows)
-    return {"processed": len(rows), "ok": c[STATUS_OK], "lost": c[STATUS_LOST], "rejected": c[STATUS_REJECTED]}
+    why = Counter(r.reason for r in rows)
+    return {
+        "processed": len(rows),
+        "ok": c[STATUS_OK],
+        "lost": c[STATUS_LOST],
+        "rejected": c[STATUS_REJECTED],
+        "no_contact": why[REASON_NO_CONTACT],
+        "in_fragments": why[REASON_FRAGMENT],
+    }
 
 
 def _num(v: float) -> float | None:
@@ -73,9 +92,14 @@ def _num(v: float) -> float | None:
 
 
 def path_tail(rows: Sequence[PathRow], seqs: Iterable[int]) -> list[list[Any]]:
-    """Return the event's path tail: [seq, x_mm or None, y_mm or None, status] of the rows of `seqs`, by seq."""
+    """Return the event's path tail: [seq, x_mm or None, y_mm or None, status, stroke or None, reason] of the rows
+    of `seqs`, by seq."""
     by_seq = {r.seq: r for r in rows}
-    return [[s, _num(by_seq[s].x_mm), _num(by_seq[s].y_mm), by_seq[s].status] for s in sorted(set(seqs)) if s in by_seq]
+    return [
+        [s, _num(r.x_mm), _num(r.y_mm), r.status, r.stroke, r.reason]
+        for s in sorted(set(seqs))
+        if (r := by_seq.get(s)) is not None
+    ]
 
 
 # ----- the session extent -----------------------------------------------------------------------------------------

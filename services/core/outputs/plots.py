@@ -110,6 +110,18 @@ def _check_scale(px_per_mm: float) -> None:
         raise ValueError(f"px_per_mm: must be a positive number, got {px_per_mm}")
 
 
+def stroke_lines(points: np.ndarray, keep: np.ndarray, strokes: np.ndarray | None) -> list[np.ndarray]:
+    """Return the polylines (each (K, 2) mm) of the kept finite points: one per stroke, never joined between two.
+
+    strokes: (N,) stroke number of each row (spec §4), -1 where a frame is in no stroke; None: one stroke.
+    """
+    ok = keep & np.all(np.isfinite(points), axis=1)
+    if strokes is None:
+        return [points[ok]] if ok.any() else []
+    ids = np.asarray(strokes, np.int64).reshape(-1)
+    return [points[ok & (ids == k)] for k in sorted(set(ids[ok].tolist())) if k >= 0]
+
+
 def _draw_paths(
     ax: Axes,
     est: np.ndarray,
@@ -119,9 +131,11 @@ def _draw_paths(
     px_per_mm: float,
     origin_px: tuple[float, float],
     legend: bool = True,
+    strokes: np.ndarray | None = None,
 ) -> tuple[int, int]:
     """Draw the mosaic, the estimate under the reference (both visible), start/end and unplaced frames.
 
+    Each stroke (strokes: (N,) ints, -1 off the skin; None: one) is its own line, never joined through the air.
     Return (frames placed, frames). legend: a legend inside the axes ("best" place), else none (the caller's).
     """
     n = len(est)
@@ -142,13 +156,15 @@ def _draw_paths(
         extent_pts.append(np.array([[left, top], [right, bottom]]))
     placed = reg & np.all(np.isfinite(est), axis=1)
     est_line = est[placed]
-    if len(est_line):  # the estimate wide and underneath, the reference thin and dashed on top: both show
-        ax.plot(est_line[:, 0], est_line[:, 1], "-", color=ESTIMATE_COLOR, lw=3.0, label="estimated path")
-        extent_pts.append(est_line)
+    for k, line in enumerate(stroke_lines(est, placed, strokes)):  # the estimate wide and underneath, the reference
+        label = "estimated path" if k == 0 else None  # thin and dashed on top: both show
+        ax.plot(line[:, 0], line[:, 1], "-", color=ESTIMATE_COLOR, lw=3.0, label=label)
+        extent_pts.append(line)
     if ref is not None:
-        ref_line = _finite_rows(ref)
-        ax.plot(ref_line[:, 0], ref_line[:, 1], "--", color=REFERENCE_COLOR, lw=1.4, label="reference track", zorder=3)
-        extent_pts.append(ref_line)
+        for k, line in enumerate(stroke_lines(ref, np.ones(n, bool), strokes)):
+            label = "reference track" if k == 0 else None
+            ax.plot(line[:, 0], line[:, 1], "--", color=REFERENCE_COLOR, lw=1.4, label=label, zorder=3)
+            extent_pts.append(line)
     if len(est_line):
         ax.plot(*est_line[0], "o", color="#00c000", mec="white", ms=9, label="start", zorder=4)
         ax.plot(*est_line[-1], "s", color="black", mec="white", ms=8, label="end", zorder=4)
@@ -178,10 +194,12 @@ def plot_paths_over_mosaic(
     mosaic: np.ndarray | None,
     px_per_mm: float,
     origin_px: tuple[float, float],
+    strokes: np.ndarray | None = None,
 ) -> bytes:
-    """Return the PNG of the estimated (and reference) path in mm over the mosaic.
+    """Return the PNG of the estimated (and reference) path in mm over the mosaic, a line per stroke.
 
-    origin_px is the mosaic pixel (x, y) where frame 0's centre, (0, 0) mm, lies (spec §4 mosaic.json).
+    origin_px is the mosaic pixel (x, y) where frame 0's centre, (0, 0) mm, lies (spec §4 mosaic.json); strokes:
+    (N,) stroke numbers, -1 off the skin (stroke_lines).
     """
     est = _check_path("estimate_mm", estimate_mm)
     n = len(est)
@@ -191,7 +209,7 @@ def plot_paths_over_mosaic(
     ref = None if reference_mm is None else _check_path("reference_mm", reference_mm, n)
     _check_scale(px_per_mm)
     fig, ax = _new_figure(8.0, 7.0)
-    placed, _ = _draw_paths(ax, est, reg, ref, mosaic, px_per_mm, origin_px)
+    placed, _ = _draw_paths(ax, est, reg, ref, mosaic, px_per_mm, origin_px, strokes=strokes)
     rmse = _rmse_or_none(est, reg, ref)
     title = f"Probe path: {placed}/{n} frames registered"
     if rmse is not None and math.isfinite(rmse):
@@ -628,8 +646,10 @@ def _frames_lines(frames: FrameSummary) -> list[str]:
         text = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counts.items())
         return f" ({text})" if text else ""
 
+    air = [f"taken off the skin (not counted): {frames.n_no_contact}"] if frames.n_no_contact else []
     return [
         f"received: {frames.n_frames}",
+        *air,
         f"placed (registered): {frames.n_ok} ({100 * frames.registered_fraction:.1f} %)",
         f"lost: {frames.n_lost}{reasons(frames.lost_reasons)}",
         f"rejected: {frames.n_rejected}{reasons(frames.rejected_reasons)}",
@@ -722,6 +742,7 @@ def build_sheet_figure(
     identity: SheetIdentity,
     angles: Mapping[str, Any] | None = None,
     tissue: Mapping[str, Any] | None = None,
+    strokes: np.ndarray | None = None,
 ) -> Figure:
     """Return the one-page report as an A4 portrait matplotlib Figure (not yet rendered).
 
@@ -780,7 +801,7 @@ def build_sheet_figure(
         page.text(x, 0.0, scale.caption, width=cell_w, fontsize=7.5) for x, scale in zip(xs, scales, strict=True)
     ]
     ax_path = fig.add_axes(page.rect(_MARGIN, y, 1.0, 1.0), label="sheet:mosaic")
-    _draw_paths(ax_path, est, reg, ref, mosaic.vein, mosaic.px_per_mm, mosaic.origin_px, legend=False)
+    _draw_paths(ax_path, est, reg, ref, mosaic.vein, mosaic.px_per_mm, mosaic.origin_px, legend=False, strokes=strokes)
     left, right, bottom, top = _layer_extent(mosaic.vein, mosaic.px_per_mm, mosaic.origin_px)
     _set_image_limits(
         ax_path, [np.array([[left, top], [right, bottom]]), est[reg], *([] if ref is None else [ref])], 0.0

@@ -61,6 +61,14 @@ def path_arrays(rows: Sequence[PathRow]) -> tuple[np.ndarray, np.ndarray]:
     return estimate, registered
 
 
+def path_strokes(rows: Sequence[PathRow]) -> np.ndarray | None:
+    """Return (N,) each row's stroke number (spec §4), -1 where it has none (off the skin, missing); None when no
+    row has one (results from before strokes: drawn as one line)."""
+    if all(r.stroke is None for r in rows):
+        return None
+    return np.array([-1 if r.stroke is None else r.stroke for r in rows], np.int64)
+
+
 def path_angles_deg(rows: Sequence[PathRow]) -> np.ndarray:
     """Return (N, 3) yaw, tilt_x, tilt_y in degrees of path rows in order (NaN where unknown)."""
     return np.array([[r.yaw_deg, r.tilt_x_deg, r.tilt_y_deg] for r in rows], float).reshape(-1, 3)
@@ -107,14 +115,16 @@ def build_session_report(
             vein, px, origin = mosaic.vein, mosaic.px_per_mm, mosaic.origin_px
         else:
             vein, px, origin = backdrop if backdrop is not None else (None, 1.0, (0.0, 0.0))
-        images["paths.png"] = plot_paths_over_mosaic(estimate, registered, reference_mm, vein, px, origin)
+        images["paths.png"] = plot_paths_over_mosaic(
+            estimate, registered, reference_mm, vein, px, origin, strokes=path_strokes(rows)
+        )
         images["errors.png"] = plot_error_along_scan(accuracy)
         plots.update({"paths": "paths.png", "errors": "errors.png"})
     if mosaic is not None and sheet:
         png, pdf = render_sheet(build_sheet_figure(
             mosaic, estimate, registered, reference_mm, accuracy, frames, doc["warnings"],
             identity if identity is not None else SheetIdentity(session=""),
-            angles=doc.get("angles"), tissue=doc.get("tissue"),
+            angles=doc.get("angles"), tissue=doc.get("tissue"), strokes=path_strokes(rows),
         ))  # fmt: skip
         images["sheet.png"], images["sheet.pdf"] = png, pdf
         plots.update({"sheet": "sheet.png", "sheet_pdf": "sheet.pdf"})

@@ -30,12 +30,20 @@ def _with_format(data: bytes, fmt: int | None) -> bytes:
 def test_prepared_frames_carry_their_format() -> None:
     pf = _prepared(7, np.ones((3, 128), np.float32))
     data = prepared_to_bytes(pf)
-    assert int(np.load(io.BytesIO(data))["format"][0]) == PREPARED_FORMAT == 2
+    assert int(np.load(io.BytesIO(data))["format"][0]) == PREPARED_FORMAT == 3
     _assert_same(pf, prepared_from_bytes(data))
     _assert_same(pf, prepared_from_bytes(_with_format(data, None)))  # written before formats: format 0, read
     _assert_same(pf, prepared_from_bytes(_with_format(data, 1)))  # format 1: the same layout without an IMU
-    with pytest.raises(UnknownFormatError, match=r"prepared frame 7: format 3 is unknown .*reads formats 0, 1, 2"):
-        prepared_from_bytes(_with_format(data, 3), "prepared frame 7")
+    older = _with_format(_without(data, "focus"), 2)  # format 2: no focus measure, read as unknown (NaN)
+    _assert_same(pf, prepared_from_bytes(older), focus_kept=False)
+    with pytest.raises(UnknownFormatError, match=r"prepared frame 7: format 4 is unknown .*reads formats 0, 1, 2, 3"):
+        prepared_from_bytes(_with_format(data, 4), "prepared frame 7")
+
+
+def _without(data: bytes, name: str) -> bytes:
+    """Return prepared-frame bytes less one entry."""
+    z = np.load(io.BytesIO(data), allow_pickle=False)
+    return npz_bytes(**{k: z[k] for k in z.files if k != name})
 
 
 def test_state_json_carries_its_format() -> None:

@@ -44,10 +44,11 @@ def _prepared(seq: int, desc: np.ndarray) -> PreparedFrame:
         vein=rng.integers(0, 256, (48, 64), dtype=np.uint8),
         vein_mask=(rng.random((48, 64)) > 0.5).astype(np.uint8) * 255,
         sharpness=123.456,
+        focus=0.0171,
     )
 
 
-def _assert_same(a: PreparedFrame, b: PreparedFrame) -> None:
+def _assert_same(a: PreparedFrame, b: PreparedFrame, focus_kept: bool = True) -> None:
     # lossless: every array and number must come back bit-identical (registration must replay exactly)
     assert (a.index, a.seq, a.t_s, a.load, a.stretch, a.sharpness) == (
         b.index,
@@ -68,6 +69,7 @@ def _assert_same(a: PreparedFrame, b: PreparedFrame) -> None:
         (a.features.sizes_px, b.features.sizes_px),
     ]:
         assert x.dtype == y.dtype and np.array_equal(x, y)
+    assert a.focus == b.focus or (math.isnan(b.focus) and not focus_kept)
     assert (a.imu_tilt_deg is None) == (b.imu_tilt_deg is None)
     assert a.imu_tilt_deg is None or np.array_equal(a.imu_tilt_deg, b.imu_tilt_deg)
 
@@ -183,7 +185,7 @@ def test_path_state_meta_report_reference_images_tiles(stores: tuple[ResultsStor
     assert got[0]["x_mm"] == 0.0 and got[0]["status"] == "ok"
     assert got[1]["x_mm"] is None and got[1]["t_s"] == 0.6 and got[1]["status"] == "lost"
     assert list(got[0]) == ["seq", "t_s", "x_mm", "y_mm", "yaw_deg", "fz_n", "tilt_x_deg", "tilt_y_deg",
-                            "stretch", "inliers", "status", "reason"]  # fmt: skip
+                            "stretch", "inliers", "status", "reason", "stroke"]  # fmt: skip
     assert rs.read_state(sid, 1) is None
     rs.write_state(sid, 1, VersionState(cursor=2, fence=3, lost=[1]))
     assert rs.read_state(sid, 1) == VersionState(cursor=2, fence=3, finished=False, lost=(1,))
