@@ -68,8 +68,8 @@ PATH_COLUMNS = (
     "stretch",
     "inliers",
     "status",
-    "reason",
     "stroke",
+    "reason",
 )
 
 

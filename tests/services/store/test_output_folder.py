@@ -55,11 +55,12 @@ def test_path_csv_columns_and_blank_cells() -> None:
         "stretch",
         "inliers",
         "status",
+        "stroke",
         "reason",
     )  # spec §4, in order, then why a frame was not placed (issue 6: never fail silently)
     assert len(table) == 4
     assert table[2][2:5] == ["", "", ""]  # the lost frame has no position
-    assert table[2][-2:] == ["lost", "few_inliers"] and table[2][0] == "1"
+    assert table[2][-3:] == ["lost", "", "few_inliers"] and table[2][0] == "1"  # no stroke known: blank
     assert table[3][2] == "1.2346"  # 4 decimals: 0.1 um, far below any accuracy the probe reaches
 
 
@@ -99,7 +100,7 @@ def test_write_reconstruction_without_reference(tmp_path: Path) -> None:
     doc = json.loads((out / "report.json").read_text())
     assert "rmse_mm" not in doc
     assert doc["frames"] == {
-        "total": 3, "ok": 2, "lost": 1, "rejected": 0, "registered_fraction": pytest.approx(2 / 3),
+        "total": 3, "ok": 2, "lost": 1, "rejected": 0, "no_contact": 0, "registered_fraction": pytest.approx(2 / 3),
         "lost_reasons": {"few_inliers": 1}, "rejected_reasons": {},
     }  # fmt: skip
     assert [w["code"] for w in doc["warnings"]] == ["frames_lost"]  # 1 of 3 > 5 %

@@ -62,6 +62,19 @@ def test_round_trip(tmp_path: Path, dtype: type, ext: str) -> None:
     assert back.truth == {"poses": [[0.0] * 3] * 3, "young_modulus_kpa": 16.0, "blurred": [1]}
 
 
+def test_a_dropped_frame_leaves_a_gap_in_seq_and_the_reference_is_spread_by_seq(folder: Path) -> None:
+    # spec §3: a frame the camera dropped leaves a gap in seq; the path's rows run over every seq (it is missing)
+    (folder / "frames.csv").write_text("seq,t_s\n0,0.1\n2,0.3\n")
+    (folder / "reference.csv").write_text("seq,x_mm,y_mm\n0,0,0\n2,4.5,1\n")
+    (folder / "frames" / "000001.png").unlink()
+    scan = read_scan_folder(folder)
+    np.testing.assert_array_equal(scan.frame_seq, [0, 2])
+    assert len(scan) == 2 and scan.n_seqs == 3
+    assert scan.frame(1).shape == (H, W)  # position 1 is seq 2
+    rows = scan.by_seq(scan.reference_mm)
+    assert rows.shape == (3, 2) and np.isnan(rows[1]).all() and rows[2].tolist() == [4.5, 1.0]
+
+
 def test_optional_files_may_be_absent(folder: Path) -> None:
     for name in ("imu.csv", "mask.png", "reference.csv", "truth.json"):
         (folder / name).unlink()
@@ -118,7 +131,6 @@ def test_forces_row_with_missing_number(folder: Path) -> None:
         ("frames.csv", "seq,t_s\n0,0.1\nx,0.2\n", 3, "seq must be a whole number"),
         ("frames.csv", "seq,t_s\n0,0.1\n1,nan\n", 3, "t_s must be finite"),
         ("frames.csv", "seq,t_s\n0,0.1\n1,0.2\n0,0.3\n", 4, "seq 0 repeats line 2"),
-        ("frames.csv", "seq,t_s\n0,0.1\n2,0.2\n", 3, "seq 1 is missing"),
         ("frames.csv", "seq,t_s\n0,0.1\n1,0.2\n2,0.3\n3,0.4\n", 5, "no frame file frames/000003.png"),
         ("frames.csv", "seq,t_s\n", None, "no frames listed"),
         ("forces.csv", "t_s,f1_n,f2_n,f3_n,f4_n\n0,1,1,1,1\n", None, "at least 2 samples"),
