@@ -50,7 +50,7 @@ def stream(client: TestClient, sid: str, **headers: str) -> tuple[list[dict[str,
     resp = client.get(f"/v1/sessions/{sid}/events", headers={**INGEST, **headers})
     assert resp.status_code == 200, resp.text
     assert resp.headers["content-type"].startswith("text/event-stream")
-    assert resp.headers["cache-control"] == "no-cache"
+    assert resp.headers["cache-control"] == "private, no-store"  # the stream carries the path
     events, comments = parse_sse(resp.text)
     return events, comments, resp
 
