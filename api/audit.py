@@ -154,11 +154,15 @@ class AuditMiddleware:
             last = self._recent.get(key)
             if last is not None and now - last < float(app_state.settings.audit_coalesce_s):  # type: ignore[union-attr]
                 return
-        await anyio.to_thread.run_sync(audit.append, record)
-        if key is not None:
             if len(self._recent) >= _MAX_COALESCE_KEYS:
                 self._recent.clear()
-            self._recent[key] = now
+            self._recent[key] = now  # before the write: concurrent requests with this key wait for no record
+        try:
+            await anyio.to_thread.run_sync(audit.append, record)
+        except BaseException:
+            if key is not None and self._recent.get(key) == now:
+                del self._recent[key]  # not written: the next request of this key is recorded
+            raise
 
 
 def _request_id(scope: Scope) -> str | None:
