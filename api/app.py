@@ -22,6 +22,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from api.audit import AuditMiddleware
 from api.auth import document_security, key_table
 from api.errors import BodyTooLarge, add_exception_handlers, document_errors, escaped_error_response
+from api.headers import SecurityHeadersMiddleware
+from api.limits import StreamSlots
 from api.openapi_links import add_links
 from api.routes import ROUTERS
 from api.routes.audit import router as audit_router
@@ -163,6 +165,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.clock = time.time
     app.state.queue_guard = queue.DepthGuard()  # the uploads' queue-full check (api.deps.QueueGuard)
+    app.state.stream_slots = StreamSlots()  # the open event streams (api.routes.events)
     add_exception_handlers(app)
     for router in ROUTERS:
         app.include_router(router)
@@ -170,6 +173,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     mount_static(app, s)
     app.add_middleware(AuditMiddleware)  # inside RequestContextMiddleware: it sees the request id
     app.add_middleware(RequestContextMiddleware)
+    app.add_middleware(SecurityHeadersMiddleware)  # outermost: the request middleware's own answers get them too
     generate = app.openapi
 
     def openapi() -> dict[str, Any]:

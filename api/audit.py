@@ -9,11 +9,17 @@ template, method, session id (a path parameter; never a label), status, client a
 Every write (POST, PUT, DELETE) is recorded. Reads and refused requests are coalesced: one record per
 caller, action, session, status and client per `audit_coalesce_s` window (60 s by default), so a viewer
 fetching hundreds of tiles leaves one "mosaic.view" record a minute, not hundreds of fsyncs.
+
+A path parameter is never recorded raw: the session field holds the id only when it has the form of one (32
+lowercase hex), else INVALID_ID. Requests refused before authentication (actor "anonymous") are coalesced per
+client and status alone, whatever their route or session, so a flood of random URLs from one address writes
+one record per status a window, not one per request.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import time
 from typing import Any
 
@@ -56,6 +62,22 @@ ACTIONS: dict[tuple[str, str], str] = {
 }
 WRITE_METHODS = ("POST", "PUT", "PATCH", "DELETE")
 _MAX_COALESCE_KEYS = 50_000
+SESSION_ID_FORM = re.compile(r"^[0-9a-f]{32}$")  # what services.store.storage makes (uuid4 hex)
+INVALID_ID = "(invalid)"  # recorded instead of a session path parameter that is not of that form
+
+
+def recorded_session(value: object) -> str | None:
+    """Return the session field of a record: the id if it has the form of one, INVALID_ID if not, None if absent."""
+    if value is None:
+        return None
+    return value if isinstance(value, str) and SESSION_ID_FORM.match(value) else INVALID_ID
+
+
+def coalesce_key(record: dict[str, Any]) -> tuple[str, ...]:
+    """Return the coalescing key of a read or refused request: per client and status alone when anonymous."""
+    if record["actor"] == "anonymous":
+        return ("anonymous", str(record["status"]), str(record["client"]))
+    return (record["actor"], record["action"], str(record["session"]), str(record["status"]), str(record["client"]))
 
 
 def actor_of(scope: Scope) -> str:
@@ -113,7 +135,6 @@ class AuditMiddleware:
         method = str(scope.get("method", ""))
         route = getattr(scope.get("route"), "path", None) or "(unmatched)"
         params = scope.get("path_params") or {}
-        session = params.get("session_id")
         client = scope.get("client")
         now = time.time()
         record = {
@@ -122,22 +143,26 @@ class AuditMiddleware:
             "action": action_of(method, route),
             "route": route,
             "method": method,
-            "session": session if isinstance(session, str) else None,
+            "session": recorded_session(params.get("session_id")),
             "status": status,
             "client": client[0] if client else None,
             "request_id": _request_id(scope),
         }
         key: tuple[str, ...] | None = None
         if not (method in WRITE_METHODS and 200 <= status < 300):
-            key = (record["actor"], record["action"], str(session), str(status), str(record["client"]))
+            key = coalesce_key(record)
             last = self._recent.get(key)
             if last is not None and now - last < float(app_state.settings.audit_coalesce_s):  # type: ignore[union-attr]
                 return
-        await anyio.to_thread.run_sync(audit.append, record)
-        if key is not None:
             if len(self._recent) >= _MAX_COALESCE_KEYS:
                 self._recent.clear()
-            self._recent[key] = now
+            self._recent[key] = now  # before the write: concurrent requests with this key wait for no record
+        try:
+            await anyio.to_thread.run_sync(audit.append, record)
+        except BaseException:
+            if key is not None and self._recent.get(key) == now:
+                del self._recent[key]  # not written: the next request of this key is recorded
+            raise
 
 
 def _request_id(scope: Scope) -> str | None:

@@ -19,6 +19,7 @@ from fastapi import Request
 from itsdangerous import BadSignature, URLSafeSerializer
 
 from api.errors import Forbidden, NotFound, Unauthorized
+from api.limits import refuse_unauthenticated
 from services.store.storage import SessionMeta, SessionStore
 
 PRINCIPAL_KEY = "veinmosaic.principal"  # where the caller's Principal is left in the ASGI scope (api.audit reads it)
@@ -118,7 +119,7 @@ def require_scope(*scopes: str) -> Callable[[Request], Awaitable[Principal]]:
     async def dependency(request: Request) -> Principal:  # CPU only: no thread-pool hop
         principal = key_principal(request)
         if principal is None:
-            raise Unauthorized()
+            raise refuse_unauthenticated(request, Unauthorized())  # 429 when this client is over its limit
         remember(request, principal)
         if not principal.has_any(scopes):
             raise Forbidden(f"this key lacks the {' or '.join(scopes)} scope")
@@ -138,7 +139,8 @@ async def view_principal(request: Request, session_id: str) -> Principal:
     for token in (request.query_params.get("token"), bearer(request)):
         if token and verify_viewer_token(request.app.state.token_secret, token, session_id, _now(request)):
             return remember(request, Principal(fingerprint=None, scopes=frozenset({"view"}), session_id=session_id))
-    raise Unauthorized("a valid bearer key or an unexpired viewer token for this session is required")
+    refusal = Unauthorized("a valid bearer key or an unexpired viewer token for this session is required")
+    raise refuse_unauthenticated(request, refusal)  # 429 when this client is over its limit
 
 
 def _now(request: Request) -> float:

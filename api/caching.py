@@ -1,9 +1,12 @@
 """HTTP caching of results: ETags, 304 answers and the Cache-Control values every results route uses.
 
-mosaic.json, the whole images and the DZI descriptor are "no-cache" with an ETag (304 on a matching
-If-None-Match). A tile requested with both ?v= and ?rev= is immutable ("private": these are patient images
-behind a credential, never for shared caches); without them it is "no-cache". Tile revisions restart in
-every results version, hence v in the immutable URL.
+Results are patient data behind a credential: mosaic.json, the whole images, the DZI descriptor, the path and
+the report are "private, no-store" (no cache keeps them, shared or the browser's), with an ETag (304 on a
+matching If-None-Match, for clients that keep their own copy). A tile requested with both ?v= and ?rev= (a
+revision it has reached) may be kept by the browser for `tile_cache_max_age_s` (5 minutes by default:
+"private, max-age=300"), never by a shared cache; without them it is "private, no-store". Tile revisions
+restart in every results version, hence v in the cacheable URL. Every other /v1/ answer is "private, no-store"
+unless its route says otherwise (api.headers).
 """
 
 from __future__ import annotations
@@ -15,11 +18,15 @@ from fastapi import Request, Response
 
 from api.errors import NotFound
 
-IMMUTABLE = "private, max-age=31536000, immutable"
-NO_CACHE = "no-cache"
+PRIVATE_NO_STORE = "private, no-store"
 
 
-def version_headers(version: int | None, cache: str = NO_CACHE) -> dict[str, str]:
+def tile_cache(max_age_s: int) -> str:
+    """Return the Cache-Control of a versioned tile: the browser may keep it max_age_s seconds, no shared cache."""
+    return f"private, max-age={int(max_age_s)}" if max_age_s > 0 else PRIVATE_NO_STORE
+
+
+def version_headers(version: int | None, cache: str = PRIVATE_NO_STORE) -> dict[str, str]:
     """Return the Cache-Control and X-Results-Version headers of a results answer."""
     return {"Cache-Control": cache, "X-Results-Version": str(version or 0)}
 
@@ -46,7 +53,7 @@ def conditional(request: Request, etag: str, headers: dict[str, str]) -> Respons
 
 
 def cached_bytes(request: Request, body: bytes | str, etag: str, media_type: str, version: int) -> Response:
-    """Return `body` with its ETag and no-cache (304 when the client holds it)."""
+    """Return `body` with its ETag and "private, no-store" (304 when the client holds it)."""
     headers = version_headers(version)
     return conditional(request, etag, headers) or Response(
         body, media_type=media_type, headers={**headers, "ETag": etag}

@@ -87,6 +87,14 @@ class Validation(APIError):
     status, code = 422, "validation_error"
 
 
+class TooManyRequests(APIError):
+    status, code = 429, "rate_limited"
+
+    def __init__(self, message: str, retry_after_s: int = 1, **kw: Any) -> None:
+        super().__init__(message, **kw)
+        self.headers.setdefault("Retry-After", str(max(1, int(retry_after_s))))
+
+
 class ServiceUnavailable(APIError):
     status, code = 503, "service_unavailable"
 
@@ -303,7 +311,7 @@ def error_statuses(method: str, path: str, operation: dict[str, Any]) -> set[int
     parameters, 422 with parameters or a body, 400 with a body (malformed JSON), plus EXTRA_STATUSES."""
     statuses = set(COMMON_STATUSES)
     if path.startswith(("/v1/", "/viewer/")):
-        statuses |= {401, 403}
+        statuses |= {401, 403, 429}  # 429: too many requests without a valid credential (api.limits)
     params = operation.get("parameters") or []
     if any(p.get("in") == "path" for p in params):
         statuses.add(404)

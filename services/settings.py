@@ -86,6 +86,18 @@ class Settings(BaseSettings):
     max_session_span_s: float = Field(default=86_400.0, gt=0)  # timestamps within this of the session's first
     min_free_mb: int = Field(default=200, ge=0)  # /readyz is 503 while the data volume has less free space
     audit_coalesce_s: float = Field(default=60.0, ge=0)  # repeated reads by one caller: one audit record per window
+    # per-client rate limits (token buckets, per API process; 429 with Retry-After beyond; a burst of 0: no limit).
+    # Requests without a valid credential, per client address: a flood is refused before it costs a disk write
+    rate_limit_anonymous_per_s: float = Field(default=20.0, gt=0)
+    rate_limit_anonymous_burst: int = Field(default=200, ge=0)
+    # the expensive reads (export.dcm?layer=report, sheet.pdf/png, GET /report), per client address and caller
+    rate_limit_expensive_per_s: float = Field(default=0.5, gt=0)
+    rate_limit_expensive_burst: int = Field(default=30, ge=0)
+    # open event streams (SSE) per API process: per caller (key or viewer link; 429 beyond) and in all (503 beyond)
+    events_max_per_principal: int = Field(default=16, ge=1)
+    events_max_total: int = Field(default=256, ge=1)
+    # how long a browser may keep a versioned Deep Zoom tile (private: never in a shared cache)
+    tile_cache_max_age_s: int = Field(default=300, ge=0)
     queue_max_depth: int = Field(default=5000, gt=0)
     retry_after_s: int = Field(default=2, gt=0)
     viewer_token_ttl_s: int = Field(default=8 * 3600, gt=0)

@@ -8,6 +8,11 @@ with the id of the newest entry at that moment. The stream ends after a "done" e
 snapshot) when the session is already done or failed. sse-starlette writes the framing (id/event/data lines,
 retry, the keep-alive comment every KEEPALIVE_S) and ends the generator when the client goes away. Reads use
 redis.asyncio with BLOCK, so no thread and no event-loop time is held while waiting.
+
+Each open stream holds a Redis connection, so they are capped per API process (api.limits.StreamSlots): at
+most `events_max_per_principal` per caller (a key, or the viewer links of one session; 429 beyond) and
+`events_max_total` in all (503 beyond), both with Retry-After. The slot is freed when the stream ends or the
+client goes away. The stream is "private, no-store": it carries the path.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import re
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Annotated, Any
 
 import anyio
@@ -24,9 +29,12 @@ import redis.asyncio as aioredis
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from sse_starlette import EventSourceResponse, ServerSentEvent
+from starlette.types import Receive, Scope, Send
 
-from api.deps import AppSettings, RedisClient, Store, ViewSession
+from api.caching import PRIVATE_NO_STORE
+from api.deps import AppSettings, RedisClient, Store, ViewPrincipal, ViewSession
 from api.errors import ServiceUnavailable
+from api.limits import principal_key
 from api.results_access import Results, resolve_version
 from services.core.outputs.documents import path_rows_from_json, path_tail
 from services.jobs import queue
@@ -79,6 +87,21 @@ def snapshot(store: SessionStore, rs: ResultsStore, r: redis.Redis, sid: str, pr
     }
 
 
+class CountedEventSource(EventSourceResponse):
+    """An EventSourceResponse that frees its stream slot when it ends, however it ends."""
+
+    def __init__(self, *args: Any, release: Callable[[], None], **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._release = release
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Return once the stream has ended (done, client gone or server stopping); the slot is freed then."""
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self._release()
+
+
 def async_redis_url(settings: Any) -> str:
     """Return the URL of the Redis server the app uses (REDIS_URL, else the embedded server's socket)."""
     url = settings.redis_url or read_embedded_url(settings.data_dir)
@@ -94,6 +117,7 @@ def async_redis_url(settings: Any) -> str:
 )
 async def events(
     meta: ViewSession,
+    principal: ViewPrincipal,
     request: Request,
     store: Store,
     rs: Results,
@@ -154,6 +178,15 @@ async def events(
             with anyio.CancelScope(shield=True):  # a client that went away cancels us: still close the connection
                 await client.aclose()
 
-    return EventSourceResponse(
-        generate(), headers={"Cache-Control": "no-cache"}, ping=KEEPALIVE_S, sep=SEP, ping_message_factory=keepalive
+    slots = request.app.state.stream_slots  # 429 over the caller's cap, 503 over the total (api.limits)
+    release = slots.acquire(
+        principal_key(principal), settings.events_max_per_principal, settings.events_max_total, settings.retry_after_s
+    )
+    return CountedEventSource(
+        generate(),
+        release=release,
+        headers={"Cache-Control": PRIVATE_NO_STORE},
+        ping=KEEPALIVE_S,
+        sep=SEP,
+        ping_message_factory=keepalive,
     )

@@ -4,7 +4,8 @@ Both need the finished mosaic's raw layers (layers.npz, written when a results v
 that they answer 404 not_ready. Both are built by services.store.session_export, as the PACS send job's are, so
 a download and a send are the same objects with the same UIDs. Patient attributes come only from the session's
 study context, and only for its owner and admins; without one they are present and empty. The files are patient
-images: never cached by shared caches, never logged.
+images: never cached by shared caches, never logged. The one-page report is rendered on every call, so the
+sheet and export.dcm?layer=report are rate-limited per client and caller (api.limits: 429 with Retry-After).
 """
 
 from __future__ import annotations
@@ -12,17 +13,19 @@ from __future__ import annotations
 import logging
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
+from api.caching import PRIVATE_NO_STORE
 from api.deps import Store, ViewPrincipal, ViewSession
+from api.limits import check_expensive
 from api.results_access import Results, VersionQuery, served_version
 from services.core.outputs.dicom_export import STUDY_OBJECTS
 from services.store.session_export import session_objects, session_sheet
 
 router = APIRouter(prefix="/v1/sessions", tags=["export"])
 log = logging.getLogger("veinmosaic.api")
-PRIVATE = {"Cache-Control": "private, no-store"}
+PRIVATE = {"Cache-Control": PRIVATE_NO_STORE}
 ExportLayer = Literal["vein", "force", "coverage", "report"]
 
 
@@ -36,6 +39,7 @@ async def get_export(
     principal: ViewPrincipal,
     rs: Results,
     store: Store,
+    request: Request,
     layer: Annotated[ExportLayer, Query(description=f"one of {', '.join(STUDY_OBJECTS)}")] = "vein",
     v: VersionQuery = None,
 ) -> Response:
@@ -45,6 +49,8 @@ async def get_export(
     viewer link, which never sees patient data, gets the objects without it (and so with their own UIDs).
     """
     version = served_version(rs, meta.id, v)
+    if layer == "report":
+        check_expensive(request, principal)  # the one-page report is rendered per call: 429 over the limit
     with_study = principal.session_id is None
     objects = await run_in_threadpool(session_objects, store, rs, meta.id, version, with_study, (layer,))
     log.info("dicom exported", extra={"session": meta.id})
@@ -66,6 +72,7 @@ async def get_sheet(
     principal: ViewPrincipal,
     store: Store,
     rs: Results,
+    request: Request,
     fmt: Literal["png", "pdf"],
     v: VersionQuery = None,
 ) -> Response:
@@ -75,6 +82,7 @@ async def get_sheet(
     link, which never sees patient data, gets the page with those fields "not given".
     """
     version = served_version(rs, meta.id, v)
+    check_expensive(request, principal)  # rendered per call: 429 over the limit
     data = await run_in_threadpool(session_sheet, store, rs, meta.id, version, fmt, principal.session_id is None)
     media = "image/png" if fmt == "png" else "application/pdf"
     return Response(data, media_type=media, headers={**PRIVATE, "X-Results-Version": str(version)})

@@ -14,8 +14,9 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
 from api.caching import file_response, version_headers
-from api.deps import AppSettings, IngestSession, Store, ViewSession, read_body
+from api.deps import AppSettings, IngestSession, Store, ViewPrincipal, ViewSession, read_body
 from api.errors import Conflict, NotFound, UnsupportedMediaType, Validation
+from api.limits import check_expensive
 from api.results_access import Results, VersionQuery, resolve_version, served_version
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
@@ -85,14 +86,20 @@ def _fresh_report(store: SessionStore, rs: ResultsStore, sid: str, v: int, refer
 
 
 @router.get("/{session_id}/report", responses={404: {"description": "no reference posted yet"}})
-async def get_report(meta: ViewSession, store: Store, rs: Results, v: VersionQuery = None) -> JSONResponse:
-    """Return the accuracy report (spec §4) with plot links; recomputed when the mosaic has changed since."""
+async def get_report(
+    meta: ViewSession, principal: ViewPrincipal, request: Request, store: Store, rs: Results, v: VersionQuery = None
+) -> JSONResponse:
+    """Return the accuracy report (spec §4) with plot links; recomputed when the mosaic has changed since.
+
+    It may be evaluated (and written) on the call, so it is rate-limited per client and caller (429, api.limits).
+    """
     reference = await run_in_threadpool(rs.read_reference, meta.id)
     if reference is None:
         raise NotFound("no report: no reference track has been posted for this session", code="no_reference")
     version = resolve_version(rs, meta.id, v)
     if version is None:
         raise NotFound("no report: no frame has been processed yet", code="not_ready")
+    check_expensive(request, principal)
     doc = await run_in_threadpool(_fresh_report, store, rs, meta.id, version, reference)
     return JSONResponse(served(doc, meta.id, version), headers=version_headers(version))
 

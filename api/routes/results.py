@@ -11,7 +11,15 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import JSONResponse
 
-from api.caching import IMMUTABLE, NO_CACHE, cached_bytes, conditional, file_response, mosaic_etag, version_headers
+from api.caching import (
+    PRIVATE_NO_STORE,
+    cached_bytes,
+    conditional,
+    file_response,
+    mosaic_etag,
+    tile_cache,
+    version_headers,
+)
 from api.deps import AppSettings, RedisClient, ViewSession, incr
 from api.errors import NotFound
 from api.results_access import Results, VersionQuery, resolve_version, served_mosaic, served_version
@@ -112,5 +120,6 @@ def get_tile(
     except FileNotFoundError:
         data = blank_png(*size)
     known = int(((doc.get("revisions") or {}).get(layer) or {}).get(f"{level}/{col}_{row}", 0))
-    cache = IMMUTABLE if (rev is not None and v is not None and rev <= known) else NO_CACHE
+    versioned = rev is not None and v is not None and rev <= known
+    cache = tile_cache(settings.tile_cache_max_age_s) if versioned else PRIVATE_NO_STORE
     return Response(data, media_type="image/png", headers=version_headers(version, cache))

@@ -1,7 +1,8 @@
 """Send jobs for real (issue 16): `veinmosaic serve`'s launcher (API, a worker process, Redis) sends a session to a
 real Orthanc by DICOMweb STOW-RS and by DIMSE C-STORE; the PACS files it under the study's patient, accession
 and laterality, every image renders with its own window, and re-sending stores the same instances. An
-unreachable destination is retried with back-off and then fails; every attempt is in the audit log."""
+unreachable destination is retried with back-off and then fails; every attempt is in the audit log. A job's error
+names the destination by its configured name, never its address."""
 
 from __future__ import annotations
 
@@ -18,10 +19,12 @@ import pytest
 
 from cli.client import ApiError, VeinmosaicClient, upload_scan_folder
 from cli.launcher import Service, free_port
+from services.pacs.destinations import DicomWebDestination, DimseDestination
 from services.store.audit import AuditLog
 from services.store.scan_folder import write_scan_folder
 from tests.pacs_server import Orthanc
 from tests.sim_cache import simulated
+from workers.stages.send import public_error
 
 STUDY = {
     "patient_id": "VM-TEST-0001",
@@ -147,3 +150,16 @@ def test_an_unreachable_destination_is_retried_then_fails(
     with pytest.raises(ApiError) as refused:
         client.send(sid, "nowhere")
     assert refused.value.status == 422 and refused.value.code == "unknown_destination"
+
+
+def test_job_errors_name_the_destination_never_its_address() -> None:
+    web = DicomWebDestination("https://user:pw@pacs.internal.example:8443/dicom-web")
+    dimse = DimseDestination("10.1.2.3", 11112, "ONCO")
+    for destination, name, address in ((web, "radiology", "pacs.internal.example"), (dimse, "onco", "10.1.2.3")):
+        raw = f"destination unreachable after 8 attempts: {destination.describe()}: cannot connect (ConnectError)"
+        shown = public_error(raw, destination, name)
+        assert address not in shown and "11112" not in shown and "8443" not in shown and "pw" not in shown
+        assert shown == f"destination unreachable after 8 attempts: destination {name!r}: cannot connect (ConnectError)"
+        stray = public_error(f"the destination refused: no route to {address}", destination, name)
+        assert address not in stray  # the address is removed wherever it stands
+    assert len(public_error("x" * 1000, web, "radiology")) == 300

@@ -6,6 +6,9 @@ results version (services.store.session_export: the same objects GET export.dcm 
 out, 5xx, association rejected) is retried with exponential back-off up to `pacs_max_attempts` attempts; a
 PACS that refuses the objects fails the job at once. Sending again stores the same instances: the objects'
 UIDs come from the session's identity and content, so a retry or a second job never duplicates anything.
+
+A job's error is shown to API clients (GET /v1/jobs/{id}): it names the destination by its configured name,
+never its host, port or URL (those stay in the worker's log, for the operator).
 """
 
 from __future__ import annotations
@@ -14,9 +17,11 @@ import json
 import logging
 import time
 from collections.abc import Callable
+from urllib.parse import urlsplit
 
 from services.jobs import queue
 from services.jobs import reprocess as jobs
+from services.pacs.destinations import Destination, DicomWebDestination
 from services.pacs.send import PacsRejected, PacsUnreachable, send_objects
 from services.store.session_export import finished_version, session_objects
 from services.store.storage import SessionNotFoundError
@@ -34,6 +39,20 @@ def _attempts(ctx: Context, job_id: str) -> int:
 def retry_delay_s(attempt: int, first_s: float, max_s: float) -> float:
     """Return the wait (s) before attempt `attempt + 1`: first_s doubled per attempt made, capped at max_s."""
     return float(min(max_s, first_s * 2 ** max(0, attempt - 1)))
+
+
+def public_error(message: str, destination: Destination, name: str) -> str:
+    """Return a send failure's message as a job shows it: the destination by `name`, without its address."""
+    text = message.replace(destination.describe(), f"destination {name!r}")
+    if isinstance(destination, DicomWebDestination):
+        parts = urlsplit(destination.base_url)
+        address = [destination.base_url, parts.netloc, parts.hostname or ""]
+    else:
+        address = [f"{destination.host}:{destination.port}", destination.host]
+    for piece in address:
+        if piece:
+            text = text.replace(piece, "(the PACS)")
+    return text[:300]
 
 
 def handle_send(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], None]) -> Retry | None:
@@ -73,21 +92,24 @@ def handle_send(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], No
     except PacsUnreachable as exc:
         if attempt >= cfg.pacs_max_attempts:
             error = f"destination unreachable after {attempt} attempts: {exc}"
-            ctx.update_job(job_id, state="failed", error=error[:300])
+            ctx.update_job(job_id, state="failed", error=public_error(error, destination, name))
             pub.audit_send(sid, job_id, name, "failed", 0, version)
             return None
         delay = retry_delay_s(attempt, cfg.pacs_retry_first_s, cfg.pacs_retry_max_s)
-        ctx.update_job(job_id, state="queued", error=f"destination unreachable ({exc}); retry in {delay:.1f} s"[:300])
+        error = f"destination unreachable ({exc}); retry in {delay:.1f} s"
+        ctx.update_job(job_id, state="queued", error=public_error(error, destination, name))
         pub.audit_send(sid, job_id, name, "retry", 0, version)
         log.warning("PACS unreachable; send retried in %.1f s (attempt %d)", delay, attempt, extra={"session": sid})
         return Retry(delay, "PACS unreachable")
     except PacsRejected as exc:
-        ctx.update_job(job_id, state="failed", error=f"the destination refused the objects: {exc}"[:300])
+        error = f"the destination refused the objects: {exc}"
+        ctx.update_job(job_id, state="failed", error=public_error(error, destination, name))
         pub.audit_send(sid, job_id, name, "rejected", 0, version)
         return None
     if not outcome.ok:  # some objects stored, others refused (a retry would be refused again)
         refused = ", ".join(f"{uid}: {why}" for uid, why in outcome.failed.items())
-        ctx.update_job(job_id, state="failed", done=outcome.sent, error=f"the destination refused {refused}"[:300])
+        error = public_error(f"the destination refused {refused}", destination, name)
+        ctx.update_job(job_id, state="failed", done=outcome.sent, error=error)
         pub.audit_send(sid, job_id, name, "partly rejected", outcome.sent, version)
         return None
     ctx.update_job(job_id, state="done", done=outcome.sent, finished=time.time())

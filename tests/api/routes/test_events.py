@@ -1,17 +1,24 @@
-"""Server-Sent Events: snapshot first, progress from the Redis stream, Last-Event-ID resume, keep-alive, done."""
+"""Server-Sent Events: snapshot first, progress from the Redis stream, Last-Event-ID resume, keep-alive, done;
+open streams capped per caller (429) and in all (503)."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import threading
+import time
+from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
-from api_helpers import INGEST, auth, calibration_doc
+from api_helpers import INGEST, KEYS, auth, calibration_doc
 from fastapi.testclient import TestClient
+from live_server import live_api
 
 from api.routes import events as events_module
 from services.jobs import queue
+from services.settings import Settings
 
 
 def parse_sse(text: str) -> tuple[list[dict[str, Any]], list[str]]:
@@ -50,7 +57,7 @@ def stream(client: TestClient, sid: str, **headers: str) -> tuple[list[dict[str,
     resp = client.get(f"/v1/sessions/{sid}/events", headers={**INGEST, **headers})
     assert resp.status_code == 200, resp.text
     assert resp.headers["content-type"].startswith("text/event-stream")
-    assert resp.headers["cache-control"] == "no-cache"
+    assert resp.headers["cache-control"] == "private, no-store"  # the stream carries the path
     events, comments = parse_sse(resp.text)
     return events, comments, resp
 
@@ -144,3 +151,67 @@ def test_viewer_token_reads_events(client: TestClient) -> None:
     publish(client, created["id"], "done", processed=0)
     resp = client.get(f"/v1/sessions/{created['id']}/events?token={created['viewer_token']}")
     assert resp.status_code == 200 and [e["event"] for e in parse_sse(resp.text)[0]] == ["snapshot", "done"]
+
+
+# ----- the cap on open streams (api/limits.py StreamSlots) ----------------------------------------------------------
+
+
+def test_event_streams_are_capped_per_caller_and_in_all(make_client: Any) -> None:
+    client = make_client(events_max_per_principal=2, events_max_total=3, retry_after_s=4)
+    created = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()
+    sid, token = created["id"], created["viewer_token"]
+    slots = client.app.state.stream_slots  # type: ignore[attr-defined]
+    slots.open[f"token:{sid}"] = 2  # two streams of this session's viewer links are open
+    over = client.get(f"/v1/sessions/{sid}/events?token={token}")
+    assert over.status_code == 429 and over.headers["Retry-After"] == "4"
+    assert over.json()["error"]["code"] == "rate_limited"
+    slots.open["key:someone-else"] = 1  # three in all: the total cap
+    full = client.get(f"/v1/sessions/{sid}/events", headers=INGEST)
+    assert full.status_code == 503 and full.headers["Retry-After"] == "4"
+    assert full.json()["error"]["code"] == "too_many_streams"
+    slots.open.clear()
+    publish(client, sid, "done", processed=0)
+    assert client.get(f"/v1/sessions/{sid}/events?token={token}").status_code == 200
+    assert slots.total == 0 and slots.open == {}  # the slot is freed when the stream ends
+
+
+async def _open_streams(base: str, url: str, n: int, hold_s: float) -> tuple[list[int], list[float]]:
+    """Open n event streams at once, hold the accepted ones open; return the statuses and /readyz latencies (s)."""
+    statuses: list[int] = []
+    latencies: list[float] = []
+    limits = httpx.Limits(max_connections=n + 10, max_keepalive_connections=0)
+    async with httpx.AsyncClient(base_url=base, timeout=30, limits=limits) as http:
+        answered = asyncio.Event()
+
+        async def one() -> None:
+            async with http.stream("GET", url) as resp:
+                statuses.append(resp.status_code)
+                if len(statuses) == n:
+                    answered.set()
+                if resp.status_code == 200:
+                    await asyncio.sleep(hold_s)  # held open while /readyz is probed
+
+        async def probe() -> None:
+            await answered.wait()
+            for _ in range(5):
+                t0 = time.perf_counter()
+                ready = await http.get("/readyz")
+                latencies.append(time.perf_counter() - t0)
+                assert ready.status_code == 200
+                await asyncio.sleep(0.1)
+
+        await asyncio.gather(*(one() for _ in range(n)), probe())
+    return statuses, latencies
+
+
+@pytest.mark.slow
+def test_200_streams_on_one_token_are_capped_while_readyz_answers(tmp_path: Path) -> None:
+    with live_api(tmp_path, KEYS, log_level="WARNING") as api:
+        http = httpx.Client(base_url=api.base_url, timeout=10)
+        created = http.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()
+        url = f"/v1/sessions/{created['id']}/events?token={created['viewer_token']}"
+        statuses, latencies = asyncio.run(_open_streams(api.base_url, url, 200, hold_s=3.0))
+        cap = Settings().events_max_per_principal
+        assert statuses.count(200) == cap and statuses.count(429) == 200 - cap, sorted(set(statuses))
+        assert max(latencies) < 1.0, latencies
+        assert http.get(url.replace("/events", ""), timeout=5).status_code == 200  # the link still works
