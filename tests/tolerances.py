@@ -36,6 +36,13 @@ class Tolerances:
     # <= 0.035 mm fails the stiffening answer with margin; >= 0.005 mm (0.06 px) flags a suspiciously perfect one.
     shared_short_rmse_mm: tuple[float, float] = (0.005, 0.035)
 
+    # `best` on the shared clinical_veins_24's first three strokes (seqs 0-160: two lifts, 28 frames in the air, 5
+    # dropped; skin drag of up to 0.8 mm at 20 N along the strokes, which the path does not model yet): measured
+    # 0.74 mm, of which 0.23 mm is the path's shape and the rest its scale (-0.68 %: the compliance gauge fitted on
+    # 129 frames under drag). The clinical target is 0.5 mm (not met yet; docs/accuracy.md). <= 0.9 mm fails a
+    # landing placed a vein (~1 mm) off; >= 0.05 mm flags a suspiciously perfect answer on frames dragged 0.1-0.8 mm.
+    clinical_strokes_rmse_mm: tuple[float, float] = (0.05, 0.9)
+
     # `best` on the simulated short scan (seed 1, a patient with the linear law and a hand's tilt) whose veins are
     # a photograph's vessels (test_vein_texture.vessel_photo: 30 straight vessels): measured 0.266 mm, against
     # 0.293 mm over the procedural veins of the same scan. <= 0.6 mm says the registration does not depend on the

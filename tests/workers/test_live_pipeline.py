@@ -23,6 +23,7 @@ from services.jobs import reprocess as jobs
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
 from services.store.version_state import VersionState
+from tests.shared_scans import SHARED_CLINICAL, clinical_until
 from tests.sim_cache import live_short, offline_best
 from tests.workers.conftest import Backend, store_scan, wait_for
 
@@ -251,3 +252,26 @@ def test_poison_and_lost_frames_do_not_block(backend: Backend, spawn_worker: Cal
     assert meta["frames"]["rejected"] == 1 and meta["frames"]["lost"] >= 1
     solo.send_signal(signal.SIGTERM)  # graceful stop: the loop ends after the current entry
     assert solo.wait(timeout=10) == 0
+
+
+@pytest.mark.skipif(not SHARED_CLINICAL.is_dir(), reason="the shared reference scans are not on this machine")
+def test_a_scan_in_strokes_with_dropped_frames_gives_the_offline_path_live(
+    backend: Backend, spawn_worker: Callable[..., Any]
+) -> None:
+    # the shared clinical scan's first two strokes: a lift with frames in the air, dropped seqs (19, 26, 44); no
+    # mask.png, as live. The dropped seqs are lost (missing) live as offline; the frames in the air are rejected
+    # (no_contact) and the second stroke is relocalised on the first, the same way in both.
+    scan = clinical_until(110, mask=False)
+    off = reconstruct(scan, method_options("best"))
+    spawn_worker("a")
+    store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
+    sid = store_scan(store, scan, backend.r, backend.prefix)
+    wait_done(store, sid)
+    rows = results.read_path(sid, 1)
+    assert_matches_offline(rows, 0, off)
+    assert [r["stroke"] for r in rows] == [r.stroke for r in off.rows]
+    assert [r["reason"] for r in rows] == [r.reason for r in off.rows]
+    reasons = {r["reason"] for r in rows if r["status"] != "ok"}
+    assert reasons == {"missing", "no_contact"} and max(r["stroke"] or 0 for r in rows) == 1
+    frames = results.read_mosaic_meta(sid, 1)["frames"]
+    assert frames["no_contact"] == sum(r["reason"] == "no_contact" for r in rows) > 10

@@ -16,7 +16,7 @@ from services.core.pipeline import PATH_COLUMNS, Reconstruction, reconstruct
 from services.core.simulation.scenarios import simulate
 from services.store.scan_folder import read_scan_folder
 from tests.services.core.synthetic_veins import vessel_photo
-from tests.shared_scans import SHARED_SCANS
+from tests.shared_scans import SHARED_CLINICAL, SHARED_SCANS, clinical_until
 from tests.sim_cache import simulated
 from tests.tolerances import TOL
 
@@ -175,3 +175,41 @@ def test_veins_from_a_photograph_are_registered_as_well_as_procedural_ones() -> 
     report = _report(scan, recon)
     assert report.registered_fraction == 1.0
     assert TOL.photo_short_rmse_mm[0] <= report.rmse_mm <= TOL.photo_short_rmse_mm[1], report.rmse_mm
+
+
+@pytest.fixture(scope="module")
+def clinical() -> tuple[Scan, Reconstruction]:
+    """The shared clinical scan's first three strokes (lifts, frames in the air, dropped frames) and `best`'s
+    reconstruction of them."""
+    scan = clinical_until(160)
+    return scan, reconstruct(scan, method_options("best"))
+
+
+@pytest.mark.skipif(not SHARED_CLINICAL.is_dir(), reason="the shared reference scans are not on this machine")
+def test_a_scan_in_strokes_places_every_frame_on_the_skin_and_none_from_the_air(
+    clinical: tuple[Scan, Reconstruction],
+) -> None:
+    scan, recon = clinical
+    reference = scan.by_seq(scan.reference_track)
+    touched = np.all(np.isfinite(reference[:, :2]), axis=1)  # reference.csv: every frame that touched the skin
+    present = np.zeros(scan.n_seqs, bool)
+    present[scan.frame_seq] = True
+    rows = recon.rows
+    assert [r.seq for r in rows] == list(range(scan.n_seqs))  # dropped seqs are rows too: missing
+    assert all(r.status == "lost" and r.reason == "missing" for r in rows if not present[r.seq])
+    placed = recon.registered
+    assert placed[touched].all()  # every frame on the skin
+    assert not placed[present & ~touched].any()  # no frame from the air ...
+    assert all(rows[i].reason == "no_contact" for i in np.flatnonzero(present & ~touched))  # ... each rejected so
+    # strokes: runs of contact numbered from 0, a new one after each lift (reference.csv's runs of rows)
+    expected, stroke, before = {}, -1, False
+    for seq in scan.frame_seq:
+        stroke += int(touched[seq] and not before)
+        if touched[seq]:
+            expected[int(seq)] = stroke
+        before = bool(touched[seq])
+    assert {r.seq: r.stroke for r in rows if r.stroke is not None} == expected
+    assert stroke == 2
+    report = evaluate_path(recon.estimate_mm, placed, reference[:, :2])
+    assert report.registered_fraction == 1.0 and report.n_registered_without_reference == 0
+    assert TOL.clinical_strokes_rmse_mm[0] <= report.rmse_mm <= TOL.clinical_strokes_rmse_mm[1], report.rmse_mm
