@@ -179,7 +179,7 @@ def add_commands(command: Callable[[str, str], argparse.ArgumentParser]) -> None
     p.add_argument(
         "--scenario",
         default="short",
-        choices=["raster", "revisit", "hard", "short", "calib", "exam"],
+        choices=["raster", "revisit", "hard", "short", "calib", "exam", "strokes"],
         help="kind of scan (exam: a minutes-long examination, passes over one area)",
     )
     p.add_argument("--seed", type=int, default=1, help="random seed (same seed, same scan)")

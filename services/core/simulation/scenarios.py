@@ -29,12 +29,22 @@ from services.core.simulation.renderer import (
     motion_blur_kernel,
     render_scene,
 )
+from services.core.simulation.strokes import (
+    air_frame,
+    clock_skew_s,
+    dropped_frames,
+    stroke_length_mm,
+    stroked_motion,
+)
 from services.core.simulation.variants import ImagingVariant, scenario_imaging
 from services.core.simulation.vein_texture import make_photo_world, make_world
 
 SCENARIOS = ("raster", "revisit", "hard", "short", "calib")
 LONG_SCENARIOS = ("exam",)  # minutes long (2400 frames by default): for the long-examination bench, not test loops
-ALL_SCENARIOS = SCENARIOS + LONG_SCENARIOS
+# scanned as a clinician scans (services.core.simulation.strokes): lifts, frames in the air, an island, dropped
+# frames, a skewed force clock
+STROKE_SCENARIOS = ("strokes",)
+ALL_SCENARIOS = SCENARIOS + LONG_SCENARIOS + STROKE_SCENARIOS
 
 NOMINAL_E_KPA = 16.1
 NOMINAL_KAPPA_N_PER_MM = 18.0
@@ -48,6 +58,7 @@ HAND_TILT_DEG = MappingProxyType(
         "hard": 15.0,
         "short": 7.0,
         "exam": 10.0,
+        "strokes": 10.0,
     }
 )  # as the shared scans' README
 FORCE_RATE_HZ = 100.0
@@ -185,7 +196,7 @@ def simulate(
     )
     calib = nominal_calibration()
     e_true, kappa_true = draw_true_constants(rng_const)
-    spec = scenario_motion_spec(scenario, frames) if scenario != "calib" else None
+    spec = scenario_motion_spec(scenario, frames) if scenario not in ("calib", *STROKE_SCENARIOS) else None
     if tissue is not None:
         kappa_true = draw_hand_kappa(rng_const)
         spec = spec and dataclasses.replace(spec, max_tilt_deg=HAND_TILT_DEG[scenario])
@@ -193,9 +204,14 @@ def simulate(
     law = draw_tissue_law(rng_const, tissue or "linear", true_calib.compliance_per_n)
     sep = calib.sensor_separation_mm
 
+    in_air: np.ndarray | None = None
     if scenario == "calib":
         motion = calibration_motion(rng_path, kappa_true, sep)
+    elif scenario in STROKE_SCENARIOS:
+        stroked = stroked_motion(rng_path, kappa_true, sep, HAND_TILT_DEG[scenario] if tissue is not None else 0.3)
+        motion, in_air = stroked.motion, stroked.in_air
     else:
+        assert spec is not None
         motion = free_hand_motion(rng_path, spec, kappa_true, sep)
     n = len(motion)
 
@@ -211,6 +227,8 @@ def simulate(
     fz, tx, ty = motion.load_at(motion.frame_t_s)
     blurred_flags = rng_img.random(n) < look.blur_fraction
     blurred_flags[0] = False
+    if in_air is not None:
+        blurred_flags &= ~in_air  # frames in the air are defocused instead (air_frame)
     blur_px = np.where(blurred_flags, rng_img.integers(look.blur_length_px[0], look.blur_length_px[1] + 1, n), 0)
     blurred_flags &= blur_px > 1  # a 1-px "streak" is no blur
     angles = motion_angles_deg(motion) + rng_img.normal(0.0, 10.0, n)  # the hand's jitter about the motion
@@ -221,6 +239,8 @@ def simulate(
         frame_imaging = Imaging(noise_dn=look.noise_dn, gain=float(gains[k]), blur_kernel=kernel, dtype=look.dtype)
         state = LoadState(float(fz[k]), float(tx[k]), float(ty[k]))
         scene = render_scene(world, geometry, motion.centre_mm[k], float(motion.yaw_deg[k]), state, true_calib, law)
+        if in_air is not None and in_air[k]:
+            scene = air_frame(scene, rng_img)
         frames.append(apply_imaging(scene, geometry, frame_imaging, rng_img))
 
     t_first, t_last = float(motion.frame_t_s[0]), float(motion.frame_t_s[-1])
@@ -232,8 +252,15 @@ def simulate(
     _, itx, ity = motion.load_at(imu_t)
     imu_deg = np.rad2deg(np.stack([itx, ity], axis=1)) + rng_stream.normal(0.0, IMU_NOISE_DEG, (len(imu_t), 2))
     with_imu = imu or scenario == "calib"
+    skew = clock_skew_s(rng_stream) if in_air is not None else 0.0  # the force logger's clock, off the camera's
+    dropped = dropped_frames(rng_stream, n) if in_air is not None else np.zeros(n, bool)
 
     xy, yaw = frame_poses(motion)
+    angles_deg = np.stack([yaw, np.rad2deg(tx), np.rad2deg(ty)], axis=1)
+    if in_air is not None:  # a tracker's reference has no row for a frame taken in the air
+        xy[in_air] = np.nan
+        angles_deg[in_air] = np.nan
+    kept = np.flatnonzero(~dropped)
     truth = {
         "scenario": scenario,
         "seed": int(seed),
@@ -252,17 +279,24 @@ def simulate(
         "tissue": law.to_dict(),
         "texture": "procedural" if texture is None else "photograph",
     }
+    if in_air is not None:
+        truth.update(
+            in_air=[int(i) for i in np.flatnonzero(in_air)],
+            dropped=[int(i) for i in np.flatnonzero(dropped)],
+            clock_skew_s=skew,
+            path_length_mm=stroke_length_mm(motion.centre_mm, in_air),
+        )
     return Scan(
         calibration=calib,
-        frame_seq=np.arange(n, dtype=np.int64),
-        frame_t_s=np.asarray(motion.frame_t_s, dtype=np.float64),
-        force_t_s=force_t,
+        frame_seq=kept.astype(np.int64),
+        frame_t_s=np.asarray(motion.frame_t_s, dtype=np.float64)[kept],
+        force_t_s=force_t + skew,
         forces_n=forces,
-        frame_loader=in_memory_loader(frames),
+        frame_loader=in_memory_loader([frames[k] for k in kept]),
         mask=geometry.mask.copy(),
         imu_t_s=imu_t if with_imu else None,
         imu_tilt_deg=imu_deg if with_imu else None,
-        reference_mm=xy.copy(),
-        reference_angles_deg=np.stack([yaw, np.rad2deg(tx), np.rad2deg(ty)], axis=1),
+        reference_mm=xy[kept].copy(),
+        reference_angles_deg=angles_deg[kept],
         truth=truth,
     )
