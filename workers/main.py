@@ -34,7 +34,7 @@ import redis
 
 from services.core.inputs.image_header import DEFAULT_MAX_FRAME_SIDE
 from services.decoder_limits import set_decoder_limits
-from services.jobs import dead_letters, delayed, queue, worker_load
+from services.jobs import consumer, dead_letters, delayed, queue, worker_load
 from services.jobs import reprocess as jobs
 from services.jobs.redis_backend import close, connect
 from services.settings import Settings
@@ -51,20 +51,9 @@ from workers.stages.send import handle_send
 log = logging.getLogger("veinmosaic.worker")
 
 
-def _text(fields: dict[Any, Any]) -> dict[str, str]:
-    return {
-        (k.decode() if isinstance(k, bytes) else str(k)): (v.decode() if isinstance(v, bytes) else str(v))
-        for k, v in fields.items()
-    }
-
-
 # A kick declined by a worker busier than another (Worker.busier_than_another) comes back after this long, for
 # the less loaded worker to take; short, so a new session waits a fraction of a second at most once or twice.
 DECLINE_DELAY_S = 0.2
-
-
-def _id(entry_id: Any) -> str:
-    return entry_id.decode() if isinstance(entry_id, bytes) else str(entry_id)
 
 
 class Worker:
@@ -151,14 +140,10 @@ class Worker:
         self.publish_load()
         if ctx.stop.is_set():
             return
-        streams = {self.frames: ">", self.kicks: ">"}
-        if not self.register.held:
-            streams[self.jobs] = ">"
+        streams = [self.frames, self.kicks] if self.register.held else [self.frames, self.kicks, self.jobs]
         block = cfg.held_block_ms if self.register.held else cfg.block_ms
-        resp = ctx.r.xreadgroup(queue.GROUP, cfg.consumer, streams, count=1, block=block)
-        for stream, entries in resp or []:
-            for entry_id, fields in entries:
-                self.handle(_id(stream), _id(entry_id), _text(fields or {}), delivered=1)
+        for stream, entry_id, fields in consumer.read_new(ctx.r, cfg.consumer, streams, block):
+            self.handle(stream, entry_id, fields, delivered=1)
 
     def autoclaim(self) -> None:
         """Take over entries other consumers left pending longer than claim_idle_ms, and handle them."""
@@ -166,28 +151,23 @@ class Worker:
         for stream in (self.frames, self.kicks, self.jobs):
             start = "0-0"
             for _ in range(10):  # at most 10 pages per round
-                res = ctx.r.xautoclaim(stream, queue.GROUP, cfg.consumer, cfg.claim_idle_ms, start_id=start, count=10)
-                start = _id(res[0])
-                for entry_id, fields in res[1]:
-                    eid = _id(entry_id)
-                    if not fields:  # deleted from the stream while pending
-                        ctx.r.xack(stream, queue.GROUP, eid)
+                start, claimed = consumer.claim_idle(ctx.r, stream, cfg.consumer, cfg.claim_idle_ms, start)
+                for eid, fields in claimed:
+                    if fields is None:  # deleted from the stream while pending
+                        consumer.ack(ctx.r, stream, eid)
                         continue
-                    pend = ctx.r.xpending_range(stream, queue.GROUP, min=eid, max=eid, count=1)
-                    delivered = int(pend[0]["times_delivered"]) if pend else 1
+                    delivered = consumer.times_delivered(ctx.r, stream, eid) or 1
                     log.info("claimed an entry idle > %d ms (delivery %d)", cfg.claim_idle_ms, delivered)
-                    self.handle(stream, eid, _text(fields), delivered=delivered)
+                    self.handle(stream, eid, fields, delivered=delivered)
                 if start == "0-0":
                     break
 
     def retry_stranded(self) -> None:
         """Handle again the entries whose handling a Redis outage interrupted (still pending to this consumer)."""
         for (stream, entry_id), fields in list(self.stranded.items()):
-            pend = self.ctx.r.xpending_range(
-                stream, queue.GROUP, min=entry_id, max=entry_id, count=1, consumername=self.ctx.config.consumer
-            )
+            pending = consumer.times_delivered(self.ctx.r, stream, entry_id, self.ctx.config.consumer)
             del self.stranded[(stream, entry_id)]
-            if pend:  # still ours: handle it as the same delivery (the outage is not the job's failure)
+            if pending is not None:  # still ours: handle it as the same delivery (the outage is not the job's failure)
                 self.handle(stream, entry_id, fields, delivered=1)
 
     # ----- dispatch --------------------------------------------------------------------------------------------
@@ -303,7 +283,7 @@ class Worker:
                 return None
 
             def heartbeat() -> None:  # keep the entry from looking abandoned while the job runs
-                ctx.r.xclaim(stream, queue.GROUP, ctx.config.consumer, 0, [entry_id], justid=True)
+                consumer.keep_claimed(ctx.r, stream, ctx.config.consumer, entry_id)
                 self.beat()
 
             if fields.get("kind") == "send":
