@@ -32,9 +32,23 @@ def claim_idle(
     r: redis.Redis, stream: str, consumer: str, idle_ms: int, start: str = "0-0", count: int = 10
 ) -> tuple[str, list[tuple[str, dict[str, str] | None]]]:
     """Return (the next start id, "0-0" at the end; the entries taken over) after moving to `consumer` the entries
-    of `stream` pending longer than idle_ms (XAUTOCLAIM); an entry deleted while pending comes with None fields."""
+    of `stream` pending longer than idle_ms (XAUTOCLAIM); an entry deleted while pending comes with None fields.
+
+    Redis 6.2 (the embedded server) answers such an entry as nil, without its id, and keeps it pending: its id is
+    then found among the consumer's pending entries that are gone from the stream (Redis 7 drops them itself).
+    """
     res = r.xautoclaim(stream, GROUP, consumer, idle_ms, start_id=start, count=count)
-    return _text(res[0]), [(_text(eid), _fields(fields) if fields else None) for eid, fields in res[1]]
+    claimed = [(_text(eid), _fields(fields) if fields else None) for eid, fields in res[1] if eid is not None]
+    if any(eid is None for eid, _ in res[1]):
+        claimed += [(eid, None) for eid in _gone_but_pending(r, stream, consumer) if eid not in dict(claimed)]
+    return _text(res[0]), claimed
+
+
+def _gone_but_pending(r: redis.Redis, stream: str, consumer: str) -> list[str]:
+    """Return the ids pending to `consumer` whose entries are no longer in the stream (at most 100)."""
+    pending = r.xpending_range(stream, GROUP, min="-", max="+", count=100, consumername=consumer)
+    ids = [_text(p["message_id"]) for p in pending]
+    return [eid for eid in ids if not r.xrange(stream, min=eid, max=eid, count=1)]
 
 
 def ack(r: redis.Redis, stream: str, entry_id: str) -> None:
