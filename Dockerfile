@@ -7,13 +7,13 @@ RUN npm ci --no-audit --no-fund
 
 FROM python:3.11-slim
 WORKDIR /build
-COPY pyproject.toml setup.py MANIFEST.in README.md package.json package-lock.json ./
+COPY pyproject.toml constraints.txt setup.py MANIFEST.in README.md package.json package-lock.json ./
 COPY services services
 COPY api api
 COPY cli cli
 COPY workers workers
 COPY --from=viewer /app/node_modules/openseadragon node_modules/openseadragon
-RUN pip install --no-cache-dir . && rm -rf /build
+RUN pip install --no-cache-dir -c constraints.txt . && rm -rf /build
 WORKDIR /app
 ENV VEINMOSAIC_DATA_DIR=/data
 EXPOSE 8000

@@ -31,7 +31,7 @@ from api.routes.viewer import mount_static
 from services.decoder_limits import set_decoder_limits
 from services.jobs import queue
 from services.jobs.redis_backend import close, connect
-from services.log_format import configure_json_logging, request_id_var
+from services.log_format import configure_json_logging, failure_reason, request_id_var
 from services.settings import Settings, get_settings
 from services.store.audit import AuditLog
 from services.store.secrets import token_secret_bytes
@@ -101,7 +101,8 @@ class RequestContextMiddleware:
                 response = escaped_error_response(exc)
                 await response(scope, receive, send_with_id)
         except Exception as exc:
-            log.exception("unhandled error")
+            # frames and type names only (services.log_format.JsonFormatter): a library's message may quote a patient
+            log.error("unhandled error: %s", failure_reason(exc), exc_info=exc)
             if not state["started"]:
                 response = escaped_error_response(exc)
                 await response(scope, receive, send_with_id)

@@ -250,13 +250,19 @@ class BatchAccepted(Strict):
     status_url: str
 
 
+JOB_STATUS = "queued, running, done or failed"
+# `state` was a job's and a batch's name for what a session calls `status`: kept one release as an alias
+DEPRECATED_STATE = "Deprecated alias of `status` (the same value), removed in the next release; read `status`."
+
+
 class JobState(Strict):
-    """GET /v1/jobs/{id}: kind, state queued|running|done|failed, progress done/total (frames for a reprocess,
-    DICOM objects for a send), the results version; a send's attempts so far."""
+    """GET /v1/jobs/{id}: kind, status queued|running|done|failed (`state`: its deprecated alias), progress
+    done/total (frames for a reprocess, DICOM objects for a send), the results version; a send's attempts so far."""
 
     id: str
     kind: Literal["reprocess", "send"] = "reprocess"
-    state: str
+    status: str = Field(description=JOB_STATUS)
+    state: str = Field(description=DEPRECATED_STATE, deprecated=True)
     session: str
     version: int | None = None
     done: int = 0
@@ -270,10 +276,12 @@ class JobState(Strict):
 
 
 class BatchState(Strict):
-    """GET /v1/batches/{id}: the batch's jobs and an overall state (done when every job is done or failed)."""
+    """GET /v1/batches/{id}: the batch's jobs and an overall status (done when every job is done or failed), with
+    `state` its deprecated alias."""
 
     batch: str
-    state: str
+    status: str = Field(description=f"{JOB_STATUS}: done when every job is done or failed, failed if any failed")
+    state: str = Field(description=DEPRECATED_STATE, deprecated=True)
     jobs: list[JobState]
 
 

@@ -188,7 +188,7 @@ class VeinmosaicClient:
         deadline = time.monotonic() + timeout_s
         while True:
             job = self.request("GET", f"/v1/jobs/{job_id}").json()
-            if job.get("state") in ("done", "failed"):
+            if job.get("status", job.get("state")) in ("done", "failed"):  # `state`: a server before `status`
                 return job
             if time.monotonic() > deadline:
                 raise TimeoutError(f"job not finished after {timeout_s:.0f} s")

@@ -2,7 +2,8 @@
 # Set-up shared by scripts/demo.sh and scripts/test.sh: a virtual environment in .venv with the project
 # installed (editable, with test extras), and the viewer's OpenSeadragon from the npm registry. Each step says
 # what it does and shows pip's and npm's progress (a first install takes a few minutes); a second run with
-# nothing changed skips it all (a stamp of pyproject.toml, package.json and package-lock.json).
+# nothing changed skips it all (a stamp of pyproject.toml, constraints.txt, package.json and package-lock.json).
+# Python packages are installed at the versions pinned in constraints.txt (refreshed by scripts/lock.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -12,7 +13,7 @@ if [ ! -x .venv/bin/python ]; then
   step "creating the virtual environment .venv ($("$PY" --version))"
   "$PY" -m venv .venv
 fi
-stamp=.venv/.installed-$(cat pyproject.toml package.json package-lock.json | sha256sum | cut -c1-16)
+stamp=.venv/.installed-$(cat pyproject.toml constraints.txt package.json package-lock.json | sha256sum | cut -c1-16)
 if [ -f "$stamp" ]; then
   step "dependencies up to date (.venv, node_modules)"
   exit 0
@@ -20,8 +21,8 @@ fi
 start=$SECONDS
 step "1/3 upgrading pip"
 .venv/bin/python -m pip install --upgrade --progress-bar on pip 2>&1 | grep -v '^Requirement already satisfied' >&2 || true
-step "2/3 installing veinmosaic and its dependencies into .venv (numpy, OpenCV, FastAPI, ...: a few minutes the first time)"
-.venv/bin/python -m pip install --progress-bar on -e ".[test]" 2>&1 \
+step "2/3 installing veinmosaic and its dependencies into .venv (numpy, OpenCV, FastAPI, ...: a few minutes the first time; versions pinned in constraints.txt)"
+.venv/bin/python -m pip install --progress-bar on -c constraints.txt -e ".[test]" 2>&1 \
   | grep -E --line-buffered '^(Collecting|Downloading|Installing|Successfully|ERROR|error)|%' >&2 || true
 .venv/bin/python -c 'import api, cli, services, workers' || { step "the install failed (see above)"; exit 1; }
 if command -v npm >/dev/null 2>&1; then

@@ -57,6 +57,11 @@ class JsonFormatter(logging.Formatter):
             doc["exc"] = self.formatException(record.exc_info)
         return json.dumps(doc, default=str)
 
+    def formatException(self, ei: Any) -> str:  # noqa: N802 (logging.Formatter's name)
+        """Return the exception's frames and type names (exception_frames), never its message or its chain's."""
+        _, value, _ = ei
+        return exception_frames(value) if isinstance(value, BaseException) else "(no exception)"
+
 
 def make_log_handler(stream: TextIO | None = None) -> logging.Handler:
     """Return a handler writing JSON lines with request ids to `stream` (stderr by default)."""
@@ -107,6 +112,46 @@ def failure_reason(exc: BaseException) -> str:
     if _raised_in_own_code(exc):
         return f"{type(exc).__name__}: {exc}"
     return describe(exc)
+
+
+_CAUSE = "The above exception was the direct cause of the following exception:"
+_CONTEXT = "During handling of the above exception, another exception occurred:"
+
+
+def _chain(exc: BaseException) -> list[BaseException]:
+    """Return `exc` and the exceptions it was raised from or while handling, newest first (cycles cut)."""
+    chain: list[BaseException] = []
+    current: BaseException | None = exc
+    while current is not None and all(current is not e for e in chain):
+        chain.append(current)
+        if current.__cause__ is not None:
+            current = current.__cause__
+        elif current.__context__ is not None and not current.__suppress_context__:
+            current = current.__context__
+        else:
+            current = None
+    return chain
+
+
+def exception_frames(exc: BaseException) -> str:
+    """Return a traceback of `exc` and its chained exceptions as frames (file, line, function) and type names only.
+
+    What a log line carries of an exception: never a message (a library's may quote the patient value it choked
+    on), nor a chained exception's message, nor source lines; the errno name of an OSError is kept (describe).
+    """
+    blocks: list[str] = []
+    oldest_first = _chain(exc)[::-1]
+    for older, newer in zip(oldest_first, [*oldest_first[1:], None], strict=True):
+        lines = ["Traceback (most recent call last):"]
+        frames = traceback.extract_tb(older.__traceback__)
+        lines += [f'  File "{f.filename}", line {f.lineno}, in {f.name}' for f in frames]
+        kind = type(older)
+        name = kind.__qualname__ if kind.__module__ == "builtins" else f"{kind.__module__}.{kind.__qualname__}"
+        lines.append(name + describe(older).removeprefix(kind.__name__))
+        blocks.append("\n".join(lines))
+        if newer is not None:
+            blocks.append(_CAUSE if newer.__cause__ is older else _CONTEXT)
+    return "\n\n".join(blocks)
 
 
 def failure_frames(exc: BaseException) -> str:

@@ -18,7 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 FAKE_PYTHON = """#!/bin/sh
 # stands for the venv's python: `-m pip install ...` prints what pip prints, other calls succeed quietly
 case "$*" in
-  *"pip install"*) echo "Collecting numpy"; echo "  Downloading numpy-2.0.whl (19.5 MB)";
+  *"pip install"*) echo "$*" >> "$(dirname "$0")/pip-calls";
+                   echo "Collecting numpy"; echo "  Downloading numpy-2.0.whl (19.5 MB)";
                    echo "     ---------------------------------------- 19.5/19.5 MB 50% eta 0:00:01";
                    echo "Installing collected packages: numpy"; echo "Successfully installed numpy-2.0";;
 esac
@@ -46,7 +47,7 @@ def test_setup_shows_each_step_and_pip_progress(tmp_path: Path) -> None:
     project = tmp_path / "project"
     (project / "scripts").mkdir(parents=True)
     shutil.copy(ROOT / "scripts" / "setup.sh", project / "scripts" / "setup.sh")
-    for name in ("pyproject.toml", "package.json", "package-lock.json"):
+    for name in ("pyproject.toml", "constraints.txt", "package.json", "package-lock.json"):
         shutil.copy(ROOT / name, project / name)
     _executable(project / ".venv" / "bin" / "python", FAKE_PYTHON)
     _executable(tmp_path / "bin" / "npm", FAKE_NPM)
@@ -66,6 +67,26 @@ def test_setup_shows_each_step_and_pip_progress(tmp_path: Path) -> None:
     again = _run_setup(project, tmp_path / "bin")  # nothing changed: says so instead of nothing at all
     assert again.returncode == 0 and "[setup] dependencies up to date" in again.stderr, again.stderr
     assert "Collecting" not in again.stderr
+
+
+def test_setup_installs_the_pinned_versions_and_reinstalls_when_the_pins_change(tmp_path: Path) -> None:
+    project = tmp_path / "project"
+    (project / "scripts").mkdir(parents=True)
+    shutil.copy(ROOT / "scripts" / "setup.sh", project / "scripts" / "setup.sh")
+    for name in ("pyproject.toml", "constraints.txt", "package.json", "package-lock.json"):
+        shutil.copy(ROOT / name, project / name)
+    _executable(project / ".venv" / "bin" / "python", FAKE_PYTHON)
+    _executable(tmp_path / "bin" / "npm", FAKE_NPM)
+    calls = project / ".venv" / "bin" / "pip-calls"
+
+    assert _run_setup(project, tmp_path / "bin").returncode == 0
+    installs = [c for c in calls.read_text().splitlines() if "-e" in c.split()]
+    assert len(installs) == 1 and "-c constraints.txt" in installs[0], installs
+    with (project / "constraints.txt").open("a") as f:
+        f.write("numpy==0.0.1\n")  # a changed pin: the stamp no longer matches, pip runs again
+    rerun = _run_setup(project, tmp_path / "bin")
+    assert rerun.returncode == 0 and "dependencies up to date" not in rerun.stderr, rerun.stderr
+    assert len([c for c in calls.read_text().splitlines() if "-e" in c.split()]) == 2
 
 
 def test_readme_names_every_test_skipped_without_redis_url_and_why() -> None:

@@ -23,20 +23,13 @@ import logging
 import time
 from typing import Any
 
-from services.jobs import queue
+from services.jobs import queue, reconcile_turn
 from services.jobs import reprocess as jobs
 from services.store.results_store import LIVE_VERSION
 from services.store.storage import SessionNotFoundError
 from workers.config import Context
 
 log = logging.getLogger("veinmosaic.worker")
-
-LOCK_TTL_MS = 60_000
-
-_RELEASE = """
-if redis.call('GET', KEYS[1]) == ARGV[1] then return redis.call('DEL', KEYS[1]) end
-return 0
-"""
 
 
 def _text(v: Any) -> str:
@@ -176,16 +169,16 @@ class Reconciler:
         if not self.urgent:
             if cfg.reconcile_every_s <= 0:
                 return None
-            if not ctx.r.set(queue.reconcile_last_key(ctx.prefix), cfg.consumer, nx=True, px=period_ms):
+            if not reconcile_turn.claim_periodic_run(ctx.r, ctx.prefix, cfg.consumer, period_ms):
                 return None
         elif cfg.reconcile_every_s > 0:
-            ctx.r.set(queue.reconcile_last_key(ctx.prefix), cfg.consumer, px=period_ms)
-        if not ctx.r.set(queue.reconcile_lock_key(ctx.prefix), cfg.consumer, nx=True, px=LOCK_TTL_MS):
+            reconcile_turn.mark_run(ctx.r, ctx.prefix, cfg.consumer, period_ms)
+        if not reconcile_turn.acquire_lock(ctx.r, ctx.prefix, cfg.consumer):
             self.urgent = False  # another worker is reconciling right now
             return None
         try:
             stats = reconcile(ctx)
         finally:
-            ctx.r.eval(_RELEASE, 1, queue.reconcile_lock_key(ctx.prefix), cfg.consumer)
+            reconcile_turn.release_lock(ctx.r, ctx.prefix, cfg.consumer)
         self.urgent = False
         return stats

@@ -127,4 +127,5 @@ def get_batch(batch_id: str, r: RedisClient, settings: AppSettings, principal: R
     if not raw or not _may_see(principal, raw.get("owner", "")):
         raise NotFound("no such batch")
     states = [JobState(**jobs.job_view(h, job_id)) for job_id, h in found]
-    return BatchState(batch=batch_id, state=jobs.batch_state({j.state for j in states}), jobs=states)
+    status = jobs.batch_state({j.status for j in states})
+    return BatchState(batch=batch_id, status=status, state=status, jobs=states)

@@ -175,8 +175,9 @@ def read_batch(r: redis.Redis, prefix: str, batch_id: str) -> tuple[dict[str, st
 
 
 def job_view(raw: dict[str, str], job_id: str) -> dict[str, Any]:
-    """Return the public state of a job from its hash: id, state, session, version, done, total, progress,
-    error, created, batch, options (a damaged field reads as its empty value)."""
+    """Return the public state of a job from its hash: id, kind, status (and state, its deprecated alias in the
+    API), session, version, done, total, progress, error, created, batch, options, attempts (a damaged field reads
+    as its empty value)."""
 
     def as_int(name: str) -> int:
         try:
@@ -193,6 +194,7 @@ def job_view(raw: dict[str, str], job_id: str) -> dict[str, Any]:
     return {
         "id": job_id,
         "kind": raw.get("kind") or "reprocess",
+        "status": raw.get("state") or "queued",
         "state": raw.get("state") or "queued",
         "session": raw.get("session", ""),
         "version": as_int("version") or None,

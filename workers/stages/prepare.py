@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -21,17 +20,10 @@ from services.jobs import queue
 from services.store.session_version import SessionVersion
 from services.store.storage import SessionMeta, SessionNotFoundError
 from workers.config import Context
+from workers.retry import Retry
 from workers.scan_from_store import stored_forces
 
 log = logging.getLogger("veinmosaic.worker")
-
-
-@dataclass(frozen=True)
-class Retry:
-    """The job cannot run yet: put it back after delay_s."""
-
-    delay_s: float
-    reason: str
 
 
 DONE = "done"

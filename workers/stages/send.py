@@ -27,7 +27,7 @@ from services.store.session_export import finished_version, session_objects
 from services.store.storage import SessionNotFoundError
 from workers.config import Context
 from workers.publisher import Publisher
-from workers.stages.prepare import Retry
+from workers.retry import Retry
 
 log = logging.getLogger("veinmosaic.worker")
 

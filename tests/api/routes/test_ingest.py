@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-from api_helpers import INGEST, calibration_doc, frame_bytes, meta_json, upload
+from api_helpers import INGEST, calibration_doc, frame_bytes, upload
 from fastapi.testclient import TestClient
 
 from services.jobs import queue
@@ -178,5 +178,16 @@ def test_too_many_force_samples_413(make_client: Callable[..., TestClient]) -> N
     assert resp.status_code == 413
 
 
-def test_meta_json_helper_is_valid() -> None:
-    assert meta_json(3, 0.5) == '{"seq": 3, "t_s": 0.5}'
+def test_meta_is_read_as_json_whatever_its_field_order_and_spacing(client: TestClient, session_id: str) -> None:
+    meta = '{\n  "t_s": 2 ,  "seq": 4\n}'  # t_s first, an integer time, newlines and spaces
+    resp = upload(client, session_id, 4, frame_bytes(4), meta=meta)
+    assert resp.status_code == 202 and resp.json() == {"seq": 4, "status": "accepted"}
+    rec = client.app.state.store.get_frame(session_id, 4)  # type: ignore[attr-defined]
+    assert rec is not None and rec.seq == 4 and rec.t_s == 2.0
+
+
+def test_an_upload_without_its_meta_part_is_422_naming_meta(client: TestClient, session_id: str) -> None:
+    files = {"image": ("f.png", frame_bytes(0), "application/octet-stream")}
+    resp = client.post(f"/v1/sessions/{session_id}/frames", files=files, headers=INGEST)
+    assert resp.status_code == 422 and "meta" in resp.text, resp.text
+    assert _frame_files(client, session_id) == []  # nothing stored

@@ -51,14 +51,14 @@ def test_reprocess_enqueues_a_job(client: TestClient) -> None:
     assert entry["kind"] == "reprocess" and entry["job"] == job and entry["session"] == sid
     assert json.loads(entry["options"]) == options
     state = client.get(f"/v1/jobs/{job}", headers=INGEST).json()
-    assert state["state"] == "queued" and state["session"] == sid and state["progress"] is None
+    assert state["status"] == "queued" and state["session"] == sid and state["progress"] is None
     assert state["options"]["method"] == "paper" and state["version"] is None
 
     # a worker reports progress in the job hash
     r, prefix = _r_prefix(client)
     r.hset(queue.job_key(job, prefix), mapping={"state": "running", "done": 5, "total": 20, "version": 2})
     state = client.get(f"/v1/jobs/{job}", headers=INGEST).json()
-    assert (state["state"], state["progress"], state["version"]) == ("running", 0.25, 2)
+    assert (state["status"], state["progress"], state["version"]) == ("running", 0.25, 2)
 
 
 def test_default_options_are_best(client: TestClient) -> None:
@@ -135,7 +135,7 @@ def test_batch_reprocess(client: TestClient) -> None:
     assert len(batch["jobs"]) == 2  # duplicates are reprocessed once
     assert [e["session"] for e in jobs_on_stream(client)] == [a1, a2]
     state = client.get(batch["status_url"], headers=INGEST).json()
-    assert state["state"] == "queued" and [j["session"] for j in state["jobs"]] == [a1, a2]
+    assert state["status"] == "queued" and [j["session"] for j in state["jobs"]] == [a1, a2]
     assert client.get(batch["status_url"], headers=auth("ingest-key-b")).status_code == 404
     assert client.get(f"/v1/jobs/{batch['jobs'][0]}", headers=INGEST).json()["batch"] == batch["batch"]
 
@@ -154,7 +154,7 @@ def test_batch_reprocess(client: TestClient) -> None:
     for job in batch["jobs"]:
         r.hset(queue.job_key(job, prefix), mapping={"state": "done", "done": 1, "total": 1})
     done = client.get(batch["status_url"], headers=INGEST).json()
-    assert done["state"] == "done" and all(j["progress"] == 1.0 for j in done["jobs"])
+    assert done["status"] == "done" and all(j["progress"] == 1.0 for j in done["jobs"])
 
 
 def test_a_full_job_queue_is_503_for_reprocess_and_send_and_queues_nothing(make_client: Any) -> None:
@@ -168,3 +168,23 @@ def test_a_full_job_queue_is_503_for_reprocess_and_send_and_queues_nothing(make_
         assert _error(resp)["code"] == "queue_full"
     assert len(jobs_on_stream(client)) == 1
     assert len(client.app.state.store.jobs.open_jobs()) == 1  # type: ignore[attr-defined]
+
+
+def test_a_job_says_status_like_a_session_and_state_only_as_its_deprecated_alias(client: TestClient) -> None:
+    sid = finished_session(client)
+    job = client.post(f"/v1/sessions/{sid}/reprocess", json={}, headers=INGEST).json()["job"]
+    assert client.get(f"/v1/sessions/{sid}", headers=INGEST).json()["status"]  # a session's word
+    queued = client.get(f"/v1/jobs/{job}", headers=INGEST).json()
+    assert queued["status"] == queued["state"] == "queued"
+    r, prefix = _r_prefix(client)
+    r.hset(queue.job_key(job, prefix), mapping={"state": "running", "done": 1, "total": 4})
+    running = client.get(f"/v1/jobs/{job}", headers=INGEST).json()
+    assert running["status"] == running["state"] == "running"
+    batch = client.post("/v1/reprocess", json={"sessions": [sid]}, headers=INGEST).json()
+    state = client.get(batch["status_url"], headers=INGEST).json()
+    assert state["status"] == state["state"] == "queued" and state["jobs"][0]["status"] == "queued"
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    for name in ("JobState", "BatchState"):
+        props = schemas[name]["properties"]
+        assert "status" in schemas[name]["required"] and not props["status"].get("deprecated")
+        assert props["state"]["deprecated"] is True and "alias of `status`" in props["state"]["description"]

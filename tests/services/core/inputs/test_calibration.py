@@ -149,9 +149,26 @@ def test_non_object_document_is_rejected(doc: Any) -> None:
         parse_calibration(doc)
 
 
-def test_calibration_error_is_a_value_error() -> None:
-    # callers (API, scan import) may catch ValueError for all bad input
-    assert issubclass(CalibrationError, ValueError)
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("camera_matrix", "610 0 330"),  # a string where rows are expected
+        ("camera_matrix", [[610.0, 0, 330.2], [0, 590.0]]),  # ragged
+        ("camera_matrix", [[610.0, 0, 330.2], [0, 590.0, "x"], [0, 0, 1]]),  # a non-number inside
+        ("image_size", {"w": 640, "h": 480}),
+        ("image_size", [640]),
+        ("dist_coeffs", [[0.1, 0.2]]),  # nested
+        ("px_per_mm", [8.0]),
+        ("sensor_separation_mm", "53"),
+    ],
+)
+def test_every_malformed_field_is_a_calibration_error_naming_it(field: str, value: Any) -> None:
+    # what callers rely on (the API's 422 invalid_calibration, the scan import's one-line error): a wrong shape or
+    # type anywhere is a CalibrationError naming the field, never a TypeError, IndexError or KeyError from inside
+    doc = spec_example()
+    doc[field] = value
+    with pytest.raises(CalibrationError, match=field):
+        parse_calibration(doc)
 
 
 @pytest.mark.parametrize("n", [4, 5, 8, 12, 14])
