@@ -73,7 +73,7 @@ def test_mosaic_json_etag_and_304(ready: tuple[TestClient, str, dict], bundle: B
     for key in ("px_per_mm", "origin_px", "width", "height", "version", "revisions", "dzi", "extent_mm"):
         assert key in doc, key
     assert doc["results_version"] == 1 and doc["px_per_mm"] == 8.0
-    assert resp.headers["Cache-Control"] == "no-cache"
+    assert resp.headers["Cache-Control"] == "private, no-store"  # patient data: kept by no cache
     etag = resp.headers["ETag"]
     assert etag == '"1.1"'
 
@@ -135,7 +135,7 @@ def test_tile_with_data_and_cache_headers(ready: tuple[TestClient, str, dict], b
     url = f"/v1/sessions/{sid}/mosaic_files/{level}/{rest}.png"
     resp = client.get(f"{url}?v=1&rev={rev}", headers=INGEST)
     assert resp.status_code == 200 and resp.headers["content-type"] == "image/png"
-    assert resp.headers["Cache-Control"] == "private, max-age=31536000, immutable"
+    assert resp.headers["Cache-Control"] == "private, max-age=300"  # the browser's only, and not for a year
     col, row = (int(x) for x in rest.split("_"))
     assert resp.content == bundle.tiles[("vein", int(level), col, row)]
     img = _decode(resp.content)
@@ -143,9 +143,9 @@ def test_tile_with_data_and_cache_headers(ready: tuple[TestClient, str, dict], b
     assert (img[..., -1] > 0).any()
 
     plain = client.get(url, headers=INGEST)
-    assert plain.headers["Cache-Control"] == "no-cache" and plain.content == resp.content
-    # a revision newer than the one published is not cached for ever (the tile may not be written yet)
-    assert client.get(f"{url}?v=1&rev={rev + 5}", headers=INGEST).headers["Cache-Control"] == "no-cache"
+    assert plain.headers["Cache-Control"] == "private, no-store" and plain.content == resp.content
+    # a revision newer than the one published is not kept (the tile may not be written yet)
+    assert client.get(f"{url}?v=1&rev={rev + 5}", headers=INGEST).headers["Cache-Control"] == "private, no-store"
     force = client.get(f"{url}?layer=force&v=1&rev={rev}", headers=INGEST)
     assert force.content == bundle.tiles[("force", int(level), col, row)]
 

@@ -78,9 +78,9 @@ def test_an_unknown_destination_is_422_naming_none_of_the_configured_ones_and_qu
     assert _jobs_on_stream(pacs_client) == []
 
 
-def test_without_destinations_configured_the_answer_says_so(client: TestClient) -> None:
+def test_without_destinations_configured_a_send_is_refused_as_any_unknown_destination(client: TestClient) -> None:
     resp = _send(client, _session(client), "web")
-    assert resp.status_code == 422 and "none are configured" in resp.json()["error"]["message"]
+    assert resp.status_code == 422 and resp.json()["error"]["code"] == "unknown_destination"
 
 
 def test_a_failed_session_has_nothing_to_send(pacs_client: TestClient) -> None:
