@@ -6,11 +6,15 @@
     knob at a time away from it — vessel contrast 2-10 % (faint), 3-15 %, 10-30 %; noise 1 and 4 DN; no blur
     and heavy blur; no gain drift and a strong one; 16-bit frames — over several seeds. Rows marked `sim`.
 
-Every (scan, method) prints: registered %, RMSE mm (over the registered frames only: read it with the
-registered %), final drift mm, error ratio %, s/frame (wall time of the whole offline pipeline), and the worse
+The `strokes` scenario is scanned as a clinician scans (services/core/simulation/strokes.py): lifts between rows,
+frames taken in the air, an island, dropped frames, a skewed force clock; the shared clinical_veins_24 likewise.
+
+Every (scan, method) prints: registered % (of the frames with a reference: those on the skin), RMSE mm (over the
+registered frames only: read it with the registered %), final drift mm, error ratio %, s/frame (wall time of the whole offline pipeline), and the worse
 axis's tilt RMS error in degrees where the reference has tilts (the shared scans, the tissue-* cells), and where
 the error lies (evaluation.GlobalError): the path's scale % (+ too large) and turn deg about frame 0, and the RMSE
-left after that similarity (the path's shape).
+left after that similarity (the path's shape), and `air placed`: frames placed that the reference has no row for
+(taken in the air: none should be).
 Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe: a patient as on the shared scans (a hand's tilt,
 a tissue law of that shape with x/y anisotropy), not an imaging look.
 
@@ -75,7 +79,7 @@ LOOKS: dict[str, Callable[[ImagingVariant], ImagingVariant]] = {
 TISSUE_CELLS = {f"tissue-{law}": law for law in TISSUE_LAWS}
 QUICK_LOOKS = ("default", "faint", "noise4", "heavy-blur", "16bit", *TISSUE_CELLS)
 QUICK_SCENARIOS = ("short",)
-FULL_SCENARIOS = ("raster", "revisit", "hard")
+FULL_SCENARIOS = ("raster", "revisit", "hard", "strokes")  # strokes: lifts, frames in the air, an island, drops
 
 
 @dataclass(frozen=True)
@@ -151,6 +155,7 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
         error_ratio_pct=report.error_ratio_pct,
         path_length_mm=report.path_length_mm,
         s_per_frame=recon.seconds / len(scan),
+        air_placed=report.n_registered_without_reference,  # frames placed that the reference says were in the air
     )
     if report.global_error is not None:  # where the error lies: the path's scale and turn, and its shape
         row.update(
@@ -167,7 +172,7 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
 HEADER = (
     f"{'source':<6} | {'scan / cell':<28} | {'method':<10} | {'registered %':>12} | {'RMSE mm':>8} |"
     f" {'final drift mm':>14} | {'error ratio %':>13} | {'s/frame':>7} | {'tilt RMS deg':>12} |"
-    f" {'scale %':>7} | {'turn deg':>8} | {'after sim. mm':>13}"
+    f" {'scale %':>7} | {'turn deg':>8} | {'after sim. mm':>13} | {'air placed':>10}"
 )
 
 
@@ -188,7 +193,7 @@ def table_line(row: dict[str, Any]) -> str:
         f" {fmt(row['final_drift_mm'], '14.3f')} | {fmt(row['error_ratio_pct'], '13.4f')} |"
         f" {fmt(row['s_per_frame'], '7.3f')} | {fmt(row.get('tilt_rmse_deg'), '12.2f')} |"
         f" {fmt(row.get('scale_pct'), '+7.2f')} | {fmt(row.get('turn_deg'), '+8.3f')} |"
-        f" {fmt(row.get('after_similarity_mm'), '13.3f')}"
+        f" {fmt(row.get('after_similarity_mm'), '13.3f')} | {fmt(row.get('air_placed'), '10d')}"
     )
 
 

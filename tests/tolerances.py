@@ -43,6 +43,11 @@ class Tolerances:
     # landing placed a vein (~1 mm) off; >= 0.05 mm flags a suspiciously perfect answer on frames dragged 0.1-0.8 mm.
     clinical_strokes_rmse_mm: tuple[float, float] = (0.05, 0.9)
 
+    # `best` on the simulated scan in strokes (seed 1, linear law; no skin drag): measured 0.235 mm over 313 frames on
+    # the skin (issue 30's target for scans with lifts and an island: <= 0.3 mm, which the upper bound is); >= 0.05
+    # mm flags a suspiciously perfect answer (the continuous simulated raster is 0.1-0.2 mm).
+    sim_strokes_rmse_mm: tuple[float, float] = (0.05, 0.3)
+
     # `best` on the simulated short scan (seed 1, a patient with the linear law and a hand's tilt) whose veins are
     # a photograph's vessels (test_vein_texture.vessel_photo: 30 straight vessels): measured 0.266 mm, against
     # 0.293 mm over the procedural veins of the same scan. <= 0.6 mm says the registration does not depend on the

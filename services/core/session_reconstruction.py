@@ -22,6 +22,7 @@ from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, blend_weight
 from services.core.physics.compliance import ComplianceFit, fit_compliance
+from services.core.physics.force_clock import ClockOffset, estimate_clock_offset
 from services.core.physics.tissue_model import tilt_angles_rad
 from services.core.registration.atlas import Atlas
 from services.core.registration.frame_prep import PreparedFrame, load_map_n
@@ -125,6 +126,7 @@ class SessionReconstruction:
     frames: dict[int, KeptFrame] = field(default_factory=dict)  # compact: row data, and pixels if pasteable
     pasted: dict[int, np.ndarray] = field(default_factory=dict)  # frame -> the 2x3 affine it is pasted with
     compliance: ComplianceFit | None = None
+    clock: ClockOffset | None = None  # the force logger's clock against the camera's, estimated at the finish
     gauge: float = 1.0
     finished: bool = False
     recent: dict[int, FrameLayers] = field(default_factory=dict)  # paste planes of the newest frames (live)
@@ -227,6 +229,7 @@ class SessionReconstruction:
         """Return the canvas tiles changed by running the final refinement and compliance self-calibration."""
         if self.options.refine:
             self.registrar.refine(final=True)
+        self.clock = self._estimate_clock()
         if self.options.self_calibrate:
             self.compliance = self._fit_compliance()
             if self.compliance is not None and self.options.refine and self.options.scale_prior > 0:
@@ -236,6 +239,20 @@ class SessionReconstruction:
             self.gauge = self.compliance.gauge if self.compliance is not None else 1.0
         self.finished = True
         return self._restitch() if self.live else set()
+
+    def _estimate_clock(self) -> ClockOffset | None:
+        """Return the force clock's offset fitted to the placed frames' stretches (physics.force_clock), or None."""
+        placed = sorted(i for i in self.registrar.order if i in self.frames)
+        kept = [self.frames[i] for i in placed]
+        stretch = np.array(
+            [1.0 / (abs(self.registrar.poses[i].a) * (1.0 - k.stretch)) for i, k in zip(placed, kept, strict=True)]
+        )
+        return estimate_clock_offset(
+            stretch,
+            np.array([k.t_s for k in kept]),
+            np.array([k.load.fz_n for k in kept]),
+            np.array([self.strokes.get(i, -1) for i in placed]),
+        )
 
     def _expected_scales(self, fit: ComplianceFit) -> dict[int, float]:
         """Return each placed frame's pose scale |a| as the fitted law and gauge say it is (frame 0's too)."""
@@ -383,6 +400,8 @@ class SessionReconstruction:
                 doc["kappa_imu_n_per_mm"] = reference.hooke_n_per_mm
                 doc["kappa_imu_samples"] = reference.n_samples
                 doc["kappa_imu_residual_n"] = reference.residual_rms_n
+        if self.clock is not None:
+            doc.update(self.clock.to_dict())
         if self.compliance is not None:
             doc["compliance_per_n"] = self.compliance.compliance_per_n
             doc["young_modulus_kpa"] = self.compliance.young_modulus_kpa(calib.poisson_ratio, calib.scanner_area_m2)
