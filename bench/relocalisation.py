@@ -79,9 +79,9 @@ def brute_force_ms(index: object, query: np.ndarray) -> float:
 def main() -> int:
     """Print the table of index build and lookup cost by map size; return the exit code."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", default="100,400,1600", help="frames indexed (comma list; the first is the baseline)")
+    parser.add_argument("--sizes", default="100,400,1600", help="frames indexed (comma list; first: the baseline)")
     parser.add_argument("--queries", type=int, default=40, help="lookups timed per size")
-    parser.add_argument("--scan", type=Path, default=DEFAULT_SCAN, help="a scan folder whose frames' descriptors to use")
+    parser.add_argument("--scan", type=Path, default=DEFAULT_SCAN, help="a scan folder whose frames' descriptors")
     args = parser.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
     rng = np.random.default_rng(7)
