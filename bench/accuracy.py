@@ -11,7 +11,8 @@ frames taken in the air, an island, dropped frames, a skewed force clock; the sh
 
 Every (scan, method) prints: registered % (of the frames with a reference: those on the skin), RMSE mm (over the
 registered frames only: read it with the registered %), final drift mm, error ratio %, s/frame (wall time of the
-whole offline pipeline), and the worse axis's tilt RMS error in degrees where the reference has tilts (the shared scans, the tissue-* cells), and where
+whole offline pipeline), and the worse axis's tilt RMS error in degrees where the reference has tilts (the shared
+scans, the tissue-* cells), and where
 the error lies (evaluation.GlobalError): the path's scale % (+ too large) and turn deg about frame 0, and the RMSE
 left after that similarity (the path's shape), and `air placed`: frames placed that the reference has no row for
 (taken in the air: none should be).
