@@ -69,8 +69,8 @@ PATH_COLUMNS = (
     "stretch",
     "inliers",
     "status",
+    "reason",  # this project's: why a frame was not placed (the spec's columns keep their order around it)
     "stroke",
-    "reason",
 )
 
 

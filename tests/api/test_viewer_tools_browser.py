@@ -79,6 +79,18 @@ def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:
                 0.0, 0.0, 1.0, 0 if lost else 120, status, reason,
             )
         )  # fmt: skip
+    doc = _write_results(data_dir, sid, canvas, rows, lost=[s for s in LOST if s not in REJECTED], rejected=REJECTED)
+    assert doc["frames"] == {
+        "processed": N_FRAMES, "ok": N_FRAMES - len(LOST), "lost": 4, "rejected": 1, "no_contact": 0, "in_fragments": 0
+    }  # fmt: skip
+    return rows
+
+
+def _write_results(
+    data_dir: Path, sid: str, canvas: SparseCanvas, rows: list[PathRow], lost: list[int], rejected: tuple[int, ...]
+) -> dict[str, Any]:
+    """Write results version 1 of `sid` as a worker would (tiles, images, mosaic.json, path, state); return
+    mosaic.json."""
     rs = ResultsStore(data_dir)
     rs.ensure_version(sid, 1, {"method": "best"})
     geometry = DziGeometry.for_mosaic(PX_PER_MM)
@@ -103,11 +115,30 @@ def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:
         status="done",
         method="best",
     )
-    assert doc["frames"] == {"processed": N_FRAMES, "ok": N_FRAMES - len(LOST), "lost": 4, "rejected": 1}
     rs.write_mosaic_meta(sid, 1, doc)
     rs.write_path(sid, 1, rows)
-    lost = [s for s in LOST if s not in REJECTED]
-    rs.write_state(sid, 1, VersionState(cursor=N_FRAMES, fence=1, finished=True, lost=lost, rejected=REJECTED))
+    state = VersionState(cursor=len(rows), fence=1, finished=True, lost=list(lost), rejected=list(rejected))
+    rs.write_state(sid, 1, state)
+    return doc
+
+
+def install_strokes_fixture(data_dir: Path, sid: str) -> list[PathRow]:
+    """Write a scan in two strokes: frames 0-9 along y = 0, five frames in the air, frames 15-24 along y = 12."""
+    canvas = SparseCanvas(PX_PER_MM)
+    rows, nan = [], float("nan")
+    for seq in range(25):
+        air = 10 <= seq < 15
+        stroke = None if air else int(seq >= 15)
+        x, y = STEP_MM * (seq % 15), 12.0 * (seq >= 15)
+        if not air:
+            canvas.paste(_frame(seq), Similarity(1 + 0j, complex(x, y)))
+        rows.append(
+            PathRow(
+                seq, 0.1 * seq, nan if air else x, nan if air else y, nan if air else 0.0, 0.05 if air else 6.0,
+                0.0, 0.0, 1.0, 0 if air else 120, "rejected" if air else "ok", "no_contact" if air else "", stroke,
+            )
+        )  # fmt: skip
+    _write_results(data_dir, sid, canvas, rows, lost=[], rejected=tuple(range(10, 15)))
     return rows
 
 
@@ -293,5 +324,37 @@ def test_viewer_tools_in_chromium(service: Service) -> None:
             page.wait_for_function("() => document.querySelector('#banner').textContent.includes('failed')")
             assert "Processing failed" in page.inner_text("#banner")
             page.screenshot(path=str(ARTIFACTS / "viewer_tools_banner.png"))
+        finally:
+            browser.close()
+
+
+def test_strokes_are_drawn_apart_and_frames_in_the_air_are_not_marked_lost(service: Service) -> None:
+    from playwright.sync_api import sync_playwright
+
+    client = VeinmosaicClient(service.base_url, KEY)
+    calibration = {"image_size": [200, 160], "camera_matrix": [[300, 0, 100], [0, 300, 80], [0, 0, 1]]}
+    created = client.create_session({**calibration, "px_per_mm": PX_PER_MM}, "")
+    sid = created["id"]
+    install_strokes_fixture(service.data_dir, sid)
+    store = SessionStore(service.data_dir)
+    store.finish(sid)
+    store.set_status(sid, "done")
+    assert client.session(sid)["warnings"] == []  # frames in the air are not frames lost
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1100, "height": 800})
+            page.goto(f"{service.base_url}{created['viewer_url']}")
+            _wait_idle(page)
+            page.wait_for_function("() => document.querySelectorAll('#path-overlay polyline').length === 2")
+            points = page.evaluate(
+                """() => Array.from(document.querySelectorAll('#path-overlay polyline'))
+                     .map((l) => l.getAttribute('points').split(' ').filter(Boolean).length)"""
+            )
+            assert sorted(points) == [10, 10]  # one line per stroke, none through the air between them
+            assert page.locator("#path-overlay path.lost").count() == 0  # the air's frames are no lost crosses
+            status = page.inner_text("#status")
+            assert "20 placed" in status and "5 off the skin" in status and "rejected" not in status, status
+            page.screenshot(path=str(ARTIFACTS / "viewer_tools_strokes.png"))
         finally:
             browser.close()

@@ -61,7 +61,7 @@ def test_reconstruct_writes_the_path(outputs: Path) -> None:
     assert tuple(table[0]) == PATH_COLUMNS  # spec §4 columns in order
     assert len(table) == 41  # header + 40 frames
     assert [row[0] for row in table[1:]] == [str(i) for i in range(40)]
-    assert all(row[-2:] == ["ok", ""] for row in table[1:])
+    assert all(row[-3:] == ["ok", "", "0"] for row in table[1:])  # status, no reason, stroke (all one stroke)
     assert table[1][2:5] == ["0.0000", "0.0000", "0.0000"]  # frame 0 is the origin
 
 

@@ -24,7 +24,7 @@ def test_focus_is_high_for_skin_in_focus_and_low_for_the_same_skin_defocused() -
     mask = np.full((240, 320), 255, np.uint8)
     sharp = _veins(1)
     blurred = cv2.GaussianBlur(sharp, (0, 0), 4.0)
-    assert focus_measure(sharp, mask) > 3 * focus_measure(blurred, mask)
+    assert focus_measure(sharp, mask) > 2 * focus_measure(blurred, mask)
     # the measure divides by the window's median grey: a darker exposure of the same skin reads the same focus
     darker = (sharp.astype(np.float32) * 0.5).astype(np.uint8)
     assert focus_measure(darker, mask) == pytest.approx(focus_measure(sharp, mask), rel=0.1)
@@ -50,9 +50,10 @@ def test_the_tare_is_learned_from_the_air_and_a_light_landing_counts() -> None:
 def test_the_image_overrules_the_load_at_a_landing_and_a_lift_the_force_clock_has_not_seen() -> None:
     detector = ContactDetector()
     _learned(detector)
-    landing = detector.decide(0.07, 0.95)  # no load yet, but the skin is in focus: the force log lags
+    landing = detector.decide(0.1, 1.05)  # a trace of load, and the skin in focus: the force log lags
     assert landing.contact and landing.by == "image"
-    lift = detector.decide(1.2, 0.3)  # a load still, but the image is as blurred as the air
+    assert not detector.decide(0.07, 1.05).contact  # in focus but no load at all: the image alone does not decide
+    lift = detector.decide(0.8, 0.3)  # a load still, but the image is as blurred as the air
     assert not lift.contact and lift.by == "image"
     # a clear load with a blurred image is motion blur on the skin, not the air
     assert detector.decide(6.0, 0.3).contact

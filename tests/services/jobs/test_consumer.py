@@ -34,7 +34,10 @@ def test_idle_entries_are_taken_over_and_a_deleted_one_is_acked(backend: Backend
     time.sleep(1.1)
     consumer.keep_claimed(r, streams[2], "a", kept)  # a long job's heartbeat: no longer idle
     start, claimed = consumer.claim_idle(r, streams[2], "b", idle_ms=1000)
-    assert start == "0-0" and dict(claimed) == {gone: None, idle: {"kind": "reprocess", "job": "j3"}}
+    # Redis 6.2 (embedded) hands the deleted entry over with no fields; Redis 7 drops it from the pending list
+    # itself (XAUTOCLAIM's deleted ids), so it is not handed over at all: either way it is not a job to run
+    taken = dict(claimed)
+    assert start == "0-0" and taken.pop(gone, None) is None and taken == {idle: {"kind": "reprocess", "job": "j3"}}
     assert consumer.times_delivered(r, streams[2], idle, "b") == 2
     assert consumer.times_delivered(r, streams[2], kept, "a") == 1  # still a's: the heartbeat kept it
     consumer.ack(r, streams[2], gone)

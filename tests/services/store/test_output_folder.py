@@ -55,12 +55,12 @@ def test_path_csv_columns_and_blank_cells() -> None:
         "stretch",
         "inliers",
         "status",
-        "stroke",
         "reason",
-    )  # spec §4, in order, then why a frame was not placed (issue 6: never fail silently)
+        "stroke",
+    )  # spec §4 in its order, with why a frame was not placed after its status (issue 6: never fail silently)
     assert len(table) == 4
     assert table[2][2:5] == ["", "", ""]  # the lost frame has no position
-    assert table[2][-3:] == ["lost", "", "few_inliers"] and table[2][0] == "1"  # no stroke known: blank
+    assert table[2][-3:] == ["lost", "few_inliers", ""] and table[2][0] == "1"  # no stroke known: blank
     assert table[3][2] == "1.2346"  # 4 decimals: 0.1 um, far below any accuracy the probe reaches
 
 
