@@ -110,8 +110,8 @@ class Atlas:
         assert result is not None
         self.active = placed
         self.owner[pf.index] = placed
-        self._index(pf, placed)
-        joined, moved = self._join(pf) if len(self.maps) > 1 else ((), ())
+        indexed = self._index(pf, placed)
+        joined, moved = self._join(pf, lookup=indexed) if len(self.maps) > 1 else ((), ())
         return AtlasResult(result, self.owner[pf.index] is self.main, joined, moved)
 
     def _start_map(self, pf: PreparedFrame, fresh: Registrar) -> AtlasResult:
@@ -124,13 +124,16 @@ class Atlas:
         self._index(pf, fresh)
         return AtlasResult(result, fresh is self.main)
 
-    def _index(self, pf: PreparedFrame, on: Registrar) -> None:
-        """Add a placed frame to the place index when it lies far enough from its map's last indexed frame."""
+    def _index(self, pf: PreparedFrame, on: Registrar) -> bool:
+        """Add a placed frame to the place index when it lies far enough from its map's last indexed frame; return
+        True when it was added."""
         centre = on.poses[pf.index].t
         last = self._last_indexed.get(id(on))
-        if last is None or abs(centre - last) >= INDEX_SPACING_WINDOWS * self.window_radius_mm:
-            self.index.add(pf.index, pf.features.descriptors)
-            self._last_indexed[id(on)] = centre
+        if last is not None and abs(centre - last) < INDEX_SPACING_WINDOWS * self.window_radius_mm:
+            return False
+        self.index.add(pf.index, pf.features.descriptors)
+        self._last_indexed[id(on)] = centre
+        return True
 
     def _verify(self, pf: PreparedFrame, other: int, weak: bool = False) -> Match | None:
         """Return the geometrically verified match of a frame on placed frame `other` (its map's RANSAC), or None.
@@ -164,13 +167,15 @@ class Atlas:
                 best = (self.owner[other], other, match)
         return best
 
-    def _join(self, pf: PreparedFrame) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    def _join(self, pf: PreparedFrame, lookup: bool) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """Join another map to the placed frame's map when the frame matches one of its frames.
 
+        lookup: search the place index too (the frames it indexes, a quarter window apart: the frames between see
+        what their indexed neighbours see); the other maps' newest frames are tried every frame.
         Returns (frames that joined the main map now, main-map frames the join's refinement moved).
         """
         on = self.owner[pf.index]
-        found = self._relocalise(pf, exclude=on)
+        found = self._relocalise(pf, exclude=on) if lookup else None
         if found is None:
             for other_map in self.maps:
                 if other_map is on:
