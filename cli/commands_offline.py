@@ -47,9 +47,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         label=Path(args.scan).resolve().name,
     )
     f = report.frames
+    counts = f"{f.n_lost} lost, {f.n_rejected - f.n_no_contact} rejected"
+    if f.n_no_contact:  # a scan in strokes: the frames taken in the air are neither placed nor counted
+        counts += f"; {f.n_no_contact} taken off the skin"
     print(
-        f"{f.n_ok}/{f.n_frames} frames registered ({100 * f.registered_fraction:.1f} %; {f.n_lost} lost, "
-        f"{f.n_rejected} rejected) in {recon.seconds:.1f} s; outputs in {args.out}"
+        f"{f.n_ok}/{f.n_on_skin} frames registered ({100 * f.registered_fraction:.1f} %; {counts}) in "
+        f"{recon.seconds:.1f} s; outputs in {args.out}"
     )
     if report.accuracy is not None:  # the RMSE and angle lines come last: scripts read the last two
         output.print_global_error(report.doc.get("global_error"))

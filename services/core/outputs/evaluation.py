@@ -53,13 +53,19 @@ class AccuracyReport:
     def summary(self) -> str:
         """Return a one-line human summary that always states how much of the scan the figures cover."""
         reg = f"{self.n_registered}/{self.n_frames} frames registered ({100 * self.registered_fraction:.1f} %)"
+        if self.n_with_reference < self.n_frames:  # a clinical scan: the reference has the frames on the skin
+            on = self.n_registered - self.n_registered_without_reference
+            reg = (
+                f"{on}/{self.n_with_reference} frames with a reference registered ({100 * self.registered_fraction:.1f}"
+                f" %), {self.n_registered_without_reference} of the {self.n_frames - self.n_with_reference} without one"
+            )
         if not self.meaningful:
             return f"accuracy not measurable: {reg}, {self.n_compared} compared with the reference"
         text = f"RMSE {self.rmse_mm:.3f} mm, max {self.max_error_mm:.3f} mm, final drift {self.final_drift_mm:.3f} mm"
         if math.isfinite(self.error_ratio_pct):
             text += f", error ratio {self.error_ratio_pct:.3f}% over {self.path_length_mm:.0f} mm"
         text += f" — over the {self.n_compared} registered frames with a reference; {reg}"
-        if self.n_registered < self.n_frames:
+        if self.n_registered - self.n_registered_without_reference < self.n_with_reference:
             text += "; frames not registered are not in these figures"
         return text
 
