@@ -24,7 +24,7 @@ from services.core.registration.frame_prep import (
     estimate_window_mask,
     prepare_frame,
 )
-from services.core.registration.registrar import STATUS_OK
+from services.core.registration.outcome import STATUS_OK
 from services.core.session_reconstruction import PATH_COLUMNS, PathRow, SessionReconstruction
 from services.core.similarity import Similarity
 

@@ -27,7 +27,7 @@ from services.core.physics.tissue_model import tilt_angles_rad
 from services.core.registration.atlas import Atlas
 from services.core.registration.frame_prep import PreparedFrame, load_map_n
 from services.core.registration.kept_frame import KeptFrame, keep_frame
-from services.core.registration.registrar import (
+from services.core.registration.outcome import (
     REASON_BAD_FRAME,
     REASON_FRAGMENT,
     REASON_MISSING,
@@ -36,8 +36,8 @@ from services.core.registration.registrar import (
     STATUS_OK,
     STATUS_REJECTED,
     FrameResult,
-    Registrar,
 )
+from services.core.registration.registrar import Registrar
 from services.core.similarity import Similarity
 
 # The newest frames whose paste planes a live session keeps (~5 MB each at 640 x 480): each new frame is pasted
@@ -89,7 +89,7 @@ class PathRow:
     stretch: float
     inliers: int
     status: str
-    reason: str = ""  # why a frame is lost or rejected (services.core.registration.registrar.REASONS); "" when ok
+    reason: str = ""  # why a frame is lost or rejected (services.core.registration.outcome.REASONS); "" when ok
     stroke: int | None = None  # the run of contact frames it belongs to, from 0; None off the skin or missing
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from services.core.mosaic.canvas import FORCE_FULL_SCALE_N, TILE_PX, SparseCanvas
 from services.core.mosaic.deepzoom import MIN_WEIGHT, DziGeometry
 from services.core.physics.compliance import ComplianceFit
-from services.core.registration.registrar import (
+from services.core.registration.outcome import (
     REASON_BAD_FRAME,
     REASON_FRAGMENT,
     REASON_NO_CONTACT,

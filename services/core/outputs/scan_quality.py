@@ -22,7 +22,7 @@ WAITING = "unjoined_fragment"  # placed on a fragment that has not joined the ma
 
 @dataclass(frozen=True)
 class FrameSummary:
-    """Counts of a scan's frames by status, and of the not-placed ones by reason (registration.registrar.REASONS)."""
+    """Counts of a scan's frames by status, and of the not-placed ones by reason (registration.outcome.REASONS)."""
 
     n_frames: int
     n_ok: int

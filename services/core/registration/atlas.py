@@ -16,18 +16,17 @@ from dataclasses import dataclass, field
 
 from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
-from services.core.registration.place_index import PlaceIndex
-from services.core.registration.pose_graph import Edge
-from services.core.registration.registrar import (
-    LOOP_GATE_MM,
+from services.core.registration.outcome import (
     REASON_BLUR,
     REASON_FEW_KEYPOINTS,
     STATUS_LOST,
     STATUS_OK,
     FrameResult,
     Match,
-    Registrar,
 )
+from services.core.registration.place_index import PlaceIndex
+from services.core.registration.pose_graph import Edge
+from services.core.registration.registrar import LOOP_GATE_MM, Registrar
 
 CANDIDATES = 3  # frames the place index proposes that are verified geometrically
 MIN_VOTES = 6  # ... each with at least this many descriptor votes

@@ -8,10 +8,8 @@ pose graph; loop closures trigger a robust global re-optimisation).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
@@ -28,31 +26,23 @@ from services.core.registration.direct_alignment import AlignmentImage, DirectFi
 from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
 from services.core.registration.matching import SimilarityFit, estimate_similarity, match_features
+from services.core.registration.outcome import (
+    REASON_BLUR,
+    REASON_FEW_INLIERS,
+    REASON_FEW_KEYPOINTS,
+    REASON_IMPLAUSIBLE,
+    REASON_LOW_CORRELATION,
+    STATUS_LOST,
+    STATUS_OK,
+    STATUS_REJECTED,
+    FrameEvidence,
+    FrameResult,
+    Match,
+    feature_match,
+)
 from services.core.registration.pose_graph import Edge, optimise_poses, place_node
 from services.core.similarity import IDENTITY, Similarity
 
-STATUS_OK, STATUS_LOST, STATUS_REJECTED = "ok", "lost", "rejected"
-# Why a frame was not placed (path.csv `reason`, the report, the session state); "" for placed frames.
-REASON_FEW_KEYPOINTS = "few_keypoints"  # too little vein structure detected to match
-REASON_FEW_INLIERS = "few_inliers"  # features matched, but too few agree on one transform
-REASON_LOW_CORRELATION = "low_correlation"  # direct alignment did not reach the acceptance correlation
-REASON_BLUR = "blur"  # a motion-blurred frame that could not be registered
-REASON_IMPLAUSIBLE = "implausible_jump"  # a pose too far from the motion prediction
-REASON_MISSING = "missing"  # the frame never arrived (declared lost by the queue)
-REASON_BAD_FRAME = "bad_frame"  # the frame's content could not be processed (undecodable, wrong size)
-REASON_NO_CONTACT = "no_contact"  # taken with the window off the skin (rejected; services.core.contact)
-REASON_FRAGMENT = "unjoined_fragment"  # placed on a fragment that has not joined the map (atlas)
-REASONS = (
-    REASON_FEW_KEYPOINTS,
-    REASON_FEW_INLIERS,
-    REASON_LOW_CORRELATION,
-    REASON_BLUR,
-    REASON_IMPLAUSIBLE,
-    REASON_MISSING,
-    REASON_BAD_FRAME,
-    REASON_NO_CONTACT,
-    REASON_FRAGMENT,
-)
 LOCAL_REFINE_FROM = 400  # placed frames: below this every refinement is global
 GLOBAL_GROWTH = 1.25  # ... from it, a global pass when the placed frames grew by this factor since the last one
 LOCAL_RADIUS_WINDOWS = 3.0  # a local pass frees the frames within this many window radii of the newest frame
@@ -76,54 +66,9 @@ DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - 
 ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
 
 
-class FrameEvidence(Protocol):
-    """What matching a frame needs of it: its index, features (mm) and centre stretch (a PreparedFrame has them)."""
-
-    @property
-    def index(self) -> int: ...
-    @property
-    def features(self) -> Features: ...
-    @property
-    def stretch(self) -> float: ...
-
-
 def _vein_scale(pf: PreparedFrame) -> float:
     """Return the vein map's pixels per full-resolution pixel of a prepared frame."""
     return pf.vein.shape[1] / pf.image.shape[1]
-
-
-@dataclass(frozen=True)
-class Match:
-    """A frame registered on a placed one: the relative similarity (frame mm -> placed mm) and its evidence."""
-
-    relative: Similarity
-    inliers: int  # 0 for a direct alignment
-    rms: float  # mm
-    affine: np.ndarray | None = None  # the full affine of a feature match (2x3), see SimilarityFit
-    affine_sigma: float = math.inf
-    view_affine: np.ndarray | None = None  # the affine on its own inliers: the view model's evidence
-    centre: complex = 0j  # where the match is measured (the inliers' centroid, frame mm); 0 for a direct one
-    spread_mm: float = 0.0  # the inliers' RMS distance from it; 0: unknown (the pose graph's default lever)
-
-
-def feature_match(fit: SimilarityFit) -> Match:
-    """Return the Match of a feature fit (with its full affine and where its inliers lie)."""
-    return Match(
-        fit.transform, fit.inliers, fit.rms, fit.affine, fit.affine_sigma, fit.view_affine, fit.centre, fit.spread
-    )
-
-
-@dataclass(frozen=True)
-class FrameResult:
-    """The outcome for one frame: status, pose (frame mm -> mosaic mm) or None, evidence, frames moved."""
-
-    index: int
-    status: str
-    pose: Similarity | None
-    inliers: int
-    blurred: bool
-    moved: tuple[int, ...] = ()
-    reason: str = ""  # one of REASONS when status is not ok
 
 
 @dataclass(eq=False)  # a map is itself (services.core.registration.atlas keeps several): compared by identity

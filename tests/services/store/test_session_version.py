@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from services.core.inputs.calibration import default_calibration
-from services.core.registration.registrar import STATUS_REJECTED
+from services.core.registration.outcome import STATUS_REJECTED
 from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.session_version import SessionVersion, method_of
 from services.store.storage import SessionStore

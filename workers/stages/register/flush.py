@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import replace
 
 from services.core.outputs.documents import canvas_extent_mm, empty_revisions, image_meta
-from services.core.registration.registrar import STATUS_OK
+from services.core.registration.outcome import STATUS_OK
 from services.core.session_reconstruction import PathRow
 from services.store.results_store import LIVE_VERSION
 from services.store.version_state import VersionState

@@ -13,7 +13,8 @@ from services.core.methods import method_options
 from services.core.pipeline import frame_forces, prepare_scan_frame, window_setup
 from services.core.registration.atlas import Atlas
 from services.core.registration.frame_prep import PreparedFrame
-from services.core.registration.registrar import REASON_FRAGMENT, STATUS_LOST, STATUS_OK, Registrar
+from services.core.registration.outcome import REASON_FRAGMENT, STATUS_LOST, STATUS_OK
+from services.core.registration.registrar import Registrar
 from services.core.session_reconstruction import SessionReconstruction
 from tests.shared_scans import SHARED_CLINICAL, clinical_until
 

@@ -14,7 +14,7 @@ from services.core import pipeline
 from services.core.inputs.scan import Scan
 from services.core.methods import MethodOptions, method_options
 from services.core.registration.frame_prep import PreparedFrame
-from services.core.registration.registrar import (
+from services.core.registration.outcome import (
     REASON_FEW_INLIERS,
     REASON_FEW_KEYPOINTS,
     REASON_LOW_CORRELATION,
@@ -22,10 +22,9 @@ from services.core.registration.registrar import (
     STATUS_LOST,
     STATUS_OK,
     STATUS_REJECTED,
-    VIEW_REFIT_GROWTH,
     FrameResult,
-    Registrar,
 )
+from services.core.registration.registrar import VIEW_REFIT_GROWTH, Registrar
 from services.core.similarity import IDENTITY, Similarity
 from tests.sim_cache import simulated
 from tests.tolerances import TOL
