@@ -165,7 +165,7 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
             after_similarity_mm=report.global_error.after_similarity_mm,
         )
     if scan.reference_angles_deg is not None:
-        angles = evaluate_angles(path_angles_deg(recon.rows), recon.registered, scan.reference_angles_deg)
+        angles = evaluate_angles(path_angles_deg(recon.rows), recon.registered, scan.by_seq(scan.reference_angles_deg))
         row["tilt_rmse_deg"] = max(angles.get("tilt_x_rmse_deg", math.nan), angles.get("tilt_y_rmse_deg", math.nan))
     return row
 

@@ -6,7 +6,8 @@ on (the active map); a landing frame, or a frame its map lost, is searched in ev
 fragment: a map of its own, with its own pose graph, on which the next frames chain (consecutive contact frames
 overlap by ~90 %). When a frame of one map matches a frame of another, the two join by one similarity (the
 younger into the older; fragments into the main map) and every frame of the joined one is placed: this is
-ORB-SLAM3's Atlas, for a flat map. Frames of a fragment that never joins are not placed.
+ORB-SLAM3's Atlas, for a flat map. Frames of a fragment that never joins are not placed. The baselines (the
+paper's mosaic registration, the frame-to-frame chain) keep their one map, as published.
 """
 
 from __future__ import annotations
@@ -89,6 +90,8 @@ class Atlas:
         """
         if self.active is None:
             return self._start_map(pf, self.main)
+        if self.main.options.registration != "keyframes":  # the baselines (paper, sift-chain) as published: one map
+            return AtlasResult(self.main.add(pf), True)
         result: FrameResult | None = None
         if not landing:
             result = self.active.add(pf)
