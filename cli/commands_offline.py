@@ -54,6 +54,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         f"{f.n_ok}/{f.n_on_skin} frames registered ({100 * f.registered_fraction:.1f} %; {counts}) in "
         f"{recon.seconds:.1f} s; outputs in {args.out}"
     )
+    output.print_warnings(report.warnings)  # before the figures: the RMSE and angle lines stay the last two
     if report.accuracy is not None:  # the RMSE and angle lines come last: scripts read the last two
         output.print_global_error(report.doc.get("global_error"))
         print(report.accuracy.summary())
@@ -64,7 +65,6 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                 f"{k.removesuffix('_rmse_deg')} RMS error {v:.2f} deg" for k, v in a.items() if k.endswith("_rmse_deg")
             )
         )
-    output.print_warnings(report.warnings)
     print(f"one-page report: {Path(args.out) / 'sheet.pdf'}")
     return 0
 

@@ -19,12 +19,12 @@ import cv2
 import numpy as np
 
 DESCRIPTORS_PER_FRAME = 160  # kept per indexed frame, evenly over its features (they are spread over the window)
-QUERY_DESCRIPTORS = 320  # a query uses at most this many of the new frame's descriptors
+QUERY_DESCRIPTORS = 200  # a query uses at most this many of the new frame's descriptors
 BUFFER_FRAMES = 8  # frames searched by brute force before they become a shard
 NEIGHBOURS = 4  # each query descriptor looks at its nearest this many indexed descriptors ...
 DISTINCT_RATIO = 0.85  # ... and votes for the frame of each one nearer than this share of the farthest of them
 KD_TREES = 4
-KD_CHECKS = 48
+KD_CHECKS = 32
 FLANN_KDTREE = 1
 
 
