@@ -212,6 +212,9 @@ def plot_paths_over_mosaic(
     placed, _ = _draw_paths(ax, est, reg, ref, mosaic, px_per_mm, origin_px, strokes=strokes)
     rmse = _rmse_or_none(est, reg, ref)
     title = f"Probe path: {placed}/{n} frames registered"
+    stroke_ids = np.zeros(0, np.int64) if strokes is None else np.asarray(strokes).reshape(-1)
+    if np.any(stroke_ids >= 0):  # a scan in strokes: frames in the air are rows too, not frames to register
+        title = f"Probe path: {placed} frames placed in {len(set(stroke_ids[stroke_ids >= 0].tolist()))} strokes"
     if rmse is not None and math.isfinite(rmse):
         title += f", RMSE {rmse:.3f} mm"
     ax.set_title(title)

@@ -170,3 +170,15 @@ def test_coverage_scale_shows_under_and_over_scanned_areas_on_a_normal_scan(tmp_
     (tmp_path / "coverage_map.png").write_bytes(plot_coverage_map(coverage, 8.0, (60.0, 40.0)))
     img = _read(tmp_path / "coverage_map.png")
     assert _colour_mask(img, OVER_SCANNED_COLOR, tol=3).sum() > 100  # the over-scanned centre shows, in pink
+
+
+def test_each_stroke_is_its_own_line_never_joined_through_the_air() -> None:
+    from services.core.outputs.plots import stroke_lines
+
+    points = np.array([[0.0, 0.0], [1.0, 0.0], [np.nan, np.nan], [5.0, 3.0], [6.0, 3.0], [7.0, 3.0], [2.0, 0.0]])
+    strokes = np.array([0, 0, -1, 1, 1, 1, -1])  # row 2 in the air; row 6 placed but in no stroke (not drawn)
+    lines = stroke_lines(points, np.ones(7, bool), strokes)
+    assert [line.tolist() for line in lines] == [[[0.0, 0.0], [1.0, 0.0]], [[5.0, 3.0], [6.0, 3.0], [7.0, 3.0]]]
+    keep = np.array([True, True, True, True, False, True, True])  # an unplaced frame drops out of its stroke's line
+    assert [len(line) for line in stroke_lines(points, keep, strokes)] == [2, 2]
+    assert [len(line) for line in stroke_lines(points, np.ones(7, bool), None)] == [6]  # no strokes known: one line
