@@ -11,7 +11,7 @@ Screenshots go to tests/artifacts/viewer_tools_*.png.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -193,17 +193,26 @@ def _pixel(shot: np.ndarray, xy: tuple[float, float], box: dict[str, float]) -> 
     return shot[y - 2 : y + 3, x - 2 : x + 3].reshape(-1, 3).astype(int)
 
 
-def test_viewer_tools_in_chromium(service: Service) -> None:
-    from playwright.sync_api import sync_playwright
-
+def done_session(
+    service: Service, install: Callable[[Path, str], list[PathRow]]
+) -> tuple[VeinmosaicClient, dict[str, Any]]:
+    """Return a client and a new session (its create answer) whose results `install` wrote, finished and done."""
     client = VeinmosaicClient(service.base_url, KEY)
     calibration = {"image_size": [200, 160], "camera_matrix": [[300, 0, 100], [0, 300, 80], [0, 0, 1]]}
     created = client.create_session({**calibration, "px_per_mm": PX_PER_MM}, "")
-    sid = created["id"]
-    install_fixture(service.data_dir, sid)
+    install(service.data_dir, created["id"])
     store = SessionStore(service.data_dir)
-    store.finish(sid)
-    store.set_status(sid, "done")  # as the register stage does when the version is complete
+    store.finish(created["id"])
+    store.set_status(created["id"], "done")  # as the register stage does when the version is complete
+    return client, created
+
+
+def test_viewer_tools_in_chromium(service: Service) -> None:
+    from playwright.sync_api import sync_playwright
+
+    client, created = done_session(service, install_fixture)
+    sid = created["id"]
+    store = SessionStore(service.data_dir)
     state = client.session(sid)
     assert [w["code"] for w in state["warnings"]] == ["frames_lost"], state
     assert state["not_placed_reasons"] == {"few_inliers": len(LOST) - len(REJECTED), "blur": len(REJECTED)}
@@ -331,14 +340,8 @@ def test_viewer_tools_in_chromium(service: Service) -> None:
 def test_strokes_are_drawn_apart_and_frames_in_the_air_are_not_marked_lost(service: Service) -> None:
     from playwright.sync_api import sync_playwright
 
-    client = VeinmosaicClient(service.base_url, KEY)
-    calibration = {"image_size": [200, 160], "camera_matrix": [[300, 0, 100], [0, 300, 80], [0, 0, 1]]}
-    created = client.create_session({**calibration, "px_per_mm": PX_PER_MM}, "")
+    client, created = done_session(service, install_strokes_fixture)
     sid = created["id"]
-    install_strokes_fixture(service.data_dir, sid)
-    store = SessionStore(service.data_dir)
-    store.finish(sid)
-    store.set_status(sid, "done")
     assert client.session(sid)["warnings"] == []  # frames in the air are not frames lost
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
