@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -31,6 +32,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     """
     from services.core.methods import method_options
     from services.core.outputs.dicom_export import scan_digest
+    from services.core.outputs.session_report import build_session_report
     from services.core.pipeline import reconstruct
     from services.store.output_folder import write_reconstruction
     from services.store.scan_folder import read_scan_folder
@@ -39,20 +41,16 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     options = method_options(args.method).with_overrides(_parse_options(args.option))
     with output.bar(f"reconstruct ({args.method})", len(scan)) as bar:
         recon = reconstruct(scan, options, progress=output.sized(bar))
-    report = write_reconstruction(
-        recon,
-        args.out,
-        scan.by_seq(scan.reference_track),
-        scan_digest=scan_digest(scan),
-        label=Path(args.scan).resolve().name,
-    )
+    reference = scan.by_seq(scan.reference_track)
+    # the figures first (the same report, without its images), so they show before the plots and sheet are drawn
+    report = build_session_report(recon.rows, reference, None, draw=False)
     f = report.frames
     counts = f"{f.n_lost} lost, {f.n_rejected - f.n_no_contact} rejected"
     if f.n_no_contact:  # a scan in strokes: the frames taken in the air are neither placed nor counted
         counts += f"; {f.n_no_contact} taken off the skin"
     print(
         f"{f.n_ok}/{f.n_on_skin} frames registered ({100 * f.registered_fraction:.1f} %; {counts}) in "
-        f"{recon.seconds:.1f} s; outputs in {args.out}"
+        f"{recon.seconds:.1f} s; outputs to {args.out}"
     )
     output.print_warnings(report.warnings)  # before the figures: the RMSE and angle lines stay the last two
     if report.accuracy is not None:  # the RMSE and angle lines come last: scripts read the last two
@@ -63,8 +61,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         print(
             ", ".join(
                 f"{k.removesuffix('_rmse_deg')} RMS error {v:.2f} deg" for k, v in a.items() if k.endswith("_rmse_deg")
-            )
+            ),
+            flush=True,
         )
+    sys.stdout.flush()
+    write_reconstruction(
+        recon, args.out, reference, scan_digest=scan_digest(scan), label=Path(args.scan).resolve().name
+    )
     print(f"one-page report: {Path(args.out) / 'sheet.pdf'}")
     return 0
 

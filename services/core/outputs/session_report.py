@@ -82,8 +82,12 @@ def build_session_report(
     identity: SheetIdentity | None = None,
     sheet: bool = True,
     backdrop: Backdrop | None = None,
+    draw: bool = True,
 ) -> SessionReport:
     """Return the report of a path (rows in seq order) with an optional reference track and mosaic.
+
+    draw: False gives the figures and warnings only (no plots, no sheet): what a caller prints before the
+    images are rendered.
 
     reference: (N, 2) positions in mm, or the (N, 5) track of services.core.inputs.reference (positions, yaw and tilts
     in degrees): with angles, report.json also has "angles" (yaw and tilt errors, evaluate_angles).
@@ -110,7 +114,7 @@ def build_session_report(
     doc.update(extra or {})
     images: dict[str, bytes] = {}
     plots: dict[str, str] = {}
-    if accuracy is not None:
+    if accuracy is not None and draw:
         if mosaic is not None:
             vein, px, origin = mosaic.vein, mosaic.px_per_mm, mosaic.origin_px
         else:
@@ -120,7 +124,7 @@ def build_session_report(
         )
         images["errors.png"] = plot_error_along_scan(accuracy)
         plots.update({"paths": "paths.png", "errors": "errors.png"})
-    if mosaic is not None and sheet:
+    if mosaic is not None and sheet and draw:
         png, pdf = render_sheet(build_sheet_figure(
             mosaic, estimate, registered, reference_mm, accuracy, frames, doc["warnings"],
             identity if identity is not None else SheetIdentity(session=""),
