@@ -32,6 +32,7 @@ class MethodOptions:
     stiffening: bool = True  # let that fit's strain law stiffen with load when the scales show it
     scale_prior: float = 0.005  # at the end each frame's scale is held to that fit's law, this relative sigma (0: off)
     fit_tilt: bool = True  # learn the probe's true tilt (effective kappa) from the matches' affines; undo it
+    fit_drag: bool = True  # learn the skin's friction drag under the sliding window from the matches; undo it
     flat_field: bool = True  # divide out the IR ring's vignetting before blending
     min_inliers: int = 20  # unique RANSAC inliers for an accepted registration
     confirmed_inlier_share: float = 0.5  # ... this share of it for a match to an older frame agreeing with the latest's
@@ -63,6 +64,7 @@ def method_options(name: str) -> MethodOptions:
             refine=False,
             self_calibrate=False,
             fit_tilt=False,
+            fit_drag=False,
             flat_field=False,
         )
     if name == "paper":
@@ -75,6 +77,7 @@ def method_options(name: str) -> MethodOptions:
             refine=False,
             self_calibrate=False,
             fit_tilt=False,
+            fit_drag=False,
             flat_field=False,
         )
     if name == "best":

@@ -71,6 +71,8 @@ PATH_COLUMNS = (
     "status",
     "reason",  # this project's: why a frame was not placed (the spec's columns keep their order around it)
     "stroke",
+    "drag_x_mm",  # the skin's friction drag under the window's centre (physics.drag), the path's axes
+    "drag_y_mm",
 )
 
 
@@ -91,6 +93,10 @@ class PathRow:
     status: str
     reason: str = ""  # why a frame is lost or rejected (services.core.registration.outcome.REASONS); "" when ok
     stroke: int | None = None  # the run of contact frames it belongs to, from 0; None off the skin or missing
+    # the skin under the window's centre displaced by friction (mm, the path's axes): x_mm, y_mm are where it
+    # rests; NaN where the frame is not placed, 0 where no drag was learned (the scan's evidence did not keep it)
+    drag_x_mm: float = math.nan
+    drag_y_mm: float = math.nan
 
 
 def path_rows_json(rows: Sequence[PathRow]) -> list[dict[str, Any]]:
@@ -222,8 +228,21 @@ class SessionReconstruction:
         return {i: self._output_pose(p) for i, p in self.registrar.poses.items()}
 
     def _output_pose(self, pose: Similarity) -> Similarity:
-        """Return a registrar pose in output units: divided by the gauge (1 until finish)."""
-        return Similarity(pose.a / self.gauge, pose.t / self.gauge)
+        """Return a registrar pose in output units: divided by the gauge (1 until finish), its origin moved to
+        where the skin under frame 0's centre rests (0 until a drag is learned: physics.drag)."""
+        return Similarity(pose.a / self.gauge, (pose.t + self._origin_shift()) / self.gauge)
+
+    def _origin_shift(self) -> complex:
+        """Return mm (registrar units) to add to every pose so frame 0's rest centre is the origin (spec §4)."""
+        first = self.registrar.order[0] if self.registrar.order else None
+        if first is None or not self.finished:
+            return 0j
+        return self.registrar.poses[first].a * self._drag(first)
+
+    def _drag(self, index: int) -> complex:
+        """Return a placed frame's learned drag (complex mm, its own axes; 0 without a kept drag fit)."""
+        fit = self.registrar.drag_fit
+        return fit.of(index) if fit is not None else 0j
 
     def finish(self) -> set[tuple[int, int]]:
         """Return the canvas tiles changed by running the final refinement and compliance self-calibration."""
@@ -402,6 +421,8 @@ class SessionReconstruction:
                 doc["kappa_imu_residual_n"] = reference.residual_rms_n
         if self.clock is not None:
             doc.update(self.clock.to_dict())
+        if self.registrar.drag_fit is not None:
+            doc.update(self.registrar.drag_fit.to_dict())
         if self.compliance is not None:
             doc["compliance_per_n"] = self.compliance.compliance_per_n
             doc["young_modulus_kpa"] = self.compliance.young_modulus_kpa(calib.poisson_ratio, calib.scanner_area_m2)
@@ -432,7 +453,9 @@ class SessionReconstruction:
             r = self.results[index]
             pf = self.frames.get(index)
             pose = poses.get(index) if r.status == STATUS_OK else None
-            x, y, yaw = (pose.t.real, pose.t.imag, math.degrees(pose.yaw_rad)) if pose else (math.nan,) * 3
+            drag = pose.a * self._drag(index) if pose else complex(math.nan, math.nan)  # the path's axes, mm
+            centre = pose.t - drag if pose else complex(math.nan, math.nan)  # where the skin under it rests
+            x, y, yaw = (centre.real, centre.imag, math.degrees(pose.yaw_rad)) if pose else (math.nan,) * 3
             tilt_x, tilt_y = next(tilts) if pf else (math.nan, math.nan)
             rows.append(
                 PathRow(
@@ -449,6 +472,8 @@ class SessionReconstruction:
                     status=r.status,
                     reason=r.reason,
                     stroke=self.strokes.get(index),
+                    drag_x_mm=drag.real,
+                    drag_y_mm=drag.imag,
                 )
             )
         return rows

@@ -228,6 +228,7 @@ def merge_maps(
     target.stretches.update(source.stretches)
     target.veins.update(source.veins)
     target.forces.update(source.forces)
+    target.loads.update(source.loads)
     target.imu_tilts.update(source.imu_tilts)
     target.sharpness.extend(source.sharpness)
     target.edges.extend(source.edges)

@@ -11,6 +11,8 @@ import numpy as np
 from services.core.registration.features import Features
 from services.core.similarity import Similarity
 
+PAIRS_KEPT = 64  # inlier pairs a fit keeps as evidence (1 KB): enough for the drag fit, bounded for long scans
+
 
 @dataclass(frozen=True)
 class SimilarityFit:
@@ -31,6 +33,7 @@ class SimilarityFit:
     view_affine: np.ndarray | None = None
     centre: complex = 0j  # the inliers' centroid (src units): where the fit's translation is best known
     spread: float = 0.0  # the inliers' RMS distance from it (src units): the lever of its rotation and scale
+    pairs: np.ndarray | None = None  # float32 (n, 4): the unique inliers, src x, y then dst x, y (drag evidence)
 
 
 def fit_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
@@ -179,7 +182,10 @@ def estimate_similarity(
     a_rms = _affine_rms(view_affine, src[chosen], dst[chosen]) if view_affine is not None else rms
     affine_sigma = a_rms / (math.sqrt(int(chosen.sum())) * spread) if spread > 0 else math.inf
     centre, lever = centroid_and_spread(src[inl])
-    return SimilarityFit(transform, n, rms, inl, affine, affine_sigma, view_affine, centre, lever)
+    kept = np.flatnonzero(inl)
+    kept = kept[np.linspace(0, len(kept) - 1, min(len(kept), PAIRS_KEPT)).astype(int)]
+    pairs = np.hstack([src[kept], dst[kept]]).astype(np.float32)
+    return SimilarityFit(transform, n, rms, inl, affine, affine_sigma, view_affine, centre, lever, pairs)
 
 
 def centroid_and_spread(points: np.ndarray) -> tuple[complex, float]:

@@ -63,12 +63,21 @@ class Match:
     view_affine: np.ndarray | None = None  # the affine on its own inliers: the view model's evidence
     centre: complex = 0j  # where the match is measured (the inliers' centroid, frame mm); 0 for a direct one
     spread_mm: float = 0.0  # the inliers' RMS distance from it; 0: unknown (the pose graph's default lever)
+    pairs: np.ndarray | None = None  # the feature inliers (n, 4: frame x, y, placed x, y; mm), see SimilarityFit
 
 
 def feature_match(fit: SimilarityFit) -> Match:
     """Return the Match of a feature fit (with its full affine and where its inliers lie)."""
     return Match(
-        fit.transform, fit.inliers, fit.rms, fit.affine, fit.affine_sigma, fit.view_affine, fit.centre, fit.spread
+        fit.transform,
+        fit.inliers,
+        fit.rms,
+        fit.affine,
+        fit.affine_sigma,
+        fit.view_affine,
+        fit.centre,
+        fit.spread,
+        fit.pairs,
     )
 
 

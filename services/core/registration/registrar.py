@@ -9,11 +9,12 @@ pose graph; loop closures trigger a robust global re-optimisation).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from services.core.methods import MethodOptions
+from services.core.physics.drag import DragEvidence, DragFit, fit_drag, undragged_transforms
 from services.core.physics.tissue_model import (
     AffineEvidence,
     HookeFit,
@@ -63,6 +64,8 @@ MOVED_MM = 0.05  # a refined pose that moves a frame by less than this (0.4 px) 
 MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the placed frame's window
 DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
 DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - correlation)
+DIRECTION_GAP = 3  # frames: a placed neighbour farther in the sequence is across a gap, not the way the probe went
+STILL_MM = 0.3  # a frame whose neighbours are closer than this together has no direction of travel
 ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
 
 
@@ -96,9 +99,11 @@ class Registrar:
     # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
     forces: dict[int, np.ndarray] = field(default_factory=dict)  # every frame seen: sensor forces F1..F4 (N)
+    loads: dict[int, float] = field(default_factory=dict)  # placed frames: total load F_Z (N), the drag's prior
     imu_tilts: dict[int, np.ndarray] = field(default_factory=dict)  # frames with an IMU: its tilts (deg) then
     view_fit: ViewFit | None = None  # the probe's tilt and tissue anisotropy learned from the edges' affines
     kappa_reference: HookeFit | None = None  # kappa fitted to the IMU's tilts (the view fit's prior), if any
+    drag_fit: DragFit | None = None  # the skin's friction drag learned from the edges' inlier pairs (at the end)
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
     _views: dict[int, np.ndarray] = field(default_factory=dict)  # each frame's view D under the current fit
     # each edge (by its frames) corrected under the current fit, with the edge it was corrected from
@@ -282,7 +287,7 @@ class Registrar:
         if found is not None and self.options.direct_refine:
             refined = self._direct(pf, latest, [found.relative], recentre=False)
             if refined is not None:
-                found = Match(refined.transform, found.inliers, found.rms)
+                found = Match(refined.transform, found.inliers, found.rms, pairs=found.pairs)
         if found is None and self.options.direct_fallback:
             found = self._fallback(pf, latest, predicted)
         if found is not None:
@@ -378,6 +383,7 @@ class Registrar:
             view_affine=match.view_affine,
             centre=match.centre,
             lever_mm=match.spread_mm,
+            pairs=match.pairs,
         )
 
     def view(self, index: int) -> np.ndarray:
@@ -396,15 +402,48 @@ class Registrar:
         Each edge is corrected once per view fit (cached by its frames until the next fit_tilt): a refinement
         re-reads hundreds of edges whose correction has not changed.
         """
-        if self.view_fit is None:
+        dragged = self.drag_fit is not None and self.drag_fit.kept
+        if self.view_fit is None and not dragged:
             return edges
         out = []
         for e in edges:
             cached = self._undeformed.get((e.i, e.j))
             if cached is None or cached[0] is not e:
-                cached = (e, e.with_relative(corrected_relative(e.relative, e.affine, self.view(e.i), self.view(e.j))))
+                u = self.undragged(e)
+                if self.view_fit is not None:
+                    u = u.with_relative(corrected_relative(u.relative, u.affine, self.view(e.i), self.view(e.j)))
+                cached = (e, u)
                 self._undeformed[(e.i, e.j)] = cached
             out.append(cached[1])
+        return out
+
+    def undragged(self, e: Edge) -> Edge:
+        """Return an edge between undragged frames (physics.drag), itself without a kept drag fit or inlier pairs."""
+        fit = self.drag_fit
+        if fit is None or not fit.kept or e.pairs is None:
+            return e
+        relative, (affine, view_affine) = undragged_transforms(
+            e.relative, (e.affine, e.view_affine), e.pairs, fit.of(e.i), fit.of(e.j), fit.width_mm
+        )
+        return replace(e, relative=relative, affine=affine, view_affine=view_affine)
+
+    def fit_drag(self) -> DragFit | None:
+        """Return the skin's drag fitted to every edge's inlier pairs (physics.drag), also kept as drag_fit."""
+        evidence = [DragEvidence(e.i, e.j, e.pairs, e.relative.a) for e in self.edges if e.pairs is not None]
+        self.drag_fit = fit_drag(evidence, self.loads, self.directions())
+        self._undeformed = {}
+        return self.drag_fit
+
+    def directions(self) -> dict[int, complex]:
+        """Return each placed frame's unit direction of travel in its own axes (0 when still or alone in its run)."""
+        out: dict[int, complex] = {}
+        order = self.order
+        for k, i in enumerate(order):
+            before = order[k - 1] if k > 0 and i - order[k - 1] <= DIRECTION_GAP else i
+            after = order[k + 1] if k + 1 < len(order) and order[k + 1] - i <= DIRECTION_GAP else i
+            step = self.poses[after].t - self.poses[before].t
+            a = self.poses[i].a
+            out[i] = (step / abs(step)) * (abs(a) / a) if abs(step) > STILL_MM and a != 0 else 0j
         return out
 
     def _view_evidence(self) -> int:
@@ -416,9 +455,8 @@ class Registrar:
 
         The fit is services.core.physics.tissue_model's; None while no fit has succeeded yet.
         """
-        evidence = [
-            AffineEvidence(e.i, e.j, e.view_affine, e.affine_sigma) for e in self.edges if e.view_affine is not None
-        ]
+        undragged = (self.undragged(e) for e in self.edges if e.view_affine is not None)
+        evidence = [AffineEvidence(e.i, e.j, e.view_affine, e.affine_sigma) for e in undragged]
         self.kappa_reference = self._kappa_from_imu()
         fit = fit_view_model(
             evidence,
@@ -465,6 +503,8 @@ class Registrar:
         n = len(self.order)
         if final or n < LOCAL_REFINE_FROM or n >= GLOBAL_GROWTH * self.last_global_refine:
             self.last_global_refine = n
+            if final and self.options.fit_drag:
+                self.fit_drag()
             if self.options.fit_tilt and (
                 final or self._view_evidence() >= VIEW_REFIT_GROWTH * self.last_view_evidence
             ):
@@ -534,6 +574,7 @@ class Registrar:
         self.features[pf.index] = pf.features
         self.times[pf.index] = pf.t_s
         self.stretches[pf.index] = pf.stretch
+        self.loads[pf.index] = pf.load.fz_n
         self.edges.extend(edges)
         self.order.append(pf.index)
         self.veins[pf.index] = (pf.vein, np.packbits(pf.vein_mask > 0), _vein_scale(pf))

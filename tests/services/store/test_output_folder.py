@@ -57,10 +57,12 @@ def test_path_csv_columns_and_blank_cells() -> None:
         "status",
         "reason",
         "stroke",
+        "drag_x_mm",
+        "drag_y_mm",
     )  # spec §4 in its order, with why a frame was not placed after its status (issue 6: never fail silently)
     assert len(table) == 4
     assert table[2][2:5] == ["", "", ""]  # the lost frame has no position
-    assert table[2][-3:] == ["lost", "few_inliers", ""] and table[2][0] == "1"  # no stroke known: blank
+    assert table[2][-5:] == ["lost", "few_inliers", "", "", ""] and table[2][0] == "1"  # no stroke, no drag: blank
     assert table[3][2] == "1.2346"  # 4 decimals: 0.1 um, far below any accuracy the probe reaches
 
 

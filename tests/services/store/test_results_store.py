@@ -185,7 +185,7 @@ def test_path_state_meta_report_reference_images_tiles(stores: tuple[ResultsStor
     assert got[0]["x_mm"] == 0.0 and got[0]["status"] == "ok"
     assert got[1]["x_mm"] is None and got[1]["t_s"] == 0.6 and got[1]["status"] == "lost"
     assert list(got[0]) == ["seq", "t_s", "x_mm", "y_mm", "yaw_deg", "fz_n", "tilt_x_deg", "tilt_y_deg",
-                            "stretch", "inliers", "status", "reason", "stroke"]  # fmt: skip
+                            "stretch", "inliers", "status", "reason", "stroke", "drag_x_mm", "drag_y_mm"]  # fmt: skip
     assert rs.read_state(sid, 1) is None
     rs.write_state(sid, 1, VersionState(cursor=2, fence=3, lost=[1]))
     assert rs.read_state(sid, 1) == VersionState(cursor=2, fence=3, finished=False, lost=(1,))

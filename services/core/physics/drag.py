@@ -1,0 +1,256 @@
+"""Friction drag of the skin under a sliding window, learned from the scan (beyond spec §2's radial model).
+
+A probe sliding over skin drags it along: the skin under the window's centre, where it sticks, is displaced most,
+and less toward the rim, where it slips. A frame point p (rectified mm about the window's centre, complex) shows the
+skin whose rest position is, in the frame's undeformed coordinates,
+
+    p - D_k phi(|p|),    phi(r) = exp(-r^2 / (2 w^2))
+
+with D_k the frame's drag (complex mm, the frame's axes) and w the profile's width, one per scan. The skin under the
+centre rests at -D_k: the path is the pose of that point (the rest position the mosaic and a tracker are about).
+
+Evidence: every feature match's inlier pairs (p_j in frame j, p_i in frame i, the same skin point). With the drag
+undone they are related by an affine (the similarity of the poses, times the views' stretches), so
+
+    r = P (p_i - D_i phi(p_i) + a_ij D_j phi(p_j))
+
+is zero but for noise, P projecting out what an affine of p_j explains (so the tilt and tissue models, affine,
+are left alone) and a_ij the match's rotation and scale. What no affine explains is the profile's curvature over
+the overlap, seen at two places of the window: r is linear in the drags, so every frame's drag is one sparse
+complex least-squares solve, with a prior that grows along the motion with the load (D_k ~ g F_k u_k, g fitted, u_k
+the direction of travel in the frame's axes). The width is chosen by the evidence (the smallest weighted residual
+on a grid); the drag is kept only where it explains the residuals beyond its parameters (an AIC test).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.linalg import spsolve
+
+from services.core.similarity import Similarity
+
+WIDTHS_MM = (8.0, 11.0, 15.0, 20.0, 27.0)  # the profile widths tried (the shared scans' window: ~78 x 58 mm)
+PRIOR_SIGMA_MM = 0.6  # a frame's drag about the prior g F u (1 sigma): stick-slip swings it by about this
+GAIN_SIGMA_MM_PER_N = 0.5  # the gain g's own weak prior about 0 (mm per N)
+MIN_EDGES = 20  # fewer feature edges: no drag fitted
+MIN_PAIRS = 8  # an edge with fewer inlier pairs carries no curvature worth fitting
+NOISE_FLOOR_MM = 0.02  # an edge's point noise is at least this (a perfect-looking fit is no infinite weight)
+AIC_FACTOR = 2.0  # the drag is kept when it lowers the weighted residual by more than this per effective parameter
+
+
+@dataclass(frozen=True)
+class DragEvidence:
+    """One feature match: frames i (placed) and j, inlier pairs (n, 4: p_j x, y then p_i x, y; mm) and the match's
+    rotation and scale a_ij (frame j mm -> frame i mm)."""
+
+    i: int
+    j: int
+    pairs: np.ndarray
+    a: complex
+
+
+@dataclass(frozen=True)
+class DragFit:
+    """The scan's drag: the profile width (mm), every frame's drag (complex mm, the frame's axes), the gain of the
+    prior (complex mm per N along the motion), the weighted residuals (chi-square units) without and with the
+    drag, the edges and pairs used, and whether the evidence keeps it (kept False: every drag is 0)."""
+
+    width_mm: float
+    drag_mm: Mapping[int, complex]
+    gain_mm_per_n: complex
+    cost_without: float
+    cost_with: float
+    n_edges: int
+    n_pairs: int
+    kept: bool
+
+    def of(self, frame: int) -> complex:
+        """Return a frame's drag (complex mm, its axes): 0 where none was fitted or the drag is not kept."""
+        return self.drag_mm.get(frame, 0j) if self.kept else 0j
+
+    def to_dict(self) -> dict[str, float | int | bool]:
+        """Return the fitted profile for the report's "tissue" (mm, mm/N, deg from the motion, chi-square units)."""
+        drags = np.abs(np.array(list(self.drag_mm.values()) or [0j]))
+        return {
+            "drag_kept": self.kept,
+            "drag_width_mm": self.width_mm,
+            "drag_gain_mm_per_n": abs(self.gain_mm_per_n),
+            "drag_angle_deg": math.degrees(float(np.angle(self.gain_mm_per_n))),
+            "drag_median_mm": float(np.median(drags)) if self.kept else 0.0,
+            "drag_max_mm": float(drags.max()) if self.kept else 0.0,
+            "drag_residual_without": self.cost_without,
+            "drag_residual_with": self.cost_with,
+            "drag_edges": self.n_edges,
+            "drag_pairs": self.n_pairs,
+        }
+
+
+def profile(points: np.ndarray, width_mm: float) -> np.ndarray:
+    """Return phi(|p|) (dimensionless, 1 at the centre) of complex points (mm about the window's centre)."""
+    return np.exp(-(np.abs(points) ** 2) / (2.0 * width_mm**2))
+
+
+def undrag(points: np.ndarray, drag_mm: complex, width_mm: float) -> np.ndarray:
+    """Return complex frame points (mm) with the drag undone: p - D phi(|p|) (the skin's rest place)."""
+    return points - drag_mm * profile(points, width_mm)
+
+
+def _complex(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    p = np.asarray(pairs, np.float64)
+    return p[:, 0] + 1j * p[:, 1], p[:, 2] + 1j * p[:, 3]
+
+
+@dataclass(frozen=True)
+class _Terms:
+    """Each edge's inner products after the affine projection (module docstring): |P phi_i|^2, P phi_i . P phi_j,
+    |P phi_j|^2 (real), P phi_i . P p_i, P phi_j . P p_i (complex), |P p_i|^2, each times the edge's weight."""
+
+    gii: np.ndarray
+    gij: np.ndarray
+    gjj: np.ndarray
+    hi: np.ndarray
+    hj: np.ndarray
+    hh: np.ndarray
+
+
+def _weights(evidence: Sequence[DragEvidence]) -> np.ndarray:
+    """Return each edge's weight (1/mm^2): one point noise for the scan (the median edge's affine RMS residual),
+    Cauchy-down-weighted where an edge's own residual is far above it (a match that no affine nor drag explains)."""
+    rms = np.empty(len(evidence))
+    for k, ev in enumerate(evidence):
+        pj, pi = _complex(ev.pairs)
+        design = np.column_stack([pj.real, pj.imag, np.ones(len(pj))])
+        target = np.column_stack([pi.real, pi.imag])
+        fit, *_ = np.linalg.lstsq(design, target, rcond=None)
+        rms[k] = math.sqrt(float(np.sum((design @ fit - target) ** 2)) / max(len(pj) - 3, 1))
+    noise = max(float(np.median(rms)), NOISE_FLOOR_MM)
+    return 1.0 / (noise**2 * (1.0 + (rms / (3.0 * noise)) ** 2))
+
+
+def _terms(evidence: Sequence[DragEvidence], weights: np.ndarray, width_mm: float) -> _Terms:
+    out = np.zeros((6, len(evidence)), complex)
+    for k, ev in enumerate(evidence):
+        pj, pi = _complex(ev.pairs)
+        basis, _ = np.linalg.qr(np.column_stack([pj.real, pj.imag, np.ones(len(pj))]))
+
+        def project(v: np.ndarray, q: np.ndarray = basis) -> np.ndarray:
+            return v - q @ (q.T @ v.real) - 1j * (q @ (q.T @ v.imag)) if np.iscomplexobj(v) else v - q @ (q.T @ v)
+
+        gi, gj, h = project(profile(pi, width_mm)), project(profile(pj, width_mm)), project(pi)
+        out[:, k] = weights[k] * np.array([gi @ gi, gi @ gj, gj @ gj, gi @ h, gj @ h, np.vdot(h, h)])
+    return _Terms(out[0].real, out[1].real, out[2].real, out[3], out[4], out[5].real)
+
+
+def _solve(
+    evidence: Sequence[DragEvidence], terms: _Terms, frames: Sequence[int], prior_mean: np.ndarray
+) -> tuple[np.ndarray, complex, float]:
+    """Return (each frame's drag, the gain g, the weighted cost) minimising the evidence's residuals plus the
+    prior |D_k - g m_k|^2 / PRIOR_SIGMA^2 (m_k = F_k u_k) and |g|^2 / GAIN_SIGMA^2: one Hermitian sparse solve."""
+    n = len(frames)
+    col = {f: k for k, f in enumerate(frames)}
+    ii = np.array([col[ev.i] for ev in evidence])
+    jj = np.array([col[ev.j] for ev in evidence])
+    a = np.array([ev.a for ev in evidence], complex)
+    # the edge's quadratic form in (D_i, D_j): [[gii, -a gij], [-conj(a) gij, |a|^2 gjj]], right side [hi, -conj(a) hj]
+    rows = [ii, ii, jj, jj]
+    cols = [ii, jj, ii, jj]
+    vals = [terms.gii + 0j, -a * terms.gij, -np.conj(a) * terms.gij, np.abs(a) ** 2 * terms.gjj]
+    rhs = np.zeros(n + 1, complex)
+    np.add.at(rhs, ii, terms.hi)
+    np.add.at(rhs, jj, -np.conj(a) * terms.hj)
+    # the prior: (D_k - g m_k) / s, unknown g at column n
+    p = 1.0 / PRIOR_SIGMA_MM**2
+    k = np.arange(n)
+    m = np.asarray(prior_mean, complex)
+    rows += [k, k, np.full(n, n), np.array([n])]
+    cols += [k, np.full(n, n), k, np.array([n])]
+    vals += [np.full(n, p + 0j), -p * m, -p * np.conj(m), np.array([p * np.vdot(m, m) + 1.0 / GAIN_SIGMA_MM_PER_N**2])]
+    normal = coo_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n + 1, n + 1)
+    ).tocsc()
+    z = spsolve(normal, rhs)
+    cost = float(np.sum(terms.hh) - np.real(np.vdot(z, rhs)))  # at the minimum: h.h - z^H b
+    return z[:n], complex(z[n]), cost
+
+
+def fit_drag(
+    evidence: Sequence[DragEvidence],
+    loads_n: Mapping[int, float],
+    directions: Mapping[int, complex],
+    widths_mm: Sequence[float] = WIDTHS_MM,
+) -> DragFit | None:
+    """Return the scan's drag fitted to the matches' inlier pairs (module docstring), or None on too little
+    evidence. loads_n: each frame's load (N); directions: its unit direction of travel in its own axes (0: still)."""
+    usable = [ev for ev in evidence if ev.pairs is not None and len(ev.pairs) >= MIN_PAIRS]
+    if len(usable) < MIN_EDGES:
+        return None
+    frames = sorted({ev.i for ev in usable} | {ev.j for ev in usable})
+    prior_mean = np.array([loads_n.get(f, 0.0) * directions.get(f, 0j) for f in frames], complex)
+    best: tuple[float, float, np.ndarray, complex] | None = None
+    without = 0.0
+    weights = _weights(usable)
+    for width in widths_mm:
+        terms = _terms(usable, weights, width)
+        without = float(np.sum(terms.hh))
+        drags, gain, cost = _solve(usable, terms, frames, prior_mean)
+        if best is None or cost < best[0]:
+            best = (cost, width, drags, gain)
+    assert best is not None
+    cost, width, drags, gain = best
+    # effective parameters: 2 per frame shrunk by the prior, counted as the frames the evidence pins (a bound)
+    kept = without - cost > AIC_FACTOR * 2.0 * (len(frames) + 2)
+    return DragFit(
+        width,
+        dict(zip(frames, (complex(d) for d in drags), strict=True)),
+        gain,
+        without,
+        cost,
+        len(usable),
+        int(sum(len(ev.pairs) for ev in usable)),
+        kept,
+    )
+
+
+def undragged_transforms(
+    relative: Similarity,
+    affines: Sequence[np.ndarray | None],
+    pairs: np.ndarray,
+    drag_i: complex,
+    drag_j: complex,
+    width_mm: float,
+) -> tuple[Similarity, list[np.ndarray | None]]:
+    """Return an edge's relative similarity and affines (frame j mm -> frame i mm, 2x3) between undragged frames.
+
+    Each is the measured one composed (on frame i's side) with what undoing the drags changes in the least-squares
+    fit of the edge's pairs (a similarity for the relative, an affine for the affines): so what the measurement
+    adds to its raw pairs (a direct alignment's refinement, the inliers the pairs leave out) is kept.
+    """
+    pj, pi = _complex(pairs)
+    qj, qi = undrag(pj, drag_j, width_mm), undrag(pi, drag_i, width_mm)
+    moved = _lsq_similarity(qj, qi).compose(_lsq_similarity(pj, pi).inverse()).compose(relative)
+    delta = _homogeneous(_lsq_affine(qj, qi)) @ np.linalg.inv(_homogeneous(_lsq_affine(pj, pi)))
+    return moved, [None if a is None else (delta @ _homogeneous(a))[:2] for a in affines]
+
+
+def _homogeneous(affine: np.ndarray) -> np.ndarray:
+    return np.vstack([np.asarray(affine, np.float64), [0.0, 0.0, 1.0]])
+
+
+def _lsq_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Return the least-squares affine (2x3) dst ~ A src of complex point sets."""
+    design = np.column_stack([src.real, src.imag, np.ones(len(src))])
+    fit, *_ = np.linalg.lstsq(design, np.column_stack([dst.real, dst.imag]), rcond=None)
+    return fit.T
+
+
+def _lsq_similarity(src: np.ndarray, dst: np.ndarray) -> Similarity:
+    """Return the least-squares similarity dst ~ a src + t of complex point sets."""
+    ms, md = src.mean(), dst.mean()
+    s, d = src - ms, dst - md
+    a = complex(np.vdot(s, d) / max(np.vdot(s, s).real, 1e-12))
+    return Similarity(a, md - a * ms)
