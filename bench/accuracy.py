@@ -17,7 +17,9 @@ the error lies (evaluation.GlobalError): the path's scale % (+ too large) and tu
 left after that similarity (the path's shape), and `air placed`: frames placed that the reference has no row for
 (taken in the air: none should be).
 Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe: a patient as on the shared scans (a hand's tilt,
-a tissue law of that shape with x/y anisotropy), not an imaging look.
+a tissue law of that shape with x/y anisotropy), not an imaging look. Cell drag: that patient (linear law) with
+the skin dragged by friction under the sliding window (simulation/skin_drag.py: stick-slip, 0.1-0.25 mm per N at
+the window's centre, fading to the rim), the reference at the skin's rest position.
 
 --texture PHOTO: the simulated cells' veins are a photograph's dark vessels instead of the procedural network
 (vein_texture.make_photo_world), e.g. a fundus photograph as issue 14's hidden "real retinal vessel texture"
@@ -78,7 +80,8 @@ LOOKS: dict[str, Callable[[ImagingVariant], ImagingVariant]] = {
 }
 # a patient as on the shared scans: a hand's tilt and a tissue law of each shape (simulate(..., tissue=...))
 TISSUE_CELLS = {f"tissue-{law}": law for law in TISSUE_LAWS}
-QUICK_LOOKS = ("default", "faint", "noise4", "heavy-blur", "16bit", *TISSUE_CELLS)
+DRAG_CELLS = {"drag": "linear"}  # a patient (linear law, a hand's tilt) whose skin the sliding window drags
+QUICK_LOOKS = ("default", "faint", "noise4", "heavy-blur", "16bit", *TISSUE_CELLS, *DRAG_CELLS)
 QUICK_SCENARIOS = ("short",)
 FULL_SCENARIOS = ("raster", "revisit", "hard", "strokes")  # strokes: lifts, frames in the air, an island, drops
 
@@ -102,6 +105,8 @@ class Cell:
         photo = None if self.texture is None else read_texture_photo(self.texture)
         if self.look in TISSUE_CELLS:
             return simulate(self.scenario, self.seed, tissue=TISSUE_CELLS[self.look], texture=photo)
+        if self.look in DRAG_CELLS:
+            return simulate(self.scenario, self.seed, tissue=DRAG_CELLS[self.look], texture=photo, drag=True)
         imaging = LOOKS[self.look](scenario_imaging(self.scenario))
         return simulate(self.scenario, self.seed, dataclasses.replace(imaging, name=self.look), texture=photo)
 
@@ -117,9 +122,9 @@ def shared_cells(root: Path) -> list[Cell]:
 
 def sim_cells(scenarios: list[str], looks: list[str], seeds: list[int], texture: Path | None = None) -> list[Cell]:
     """Return the simulator's Cells: every scenario x look x seed (over a texture photograph's vessels if given)."""
-    unknown = [lk for lk in looks if lk not in LOOKS and lk not in TISSUE_CELLS]
+    unknown = [lk for lk in looks if lk not in LOOKS and lk not in TISSUE_CELLS and lk not in DRAG_CELLS]
     if unknown:
-        raise SystemExit(f"unknown cells {unknown}; expected some of {', '.join([*LOOKS, *TISSUE_CELLS])}")
+        raise SystemExit(f"unknown cells {unknown}; expected some of {', '.join([*LOOKS, *TISSUE_CELLS, *DRAG_CELLS])}")
     return [
         Cell(
             "sim",

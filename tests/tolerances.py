@@ -48,6 +48,11 @@ class Tolerances:
     # mm flags a suspiciously perfect answer (the continuous simulated raster is 0.1-0.2 mm).
     sim_strokes_rmse_mm: tuple[float, float] = (0.05, 0.3)
 
+    # `best` on the simulated short scan with skin drag (seed 1, linear law, a hand's tilt; drag 0.16 mm/N with a
+    # 9 mm stuck core): measured 0.350 mm (0.416 mm with the drag not learned, fit_drag=false); the upper bound
+    # leaves 15 % for other platforms' OpenCV, the lower flags a suspiciously perfect answer
+    sim_short_drag_rmse_mm: tuple[float, float] = (0.1, 0.4)
+
     # `best` on the simulated short scan (seed 1, a patient with the linear law and a hand's tilt) whose veins are
     # a photograph's vessels (test_vein_texture.vessel_photo: 30 straight vessels): measured 0.266 mm, against
     # 0.293 mm over the procedural veins of the same scan. <= 0.6 mm says the registration does not depend on the

@@ -12,6 +12,7 @@ from services.core.physics.camera import px_to_mm, undistort_points_px
 from services.core.physics.force_model import LoadState, local_load_n
 from services.core.physics.rectification import pixel_grid
 from services.core.simulation.probe_path import rotation
+from services.core.simulation.skin_drag import SkinDrag, dragged_rest_mm
 from services.core.simulation.vein_texture import World
 
 UNMODELLED_RADIAL = 0.05  # the true stretch grows by this fraction at |p'| = UNMODELLED_RADIUS_MM (not in §2)
@@ -181,9 +182,16 @@ def render_scene(
     state: LoadState,
     true_calib: Calibration,
     law: TissueLaw | None = None,
+    drag: tuple[SkinDrag, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """Return the noiseless deformed view (float32 H x W, reflectance 0..1) seen through the lens."""
-    map_x, map_y = world_maps(true_undeformed_mm(geometry, state, true_calib, law), world, centre_mm, yaw_deg)
+    """Return the noiseless deformed view (float32 H x W, reflectance 0..1) seen through the lens.
+
+    drag: the scan's skin drag and this frame's drag at the centre (2,) mm in its axes (skin_drag), or None.
+    """
+    undeformed = true_undeformed_mm(geometry, state, true_calib, law)
+    if drag is not None:
+        undeformed = dragged_rest_mm(undeformed, *drag)
+    map_x, map_y = world_maps(undeformed, world, centre_mm, yaw_deg)
     return cv2.remap(world.image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
 
 

@@ -29,6 +29,7 @@ from services.core.simulation.renderer import (
     motion_blur_kernel,
     render_scene,
 )
+from services.core.simulation.skin_drag import draw_skin_drag, frame_drags_mm
 from services.core.simulation.strokes import (
     air_frame,
     clock_skew_s,
@@ -165,6 +166,7 @@ def simulate(
     frames: int | None = None,
     imu: bool = False,
     texture: np.ndarray | None = None,
+    drag: bool = False,
 ) -> Scan:
     """Return a simulated Scan (frames in memory) of a scenario in SCENARIOS, deterministic for the seed.
 
@@ -184,6 +186,9 @@ def simulate(
     texture: a photograph (grayscale or BGR, 8/16 bit) whose dark vessels become the veins instead of the
     procedural network (a fundus photograph: the "real retinal vessel texture" of issue 14's hidden raster), at
     TEXTURE_MM_PER_PX; truth["texture"] says which.
+    drag: the skin is dragged by friction under the sliding window (simulation.skin_drag: stick-slip, a
+    centre-to-rim profile); the reference is then where the skin under the window's centre rests, and truth
+    gains "drag" (the profile) and "drag_mm" (each frame's drag at the centre, its axes).
     """
     if scenario not in ALL_SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(ALL_SCENARIOS)}")
@@ -191,9 +196,9 @@ def simulate(
         raise ValueError("frames: only an exam's length can be chosen, at least 24 frames")
     look = resolve_imaging(scenario, imaging)
     cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)
-    rng_const, rng_path, rng_world, rng_img, rng_stream = (
-        np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), ALL_SCENARIOS.index(scenario)]).spawn(5)
-    )
+    rng_const, rng_path, rng_world, rng_img, rng_stream, rng_drag = (  # spawned children: the first five
+        np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), ALL_SCENARIOS.index(scenario)]).spawn(6)
+    )  # are the same whatever the count, so a scan with drag is the same scan otherwise
     calib = nominal_calibration()
     e_true, kappa_true = draw_true_constants(rng_const)
     spec = scenario_motion_spec(scenario, frames) if scenario not in ("calib", *STROKE_SCENARIOS) else None
@@ -233,12 +238,18 @@ def simulate(
     blurred_flags &= blur_px > 1  # a 1-px "streak" is no blur
     angles = motion_angles_deg(motion) + rng_img.normal(0.0, 10.0, n)  # the hand's jitter about the motion
     gains = frame_gains(rng_img, n, look)
+    skin_drag = draw_skin_drag(rng_drag) if drag else None
+    on_skin = ~in_air if in_air is not None else np.ones(n, bool)
+    drags = frame_drags_mm(rng_drag, skin_drag, motion, fz, on_skin) if skin_drag else np.zeros((n, 2))
     frames = []
     for k in range(n):
         kernel = motion_blur_kernel(int(blur_px[k]), float(angles[k])) if blur_px[k] > 1 else None
         frame_imaging = Imaging(noise_dn=look.noise_dn, gain=float(gains[k]), blur_kernel=kernel, dtype=look.dtype)
         state = LoadState(float(fz[k]), float(tx[k]), float(ty[k]))
-        scene = render_scene(world, geometry, motion.centre_mm[k], float(motion.yaw_deg[k]), state, true_calib, law)
+        dragged = (skin_drag, drags[k]) if skin_drag is not None else None
+        scene = render_scene(
+            world, geometry, motion.centre_mm[k], float(motion.yaw_deg[k]), state, true_calib, law, dragged
+        )
         if in_air is not None and in_air[k]:
             scene = air_frame(scene, rng_img)
         frames.append(apply_imaging(scene, geometry, frame_imaging, rng_img))
@@ -255,7 +266,8 @@ def simulate(
     skew = clock_skew_s(rng_stream) if in_air is not None else 0.0  # the force logger's clock, off the camera's
     dropped = dropped_frames(rng_stream, n) if in_air is not None else np.zeros(n, bool)
 
-    xy, yaw = frame_poses(motion)
+    rest = motion.centre_mm - np.einsum("kij,kj->ki", np.stack([rotation(float(a)) for a in motion.yaw_deg]), drags)
+    xy, yaw = frame_poses(dataclasses.replace(motion, centre_mm=rest))  # the skin under the centre, at rest
     angles_deg = np.stack([yaw, np.rad2deg(tx), np.rad2deg(ty)], axis=1)
     if in_air is not None:  # a tracker's reference has no row for a frame taken in the air
         xy[in_air] = np.nan
@@ -279,6 +291,8 @@ def simulate(
         "tissue": law.to_dict(),
         "texture": "procedural" if texture is None else "photograph",
     }
+    if skin_drag is not None:
+        truth.update(drag=skin_drag.to_dict(), drag_mm=[[float(x), float(y)] for x, y in drags])
     if in_air is not None:
         truth.update(
             in_air=[int(i) for i in np.flatnonzero(in_air)],
