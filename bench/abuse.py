@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 from cli.launcher import api_command, free_port, service_env, start_process, stop_processes, wait_until_ready  # noqa: E402
 from services.jobs.redis_backend import read_embedded_url  # noqa: E402
 
-KEY = "abuse-bench-key"
+KEY = "abuse-bench-key-0123456789abcdef"
 CALIBRATION = {
     "image_size": [64, 48],
     "camera_matrix": [[80.0, 0.0, 31.5], [0.0, 80.0, 23.5], [0.0, 0.0, 1.0]],

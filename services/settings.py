@@ -19,6 +19,10 @@ from services.core.methods import METHOD_NAMES
 from services.pacs.destinations import Destination, destinations_from_doc, parse_destinations
 
 Scope = Literal["ingest", "view", "admin"]
+# secrets shorter than these are refused at start-up (a short key or secret can be guessed offline from a
+# fingerprint or a signed link); `python -c "import secrets; print(secrets.token_urlsafe(32))"` makes one
+MIN_TOKEN_SECRET_CHARS = 32
+MIN_API_KEY_CHARS = 24
 
 
 class WorkerSettings(BaseModel):
@@ -130,6 +134,30 @@ class Settings(BaseSettings):
     pacs_timeout_s: float = Field(default=30.0, gt=0)  # a send's connect, each answer and each write wait this long
     # destinations every session is sent to once it is done (the send job is queued when the session is finished)
     pacs_auto_send: list[str] = Field(default_factory=list)
+
+    @field_validator("api_keys")
+    @classmethod
+    def _keys_long_enough(cls, value: dict[str, list[Scope]]) -> dict[str, list[Scope]]:
+        """Refuse an API key shorter than MIN_API_KEY_CHARS (the message names its scopes, never the key)."""
+        for key, scopes in value.items():
+            if len(key) < MIN_API_KEY_CHARS:
+                raise ValueError(
+                    f"an API key (scopes {', '.join(scopes) or 'none'}) has {len(key)} characters; at least "
+                    f"{MIN_API_KEY_CHARS} are required (make one with secrets.token_urlsafe(32))"
+                )
+        return value
+
+    @field_validator("token_secret")
+    @classmethod
+    def _secret_long_enough(cls, value: SecretStr | None) -> SecretStr | None:
+        """Refuse a viewer-token secret shorter than MIN_TOKEN_SECRET_CHARS (unset: data_dir/secret is made)."""
+        if value is not None and len(value.get_secret_value()) < MIN_TOKEN_SECRET_CHARS:
+            raise ValueError(
+                f"VEINMOSAIC_TOKEN_SECRET has {len(value.get_secret_value())} characters; at least "
+                f"{MIN_TOKEN_SECRET_CHARS} are required (make one with secrets.token_urlsafe(32), or leave it "
+                "unset for a random one in data_dir/secret)"
+            )
+        return value
 
     @field_validator("pacs_destinations", mode="before")
     @classmethod

@@ -67,7 +67,7 @@ def _send_chunked_until_answered(base_url: str, path: str, total: int, chunk: in
     sent = 0
     try:
         head = (
-            f"POST {path} HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer ingest-key-a\r\n"
+            f"POST {path} HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer ingest-key-a-0123456789abcdef\r\n"
             "Content-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n"
         )
         sock.sendall(head.encode())

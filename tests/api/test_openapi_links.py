@@ -54,7 +54,7 @@ def test_job_and_batch_answers_link_to_their_status(client: TestClient) -> None:
 
 
 def test_a_new_route_gets_its_link_without_being_listed() -> None:
-    app = create_app(Settings(api_keys={}, token_secret="x"))
+    app = create_app(Settings(api_keys={}, token_secret="openapi-test-secret-0123456789abcdef"))
 
     def shiny(session_id: str) -> dict[str, str]:
         return {"session": session_id}
@@ -66,7 +66,7 @@ def test_a_new_route_gets_its_link_without_being_listed() -> None:
 
 
 def test_no_link_when_the_producer_lacks_its_field() -> None:
-    app = create_app(Settings(api_keys={}, token_secret="x"))
+    app = create_app(Settings(api_keys={}, token_secret="openapi-test-secret-0123456789abcdef"))
     doc = get_openapi(title="t", version="1", routes=app.routes)
     del doc["components"]["schemas"]["SessionCreated"]["properties"]["id"]
     links = add_links(doc)["paths"]["/v1/sessions"]["post"]["responses"]["201"].get("links")

@@ -16,7 +16,7 @@ from live_server import live_api
 from api.auth import fingerprint
 from services.store.audit import AuditLog
 
-ADMIN = auth("admin-key")
+ADMIN = auth("admin-key-0123456789abcdef")
 
 
 def test_chain_verifies_and_any_edit_breaks_it(tmp_path: Path) -> None:
@@ -59,21 +59,25 @@ def test_requests_are_audited_and_admins_query_them(client: TestClient, session_
     assert client.get(f"/v1/sessions/{session_id}/path?format=csv", headers=INGEST).status_code == 200
     viewer = client.get(f"/v1/sessions/{token['id']}?token={token['viewer_token']}")
     assert viewer.status_code == 200
-    assert client.get(f"/v1/sessions/{session_id}", headers=auth("ingest-key-b")).status_code == 404
+    assert client.get(f"/v1/sessions/{session_id}", headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404
 
     assert client.get("/v1/audit", headers=INGEST).status_code == 403  # admin scope only
     assert client.get("/v1/audit").status_code == 401
     page = client.get("/v1/audit", params={"session": session_id, "limit": 50}, headers=ADMIN).json()
     actions = [(r["action"], r["actor"], r["status"]) for r in page["records"]]
-    owner = f"key:{fingerprint('ingest-key-a')[:16]}"
+    owner = f"key:{fingerprint('ingest-key-a-0123456789abcdef')[:16]}"
     assert ("frame.upload", owner, 202) in actions and actions.count(("frame.upload", owner, 202)) == 2
     assert ("path.export", owner, 200) in actions
-    assert ("session.read", f"key:{fingerprint('ingest-key-b')[:16]}", 404) in actions  # a refused look
+    assert (
+        "session.read",
+        f"key:{fingerprint('ingest-key-b-0123456789abcdef')[:16]}",
+        404,
+    ) in actions  # a refused look
     assert all(r["client"] and r["request_id"] for r in page["records"])
     by_token = client.get("/v1/audit", params={"session": token["id"]}, headers=ADMIN).json()["records"]
     assert ("session.read", f"token:{token['id']}") in [(r["action"], r["actor"]) for r in by_token]
     raw = (client.app.state.settings.data_dir / "audit" / "audit.jsonl").read_text()  # type: ignore[attr-defined]
-    assert "ingest-key-a" not in raw and token["viewer_token"] not in raw  # never a key or a token
+    assert "ingest-key-a-0123456789abcdef" not in raw and token["viewer_token"] not in raw  # never a key or a token
     verified = client.get("/v1/audit/verify", headers=ADMIN).json()
     assert verified["ok"] and verified["records"] >= 8
 
@@ -149,7 +153,7 @@ def test_label_canary_never_in_logs_or_foreign_responses(tmp_path: Path) -> None
         owner_view = call("GET", f"/v1/sessions/{sid}", headers=INGEST)
         admin_view = call("GET", f"/v1/sessions/{sid}", headers=ADMIN)
         call("GET", f"/v1/sessions/{sid}?token={token}")
-        call("GET", f"/v1/sessions/{sid}", headers=auth("ingest-key-b"))
+        call("GET", f"/v1/sessions/{sid}", headers=auth("ingest-key-b-0123456789abcdef"))
         for path in ("/path", "/path?format=csv", "/mosaic.json", "/report", "/mosaic.png"):
             call("GET", f"/v1/sessions/{sid}{path}", params={"token": token})
         call("POST", f"/v1/sessions/{sid}/finish", headers=INGEST)

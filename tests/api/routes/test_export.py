@@ -208,22 +208,26 @@ AUTH_ROUTES = (
 def test_export_and_sheet_auth(ready: tuple[TestClient, dict, MosaicImage]) -> None:
     client, created, _ = ready
     sid, token = created["id"], created["viewer_token"]
-    other = create(client, key=auth("ingest-key-b"))
+    other = create(client, key=auth("ingest-key-b-0123456789abcdef"))
     expired = make_viewer_token(client.app.state.token_secret, sid, 10, now=1000.0)  # type: ignore[attr-defined]
     for route in AUTH_ROUTES:
         url = f"/v1/sessions/{sid}{route}"
         sep = "&" if "?" in url else "?"
         assert client.get(url).status_code == 401, route  # no key
         assert client.get(url, headers=auth("no-such-key")).status_code == 401, route
-        assert client.get(url, headers=auth("ingest-key-b")).status_code == 404, route  # another key's session
-        assert client.get(url, headers=auth("view-key")).status_code == 404, route  # view scope, not the owner
+        assert client.get(url, headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404, (
+            route
+        )  # another key's session
+        assert client.get(url, headers=auth("view-key-0123456789abcdef")).status_code == 404, (
+            route
+        )  # view scope, not the owner
         assert client.get(f"{url}{sep}token={other['viewer_token']}").status_code == 401, route  # another session
         assert client.get(f"{url}{sep}token={expired}").status_code == 401, route
-        assert client.get(url, headers=auth("admin-key")).status_code == 200, route
+        assert client.get(url, headers=auth("admin-key-0123456789abcdef")).status_code == 200, route
         assert client.get(url, headers=INGEST).status_code == 200, route
         assert client.get(f"{url}{sep}token={token}").status_code == 200, route  # the viewer's link
     # a refusal says nothing about the session (no patient data in errors)
-    refused = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=auth("ingest-key-b"))
+    refused = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=auth("ingest-key-b-0123456789abcdef"))
     assert _error(refused)["code"] == "not_found" and "Jane" not in refused.text
 
 

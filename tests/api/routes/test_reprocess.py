@@ -100,12 +100,12 @@ def test_reprocess_preconditions_and_auth(client: TestClient, session_id: str) -
     sid = finished_session(client)
     url = f"/v1/sessions/{sid}/reprocess"
     assert client.post(url, json={}).status_code == 401
-    assert client.post(url, json={}, headers=auth("ingest-key-b")).status_code == 404
-    assert client.post(url, json={}, headers=auth("view-key")).status_code == 403
+    assert client.post(url, json={}, headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404
+    assert client.post(url, json={}, headers=auth("view-key-0123456789abcdef")).status_code == 403
     token = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()
     assert client.post(url, json={}, headers={"Authorization": f"Bearer {token['viewer_token']}"}).status_code == 401
     assert client.post(url, json={"options": {}, "extra": 1}, headers=INGEST).status_code == 422
-    assert client.post(url, json={}, headers=auth("admin-key")).status_code == 202
+    assert client.post(url, json={}, headers=auth("admin-key-0123456789abcdef")).status_code == 202
     empty = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()["id"]
     client.post(f"/v1/sessions/{empty}/finish", headers=INGEST)
     resp = client.post(f"/v1/sessions/{empty}/reprocess", json={}, headers=INGEST)
@@ -117,9 +117,9 @@ def test_job_visibility(client: TestClient) -> None:
     job = client.post(f"/v1/sessions/{sid}/reprocess", json={}, headers=INGEST).json()["job"]
     url = f"/v1/jobs/{job}"
     assert client.get(url, headers=INGEST).status_code == 200
-    assert client.get(url, headers=auth("admin-key")).status_code == 200
-    assert client.get(url, headers=auth("ingest-key-b")).status_code == 404
-    assert client.get(url, headers=auth("view-key")).status_code == 404
+    assert client.get(url, headers=auth("admin-key-0123456789abcdef")).status_code == 200
+    assert client.get(url, headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404
+    assert client.get(url, headers=auth("view-key-0123456789abcdef")).status_code == 404
     assert client.get(url).status_code == 401
     assert client.get("/v1/jobs/0123456789abcdef0123456789abcdef", headers=INGEST).status_code == 404
     assert client.get("/v1/jobs/..%2Fsecret", headers=INGEST).status_code == 404
@@ -127,7 +127,7 @@ def test_job_visibility(client: TestClient) -> None:
 
 def test_batch_reprocess(client: TestClient) -> None:
     a1, a2 = finished_session(client), finished_session(client)
-    b1 = finished_session(client, key=auth("ingest-key-b"))
+    b1 = finished_session(client, key=auth("ingest-key-b-0123456789abcdef"))
     body = {"sessions": [a1, a2, a1], "options": {"method": "sift-chain"}}
     resp = client.post("/v1/reprocess", json=body, headers=INGEST)
     assert resp.status_code == 202, resp.text
@@ -136,7 +136,7 @@ def test_batch_reprocess(client: TestClient) -> None:
     assert [e["session"] for e in jobs_on_stream(client)] == [a1, a2]
     state = client.get(batch["status_url"], headers=INGEST).json()
     assert state["status"] == "queued" and [j["session"] for j in state["jobs"]] == [a1, a2]
-    assert client.get(batch["status_url"], headers=auth("ingest-key-b")).status_code == 404
+    assert client.get(batch["status_url"], headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404
     assert client.get(f"/v1/jobs/{batch['jobs'][0]}", headers=INGEST).json()["batch"] == batch["batch"]
 
     # a session of another key: 404 for the whole batch, nothing queued
@@ -147,7 +147,7 @@ def test_batch_reprocess(client: TestClient) -> None:
     bad = client.post("/v1/reprocess", json={"sessions": [a1], "options": {"method": "x"}}, headers=INGEST)
     assert bad.status_code == 422 and len(jobs_on_stream(client)) == 2
     # admin may batch sessions of several owners
-    resp = client.post("/v1/reprocess", json={"sessions": [a1, b1]}, headers=auth("admin-key"))
+    resp = client.post("/v1/reprocess", json={"sessions": [a1, b1]}, headers=auth("admin-key-0123456789abcdef"))
     assert resp.status_code == 202 and len(jobs_on_stream(client)) == 4
 
     r, prefix = _r_prefix(client)
