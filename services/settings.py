@@ -11,7 +11,16 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import AliasChoices, BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic import (
+    AliasChoices,
+    BaseModel,
+    ConfigDict,
+    Field,
+    SecretStr,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from services.core.inputs.image_header import DEFAULT_MAX_FRAME_SIDE
@@ -81,6 +90,8 @@ class Settings(BaseSettings):
     redis_prefix: str = "vm:"
     api_keys: dict[str, list[Scope]] = Field(default_factory=dict, repr=False)
     token_secret: SecretStr | None = None
+    # keys the audit log's chain and the key ids in its records; unset: derived from the token secret
+    audit_secret: SecretStr | None = None
     max_frame_bytes: int = Field(default=20 * 1024 * 1024, gt=0)
     max_force_samples: int = Field(default=100_000, gt=0)
     # every other body (JSON, reference.csv), counted while it is read; 8 MiB holds 100k force rows
@@ -147,15 +158,14 @@ class Settings(BaseSettings):
                 )
         return value
 
-    @field_validator("token_secret")
+    @field_validator("token_secret", "audit_secret")
     @classmethod
-    def _secret_long_enough(cls, value: SecretStr | None) -> SecretStr | None:
-        """Refuse a viewer-token secret shorter than MIN_TOKEN_SECRET_CHARS (unset: data_dir/secret is made)."""
+    def _secret_long_enough(cls, value: SecretStr | None, info: ValidationInfo) -> SecretStr | None:
+        """Refuse a secret shorter than MIN_TOKEN_SECRET_CHARS (the token secret unset: data_dir/secret is made)."""
         if value is not None and len(value.get_secret_value()) < MIN_TOKEN_SECRET_CHARS:
             raise ValueError(
-                f"VEINMOSAIC_TOKEN_SECRET has {len(value.get_secret_value())} characters; at least "
-                f"{MIN_TOKEN_SECRET_CHARS} are required (make one with secrets.token_urlsafe(32), or leave it "
-                "unset for a random one in data_dir/secret)"
+                f"VEINMOSAIC_{str(info.field_name).upper()} has {len(value.get_secret_value())} characters; at least "
+                f"{MIN_TOKEN_SECRET_CHARS} are required (make one with secrets.token_urlsafe(32))"
             )
         return value
 
