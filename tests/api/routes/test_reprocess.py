@@ -78,6 +78,16 @@ def test_default_options_are_best(client: TestClient) -> None:
         ({"method_options": {"refine": 1}}, "invalid_options", "refine"),
         ({"method_options": {"features": "orb"}}, "invalid_options", "features"),
         ({"method_options": {"ransac_px": -1.0}}, "invalid_options", "ransac_px"),
+        (
+            {"method_options": {"target_features": 10**6}},
+            "invalid_options",
+            "target_features: Input should be less than or equal to 10000",
+        ),
+        (
+            {"method_options": {"neighbours": 10**6}},
+            "invalid_options",
+            "neighbours: Input should be less than or equal to 32",
+        ),
         ({"method_options": {"name": "x"}}, "invalid_options", "name"),
         ({"calibration": {"young_modulus_kpa": -2}}, "invalid_calibration", "young_modulus_kpa"),
         ({"calibration": {"colour": "red"}}, "invalid_calibration", "colour"),
