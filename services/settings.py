@@ -114,6 +114,9 @@ class Settings(BaseSettings):
     # how long a browser may keep a versioned Deep Zoom tile (private: never in a shared cache)
     tile_cache_max_age_s: int = Field(default=300, ge=0)
     queue_max_depth: int = Field(default=5000, gt=0)
+    # open (queued or running) reprocess and send jobs per API key; beyond, 429 quota_exceeded with Retry-After, so
+    # one key cannot fill the queue (queue_max_depth) and make every other key's jobs answer 503
+    queue_max_jobs_per_key: int = Field(default=1000, gt=0)
     retry_after_s: int = Field(default=2, gt=0)
     viewer_token_ttl_s: int = Field(default=8 * 3600, gt=0)
     # `veinmosaic serve` supervision: a dead child (API, worker, embedded Redis) is restarted after

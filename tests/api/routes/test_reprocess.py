@@ -198,3 +198,21 @@ def test_a_job_says_status_like_a_session_and_state_only_as_its_deprecated_alias
         props = schemas[name]["properties"]
         assert "status" in schemas[name]["required"] and not props["status"].get("deprecated")
         assert props["state"]["deprecated"] is True and "alias of `status`" in props["state"]["description"]
+
+
+def test_a_key_over_its_job_quota_gets_429_and_other_keys_are_unaffected(make_client: Any) -> None:
+    client = make_client(queue_max_jobs_per_key=2, pacs_destinations={"web": {"dicomweb": "http://pacs.example/dw"}})
+    other = auth("ingest-key-b-0123456789abcdef")
+    mine, theirs = finished_session(client), finished_session(client, other)
+    first = client.post(f"/v1/sessions/{mine}/reprocess", json={}, headers=INGEST)
+    assert first.status_code == 202
+    assert client.post(f"/v1/sessions/{mine}/send", json={"destination": "web"}, headers=INGEST).status_code == 202
+    for url, body in [(f"/v1/sessions/{mine}/reprocess", {}), (f"/v1/sessions/{mine}/send", {"destination": "web"})]:
+        refused = client.post(url, json=body, headers=INGEST)  # reprocess and send share the quota
+        assert refused.status_code == 429 and int(refused.headers["Retry-After"]) >= 1, refused.text
+        assert _error(refused)["code"] == "quota_exceeded" and "2 jobs" in _error(refused)["message"]
+    assert len(jobs_on_stream(client)) == 2  # nothing queued for the refused requests
+    assert client.post(f"/v1/sessions/{theirs}/reprocess", json={}, headers=other).status_code == 202  # its own quota
+    r, prefix = _r_prefix(client)
+    r.hset(queue.job_key(first.json()["job"], prefix), "state", "done")  # a worker finished one: a place is free
+    assert client.post(f"/v1/sessions/{mine}/reprocess", json={}, headers=INGEST).status_code == 202
