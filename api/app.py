@@ -163,6 +163,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=API_VERSION,
         summary="Force-rectified near-infrared vein mosaicking for a hand-held breast-scanning probe",
         lifespan=lifespan,
+        # the document is served by api/routes/openapi.py (behind a key by default); Swagger UI and ReDoc load
+        # their scripts from a CDN, so they are not served at all
+        openapi_url=None,
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.clock = time.time
     app.state.queue_guard = queue.DepthGuard()  # the uploads' queue-full check (api.deps.QueueGuard)

@@ -140,6 +140,9 @@ class Settings(BaseSettings):
     port: int = Field(default=8000, ge=0, le=65535)
     workers: int = Field(default=2, ge=0, le=64)
     log_level: str = "INFO"
+    # GET /openapi.json: to callers with a valid API key ("keys"), to anyone ("public"), or not at all ("off", for
+    # production); the interactive /docs and /redoc pages (scripts from a CDN) are never served
+    api_docs: Literal["keys", "public", "off"] = "keys"
     viewer_assets_dir: Path | None = None  # OpenSeadragon build folder; default: the wheel's copy, else node_modules
     # PACS destinations (spec §5), the operator's: VEINMOSAIC_PACS_DESTINATIONS, one JSON object of named
     # destinations, {"<name>": {"dicomweb": "<base URL>"}} or {"<name>": {"dimse": {"host", "port", "called_ae",

@@ -125,7 +125,7 @@ def test_expensive_reads_are_rate_limited_per_caller(make_client: Any) -> None:
 
 
 def test_429_is_documented_on_authenticated_routes(client: TestClient) -> None:
-    paths = client.get("/openapi.json").json()["paths"]
+    paths = client.get("/openapi.json", headers=INGEST).json()["paths"]
     assert "429" in paths["/v1/sessions/{session_id}"]["get"]["responses"]
     assert "Retry-After" in paths["/v1/sessions/{session_id}"]["get"]["responses"]["429"]["headers"]
     assert "429" not in paths["/healthz"]["get"]["responses"]

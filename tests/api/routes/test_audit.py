@@ -160,7 +160,7 @@ def test_label_canary_never_in_logs_or_foreign_responses(tmp_path: Path) -> None
         call("POST", f"/v1/sessions/{sid}/reprocess", json={"options": {"method": "best"}}, headers=INGEST)
         call("GET", "/v1/audit", params={"session": sid}, headers=ADMIN)
         call("GET", "/metrics")
-        call("GET", "/openapi.json")
+        call("GET", "/openapi.json", headers=INGEST)
         http.close()
         logs = api.log_lines()
         audit_text = (api.data_dir / "audit" / "audit.jsonl").read_text()

@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from api_helpers import INGEST
 from fastapi.testclient import TestClient
 
 from services.settings import Settings
@@ -37,7 +38,7 @@ def test_readyz_503_when_storage_not_writable(client: TestClient, monkeypatch: p
 
 
 def test_openapi_served(client: TestClient) -> None:
-    doc = client.get("/openapi.json").json()
+    doc = client.get("/openapi.json", headers=INGEST).json()
     assert doc["info"]["title"] == "veinmosaic"
     assert "/v1/sessions/{session_id}/frames" in doc["paths"]
 

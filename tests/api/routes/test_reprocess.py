@@ -193,7 +193,7 @@ def test_a_job_says_status_like_a_session_and_state_only_as_its_deprecated_alias
     batch = client.post("/v1/reprocess", json={"sessions": [sid]}, headers=INGEST).json()
     state = client.get(batch["status_url"], headers=INGEST).json()
     assert state["status"] == state["state"] == "queued" and state["jobs"][0]["status"] == "queued"
-    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    schemas = client.get("/openapi.json", headers=INGEST).json()["components"]["schemas"]
     for name in ("JobState", "BatchState"):
         props = schemas[name]["properties"]
         assert "status" in schemas[name]["required"] and not props["status"].get("deprecated")
