@@ -84,8 +84,8 @@ class Settings(BaseSettings):
     )
 
     data_dir: Path = Path("./data")
-    redis_url: str | None = Field(
-        default=None, validation_alias=AliasChoices("REDIS_URL", "VEINMOSAIC_REDIS_URL", "redis_url")
+    redis_url: str | None = Field(  # not in the repr: it may carry Redis's password
+        default=None, validation_alias=AliasChoices("REDIS_URL", "VEINMOSAIC_REDIS_URL", "redis_url"), repr=False
     )
     redis_prefix: str = "vm:"
     api_keys: dict[str, list[Scope]] = Field(default_factory=dict, repr=False)

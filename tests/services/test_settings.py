@@ -91,3 +91,9 @@ def test_a_short_key_stops_the_command_line_with_a_clear_error(
     assert cli_main(["serve", "--port", "0"]) != 0
     err = capsys.readouterr().err
     assert "at least 24 are required" in err and "short-key" not in err
+
+
+def test_a_redis_password_never_shows_in_the_settings_repr(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("REDIS_URL", "redis://:s3cret-redis-password@redis:6379/0")
+    settings = Settings()
+    assert settings.redis_url is not None and "s3cret" not in repr(settings) and "s3cret" not in str(settings)
