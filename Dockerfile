@@ -14,7 +14,12 @@ COPY cli cli
 COPY workers workers
 COPY --from=viewer /app/node_modules/openseadragon node_modules/openseadragon
 RUN pip install --no-cache-dir -c constraints.txt . && rm -rf /build
+# the service runs as an unprivileged user: it owns /data (a new volume mounted there takes this ownership) and
+# nothing else it could write
+RUN useradd --system --uid 10001 --user-group --home-dir /app --shell /usr/sbin/nologin veinmosaic \
+    && mkdir -p /app /data && chown veinmosaic:veinmosaic /data
 WORKDIR /app
+USER veinmosaic
 ENV VEINMOSAIC_DATA_DIR=/data
 EXPOSE 8000
 CMD ["veinmosaic", "serve", "--host", "0.0.0.0"]

@@ -34,7 +34,7 @@ from services.jobs.redis_backend import close, connect
 from services.log_format import configure_json_logging, failure_reason, request_id_var
 from services.settings import Settings, get_settings
 from services.store.audit import AuditLog
-from services.store.secrets import token_secret_bytes
+from services.store.secrets import audit_key_bytes, token_secret_bytes
 from services.store.storage import SessionStore
 
 API_VERSION = "1.0.0"
@@ -144,7 +144,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.keys = key_table(s.api_keys)
         app.state.token_secret = token_secret_bytes(s)
         app.state.store = SessionStore(s.data_dir)
-        app.state.audit = AuditLog(s.data_dir / "audit" / "audit.jsonl")
+        app.state.audit = AuditLog(s.data_dir / "audit" / "audit.jsonl", audit_key_bytes(s))
         app.state.redis = connect(s.redis_url, s.data_dir)
         try:
             queue.ensure_groups(app.state.redis, prefix=s.redis_prefix)
@@ -163,6 +163,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=API_VERSION,
         summary="Force-rectified near-infrared vein mosaicking for a hand-held breast-scanning probe",
         lifespan=lifespan,
+        # the document is served by api/routes/openapi.py (behind a key by default); Swagger UI and ReDoc load
+        # their scripts from a CDN, so they are not served at all
+        openapi_url=None,
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.clock = time.time
     app.state.queue_guard = queue.DepthGuard()  # the uploads' queue-full check (api.deps.QueueGuard)

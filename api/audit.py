@@ -2,9 +2,10 @@
 
 AuditMiddleware (pure ASGI) records every request to /v1/ and /viewer/ once its status is known and *before*
 the answer leaves: if the record cannot be stored (a full disk) the client gets 503 instead of the answer, so
-nothing is served or accepted without a trace. A record holds: ts (Unix s), actor ("key:" + the first 16 hex
-of the key's SHA-256, never the key; "token:<session>" for a viewer link; "anonymous"), action, route
-template, method, session id (a path parameter; never a label), status, client address and request id.
+nothing is served or accepted without a trace. A record holds: ts (Unix s), actor ("key:" + 16 hex of an HMAC
+of the key's fingerprint with the audit key (AuditLog.key_actor), never the key; "token:<session>" for a viewer
+link; "anonymous"), action, route template, method, session id (a path parameter; never a label), status,
+client address and request id.
 
 Every write (POST, PUT, DELETE) is recorded. Reads and refused requests are coalesced: one record per
 caller, action, session, status and client per `audit_coalesce_s` window (60 s by default), so a viewer
@@ -80,14 +81,14 @@ def coalesce_key(record: dict[str, Any]) -> tuple[str, ...]:
     return (record["actor"], record["action"], str(record["session"]), str(record["status"]), str(record["client"]))
 
 
-def actor_of(scope: Scope) -> str:
-    """Return the audit actor of a request: key fingerprint prefix, viewer-token session, or anonymous."""
+def actor_of(scope: Scope, audit: AuditLog) -> str:
+    """Return the audit actor of a request: the key's keyed id, the viewer token's session, or anonymous."""
     principal = scope.get(PRINCIPAL_KEY)
     if principal is None:
         return "anonymous"
     if principal.session_id is not None:
         return f"token:{principal.session_id}"
-    return f"key:{(principal.fingerprint or '')[:16]}"
+    return audit.key_actor(principal.fingerprint or "")
 
 
 def action_of(method: str, route: str) -> str:
@@ -139,7 +140,7 @@ class AuditMiddleware:
         now = time.time()
         record = {
             "ts": round(now, 3),
-            "actor": actor_of(scope),
+            "actor": actor_of(scope, audit),
             "action": action_of(method, route),
             "route": route,
             "method": method,

@@ -29,7 +29,7 @@ from services.core.inputs.calibration import CalibrationError
 from services.core.inputs.image_header import BadImageError
 from services.core.inputs.study import StudyContextError
 from services.core.method_options import without_values
-from services.jobs.reprocess import QueueFullError
+from services.jobs.reprocess import OwnerQuotaError, QueueFullError
 from services.log_format import failure_frames, failure_reason
 from services.store.session_export import NotFinishedError
 from services.store.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
@@ -139,6 +139,7 @@ SERVICE_ERRORS: dict[type[Exception], tuple[int, str, str | None]] = {
         "queue_full",
         "the job queue is full; retry later",
     ),  # its message names the field, never the value
+    OwnerQuotaError: (429, "quota_exceeded", None),  # its message names the quota
     redis.ConnectionError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
     redis.TimeoutError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
 }
@@ -220,7 +221,8 @@ def add_exception_handlers(app: FastAPI) -> None:
                 break
         else:  # pragma: no cover - only registered classes reach this handler
             status, code, message = 500, "internal_error", "internal error"
-        headers = {"Retry-After": str(request.app.state.settings.retry_after_s)} if status == 503 else None
+        retry = status in RETRY_STATUSES
+        headers = {"Retry-After": str(request.app.state.settings.retry_after_s)} if retry else None
         if message is None:  # the exception's own message, less any submitted value it quotes
             message = f"calibration: {without_values(str(exc))}" if isinstance(exc, CalibrationError) else str(exc)
         return error_response(status, code, message, headers=headers)
@@ -269,7 +271,7 @@ ERROR_DESCRIPTIONS: dict[int, str] = {
     413: "request body larger than the limit",
     415: "unsupported media type",
     422: "the body or a parameter breaks the schema, or the content is invalid (the message names the field)",
-    429: "too many requests",
+    429: "too many requests (a rate limit, or the key's quota of queued jobs); retry after Retry-After",
     503: (
         "unavailable, retry after Retry-After seconds: Redis down, queue full, or the data volume full (ENOSPC, "
         "EDQUOT: code insufficient_storage) or failing (EIO, EROFS: storage_unavailable); nothing was stored. "

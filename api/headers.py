@@ -4,9 +4,9 @@ SecurityHeadersMiddleware (pure ASGI, the outermost layer, so the request middle
 them too) adds, unless the answer already carries the header:
 
 - `X-Content-Type-Options: nosniff` on every answer;
-- `Content-Security-Policy: API_CSP` on every answer but the interactive API docs (/docs, /redoc, which load
-  Swagger UI's scripts): nothing an API answer holds may run script, load anything or be framed. The viewer
-  page sets its own, self-only policy (api/routes/viewer.py), which is kept;
+- `Content-Security-Policy: API_CSP` on every answer (no interactive API docs are served: api/routes/openapi.py):
+  nothing an API answer holds may run script, load anything or be framed. The viewer page sets its own,
+  self-only policy (api/routes/viewer.py), which is kept;
 - `Cache-Control: private, no-store` on every /v1/ and /viewer/ answer whose route sets no Cache-Control
   (the session JSON with its study, job states, the audit log, error documents).
 """
@@ -18,7 +18,6 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from api.caching import PRIVATE_NO_STORE
 
 API_CSP = "default-src 'none'; frame-ancestors 'none'; base-uri 'none'; form-action 'none'"
-DOCS_PATHS = ("/docs", "/redoc")  # Swagger UI and ReDoc pages (and /docs/oauth2-redirect)
 PRIVATE_PREFIXES = ("/v1/", "/viewer/")
 
 
@@ -33,9 +32,7 @@ class SecurityHeadersMiddleware:
             await self.app(scope, receive, send)
             return
         path = str(scope.get("path", ""))
-        added = [(b"x-content-type-options", b"nosniff")]
-        if not path.startswith(DOCS_PATHS):
-            added.append((b"content-security-policy", API_CSP.encode()))
+        added = [(b"x-content-type-options", b"nosniff"), (b"content-security-policy", API_CSP.encode())]
         if path.startswith(PRIVATE_PREFIXES):
             added.append((b"cache-control", PRIVATE_NO_STORE.encode()))
 

@@ -301,6 +301,7 @@ class AuditRecord(BaseModel):
     client: str | None = None
     request_id: str | None = None
     prev: str
+    chain: str | None = Field(default=None, description='"hmac-sha256": hash is an HMAC with the audit key')
     hash: str
 
 
@@ -312,10 +313,11 @@ class AuditPage(Strict):
 
 
 class AuditVerification(Strict):
-    """GET /v1/audit/verify: whether the hash chain holds, how many records, and where it first breaks."""
+    """GET /v1/audit/verify: whether the keyed chain holds, how many records, and where it first breaks."""
 
     ok: bool
     records: int
     last_hash: str
     first_bad_line: int | None = None
     reason: str | None = None
+    unkeyed: int = Field(default=0, description="records written before the chain was keyed (a prefix of the log)")

@@ -1,13 +1,15 @@
 """Abuse scenarios against a bare API process on loopback: what the audit log, Redis and readiness do.
 
-    python bench/abuse.py [--requests 3000] [--threads 20] [--streams 200]
+    python bench/abuse.py [--requests 3000] [--threads 20] [--streams 200] [--quota 50]
 
 Starts the API alone (uvicorn, no workers; Redis: REDIS_URL with a private key prefix, deleted at the end, or
 the embedded one) with its default limits, then runs two floods while a probe times GET /readyz every 100 ms:
 
 - anonymous flood: `--requests` unauthenticated GETs of random session ids from `--threads` threads (issue 34:
   the audit log grew 1.19 MB for 3000 before per-client coalescing and the 429s);
-- stream flood: `--streams` event streams opened at once with one viewer token and held open 3 s.
+- stream flood: `--streams` event streams opened at once with one viewer token and held open 3 s;
+- one key over its quota: with `queue_max_jobs_per_key` = `--quota`, one key asks for twice that many PACS sends
+  (no worker runs them: they stay queued), then another key asks for one (it must get its 202).
 
 Prints one table: answers by status, audit log growth, Redis clients and memory before and at the peak, and
 /readyz latency (p50, max) during each flood.
@@ -39,7 +41,8 @@ sys.path.insert(0, str(ROOT))
 from cli.launcher import api_command, free_port, service_env, start_process, stop_processes, wait_until_ready  # noqa: E402
 from services.jobs.redis_backend import read_embedded_url  # noqa: E402
 
-KEY = "abuse-bench-key"
+KEY = "abuse-bench-key-0123456789abcdef"
+OTHER_KEY = "abuse-bench-other-key-0123456789abcdef"
 CALIBRATION = {
     "image_size": [64, 48],
     "camera_matrix": [[80.0, 0.0, 31.5], [0.0, 80.0, 23.5], [0.0, 0.0, 1.0]],
@@ -170,19 +173,39 @@ def stream_flood(base: str, data_dir: Path, r: redis.Redis, n: int) -> Outcome:
     return outcome
 
 
+def quota_flood(base: str, data_dir: Path, r: redis.Redis, quota: int) -> Outcome:
+    """Return what 2 x quota send requests of one key did, with the other key's one request last ("other: ...")."""
+    outcome = Outcome(f"one key over its quota ({quota} jobs)")
+    before = audit_size(data_dir)
+    with Probe(base, r, outcome), httpx.Client(base_url=base, timeout=10) as http:
+        t0 = time.perf_counter()
+        for key in (KEY, OTHER_KEY):
+            auth = {"Authorization": f"Bearer {key}"}
+            sid = http.post("/v1/sessions", json={"calibration": CALIBRATION}, headers=auth).json()["id"]
+            for _ in range(2 * quota if key == KEY else 1):
+                status = http.post(f"/v1/sessions/{sid}/send", json={"destination": "bench"}, headers=auth).status_code
+                outcome.answers[status if key == KEY else 1000 + status] += 1  # the other key's: 1202, 1429, ...
+        outcome.wall_s = time.perf_counter() - t0
+    outcome.audit_bytes = audit_size(data_dir) - before
+    return outcome
+
+
 def main(argv: list[str] | None = None) -> int:
     """Start the API, run both floods, print the table."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--requests", type=int, default=3000)
     p.add_argument("--threads", type=int, default=20)
     p.add_argument("--streams", type=int, default=200)
+    p.add_argument("--quota", type=int, default=50)
     args = p.parse_args(argv)
     redis_url = os.environ.get("REDIS_URL")
     tmp = Path(tempfile.mkdtemp(prefix="vm-abuse-"))
     data_dir = tmp / "data"
     prefix = f"vmabuse:{uuid.uuid4().hex[:8]}:"
-    env = service_env(data_dir, {KEY: ["ingest", "view", "admin"]}, redis_url=redis_url, pythonpath=ROOT,
-                      log_level="WARNING", redis_prefix=prefix)  # fmt: skip
+    keys = {KEY: ["ingest", "view", "admin"], OTHER_KEY: ["ingest"]}
+    pacs = '{"bench": {"dicomweb": "http://127.0.0.1:9/dicom-web"}}'  # never contacted: no worker runs
+    env = service_env(data_dir, keys, redis_url=redis_url, pythonpath=ROOT, log_level="WARNING", redis_prefix=prefix,
+                      pacs_destinations=pacs, queue_max_jobs_per_key=str(args.quota))  # fmt: skip
     port = free_port()
     base = f"http://127.0.0.1:{port}"
     api = start_process(api_command("127.0.0.1", port), env, cwd=ROOT)
@@ -193,6 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         results = [
             anonymous_flood(base, data_dir, r, args.requests, args.threads),
             stream_flood(base, data_dir, r, args.streams),
+            quota_flood(base, data_dir, r, args.quota),
         ]
     finally:
         stop_processes([api])
@@ -208,6 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---:|---:|---:|---:|---:|")
     for outcome in results:
         print(outcome.row())
+    print("\n(answers 1xxx: the other key's request, status xxx)")
     return 0
 
 

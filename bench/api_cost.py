@@ -33,7 +33,7 @@ from cli.launcher import api_command, free_port, service_env, start_process, sto
 from services.core.simulation.scenarios import simulate  # noqa: E402
 from services.jobs.redis_backend import close, connect  # noqa: E402
 
-KEY = "api-cost-key"
+KEY = "api-cost-key-0123456789abcdef"
 STACKS = {
     "h11 + asyncio (baseline)": ["--http", "h11", "--loop", "asyncio"],
     "httptools + uvloop": ["--http", "httptools", "--loop", "uvloop"],

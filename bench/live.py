@@ -234,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames-csv", type=Path, help="append run,rate,seq,t_2xx_s,t_processed_s rows to this file")
     args = p.parse_args(argv)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # SIGTERM cleans up like Ctrl-C
-    key = "bench-" + secrets.token_urlsafe(12)
+    key = "bench-" + secrets.token_urlsafe(24)
     redis_url = get_settings().redis_url
     prefix = f"vmbench:{secrets.token_hex(6)}:"
     level = os.environ.get("VEINMOSAIC_LOG_LEVEL", "WARNING")  # INFO shows take-overs and releases

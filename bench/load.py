@@ -46,7 +46,7 @@ from cli.launcher import (  # noqa: E402
 )
 from services.core.simulation.scenarios import simulate  # noqa: E402
 
-KEY = "load-test-key"
+KEY = "load-test-key-0123456789abcdef"
 
 
 @dataclass

@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     counts = [int(v) for v in args.probes.split(",")]
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    key = "bench-" + secrets.token_urlsafe(12)
+    key = "bench-" + secrets.token_urlsafe(24)
     redis_url = get_settings().redis_url
     prefix = f"vmbench:{secrets.token_hex(6)}:"
     env = {"VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view"]}), "VEINMOSAIC_LOG_LEVEL": "WARNING"}

@@ -156,7 +156,7 @@ def _run_demo(args: argparse.Namespace, settings: Settings, kept: str) -> int:
     from services.core.simulation.scenarios import simulate
     from services.store.scan_folder import write_scan_folder
 
-    key = "demo-" + secrets.token_urlsafe(12)
+    key = "demo-" + secrets.token_urlsafe(24)
     keys = json.loads(os.environ.get("VEINMOSAIC_API_KEYS") or "{}")
     keys[key] = ["ingest", "view", "admin"]
     if args.port == 0:

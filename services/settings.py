@@ -11,7 +11,16 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import AliasChoices, BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic import (
+    AliasChoices,
+    BaseModel,
+    ConfigDict,
+    Field,
+    SecretStr,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from services.core.inputs.image_header import DEFAULT_MAX_FRAME_SIDE
@@ -19,6 +28,10 @@ from services.core.methods import METHOD_NAMES
 from services.pacs.destinations import Destination, destinations_from_doc, parse_destinations
 
 Scope = Literal["ingest", "view", "admin"]
+# secrets shorter than these are refused at start-up (a short key or secret can be guessed offline from a
+# fingerprint or a signed link); `python -c "import secrets; print(secrets.token_urlsafe(32))"` makes one
+MIN_TOKEN_SECRET_CHARS = 32
+MIN_API_KEY_CHARS = 24
 
 
 class WorkerSettings(BaseModel):
@@ -71,12 +84,14 @@ class Settings(BaseSettings):
     )
 
     data_dir: Path = Path("./data")
-    redis_url: str | None = Field(
-        default=None, validation_alias=AliasChoices("REDIS_URL", "VEINMOSAIC_REDIS_URL", "redis_url")
+    redis_url: str | None = Field(  # not in the repr: it may carry Redis's password
+        default=None, validation_alias=AliasChoices("REDIS_URL", "VEINMOSAIC_REDIS_URL", "redis_url"), repr=False
     )
     redis_prefix: str = "vm:"
     api_keys: dict[str, list[Scope]] = Field(default_factory=dict, repr=False)
     token_secret: SecretStr | None = None
+    # keys the audit log's chain and the key ids in its records; unset: derived from the token secret
+    audit_secret: SecretStr | None = None
     max_frame_bytes: int = Field(default=20 * 1024 * 1024, gt=0)
     max_force_samples: int = Field(default=100_000, gt=0)
     # every other body (JSON, reference.csv), counted while it is read; 8 MiB holds 100k force rows
@@ -99,6 +114,9 @@ class Settings(BaseSettings):
     # how long a browser may keep a versioned Deep Zoom tile (private: never in a shared cache)
     tile_cache_max_age_s: int = Field(default=300, ge=0)
     queue_max_depth: int = Field(default=5000, gt=0)
+    # open (queued or running) reprocess and send jobs per API key; beyond, 429 quota_exceeded with Retry-After, so
+    # one key cannot fill the queue (queue_max_depth) and make every other key's jobs answer 503
+    queue_max_jobs_per_key: int = Field(default=1000, gt=0)
     retry_after_s: int = Field(default=2, gt=0)
     viewer_token_ttl_s: int = Field(default=8 * 3600, gt=0)
     # `veinmosaic serve` supervision: a dead child (API, worker, embedded Redis) is restarted after
@@ -122,6 +140,9 @@ class Settings(BaseSettings):
     port: int = Field(default=8000, ge=0, le=65535)
     workers: int = Field(default=2, ge=0, le=64)
     log_level: str = "INFO"
+    # GET /openapi.json: to callers with a valid API key ("keys"), to anyone ("public"), or not at all ("off", for
+    # production); the interactive /docs and /redoc pages (scripts from a CDN) are never served
+    api_docs: Literal["keys", "public", "off"] = "keys"
     viewer_assets_dir: Path | None = None  # OpenSeadragon build folder; default: the wheel's copy, else node_modules
     # PACS destinations (spec §5), the operator's: VEINMOSAIC_PACS_DESTINATIONS, one JSON object of named
     # destinations, {"<name>": {"dicomweb": "<base URL>"}} or {"<name>": {"dimse": {"host", "port", "called_ae",
@@ -130,6 +151,29 @@ class Settings(BaseSettings):
     pacs_timeout_s: float = Field(default=30.0, gt=0)  # a send's connect, each answer and each write wait this long
     # destinations every session is sent to once it is done (the send job is queued when the session is finished)
     pacs_auto_send: list[str] = Field(default_factory=list)
+
+    @field_validator("api_keys")
+    @classmethod
+    def _keys_long_enough(cls, value: dict[str, list[Scope]]) -> dict[str, list[Scope]]:
+        """Refuse an API key shorter than MIN_API_KEY_CHARS (the message names its scopes, never the key)."""
+        for key, scopes in value.items():
+            if len(key) < MIN_API_KEY_CHARS:
+                raise ValueError(
+                    f"an API key (scopes {', '.join(scopes) or 'none'}) has {len(key)} characters; at least "
+                    f"{MIN_API_KEY_CHARS} are required (make one with secrets.token_urlsafe(32))"
+                )
+        return value
+
+    @field_validator("token_secret", "audit_secret")
+    @classmethod
+    def _secret_long_enough(cls, value: SecretStr | None, info: ValidationInfo) -> SecretStr | None:
+        """Refuse a secret shorter than MIN_TOKEN_SECRET_CHARS (the token secret unset: data_dir/secret is made)."""
+        if value is not None and len(value.get_secret_value()) < MIN_TOKEN_SECRET_CHARS:
+            raise ValueError(
+                f"VEINMOSAIC_{str(info.field_name).upper()} has {len(value.get_secret_value())} characters; at least "
+                f"{MIN_TOKEN_SECRET_CHARS} are required (make one with secrets.token_urlsafe(32))"
+            )
+        return value
 
     @field_validator("pacs_destinations", mode="before")
     @classmethod

@@ -22,12 +22,12 @@ def compose() -> dict:
 
 def test_compose_has_redis_with_aof_api_and_scalable_worker() -> None:
     services = compose()["services"]
-    assert set(services) == {"redis", "api", "worker"}
+    assert set(services) == {"proxy", "redis", "api", "worker"}
     assert services["redis"]["image"].startswith("redis:7")
-    assert "--appendonly" in services["redis"]["command"] and "yes" in services["redis"]["command"]
+    assert "--appendonly yes" in " ".join(services["redis"]["command"])
     assert "container_name" not in services["worker"], "a fixed container name would prevent --scale"
     assert "ports" not in services["worker"]
-    for name in ("redis", "api"):
+    for name in ("redis", "api", "proxy"):
         assert services[name]["healthcheck"]["test"], f"{name} needs a health check"
     volumes = {v.split(":")[0] for v in services["api"]["volumes"]}
     assert volumes == {v.split(":")[0] for v in services["worker"]["volumes"]}, "api and workers share storage"
@@ -79,3 +79,36 @@ def test_every_variable_is_a_real_setting() -> None:
         env = compose()["services"][service]["environment"]
         for var in env:
             assert var in env_names, f"{service} sets {var}, which no setting reads"
+
+
+def test_only_the_tls_proxy_is_published_and_serves_https_only() -> None:
+    services = compose()["services"]
+    assert services["proxy"]["ports"] == ["443:443"]  # nothing on port 80
+    assert [name for name, service in services.items() if "ports" in service] == ["proxy"]
+    assert compose()["networks"]["backend"]["internal"] is True
+    for name in ("redis", "api"):
+        assert services[name]["networks"] == ["backend"], f"{name} must be reachable on the backend network alone"
+    caddyfile = (ROOT / "deploy" / "Caddyfile").read_text()
+    mounted = {v.split(":")[0]: v.split(":")[1] for v in services["proxy"]["volumes"]}
+    assert mounted["./deploy/Caddyfile"] == "/etc/caddy/Caddyfile" and mounted["./certs"] == "/certs"
+    assert "tls /certs/cert.pem /certs/key.pem" in caddyfile and "disable_redirects" in caddyfile
+    assert "Strict-Transport-Security" in caddyfile and "reverse_proxy api:8000" in caddyfile
+    assert "--proxy-headers" in services["api"]["command"]  # the client address the proxy forwards is trusted
+
+
+def test_redis_requires_a_password_the_services_use() -> None:
+    services = compose()["services"]
+    redis = services["redis"]
+    assert "requirepass" in " ".join(redis["command"]) and "REDIS_PASSWORD:?" in redis["environment"]["REDIS_PASSWORD"]
+    assert "--requirepass" not in " ".join(redis["command"])  # never on a command line (ps shows those)
+    assert "REDISCLI_AUTH" in " ".join(redis["healthcheck"]["test"])
+    for name in ("api", "worker"):
+        assert services[name]["environment"]["REDIS_URL"].startswith("redis://:${REDIS_PASSWORD:?")
+
+
+def test_the_image_runs_as_a_non_root_user() -> None:
+    lines = [line.split() for line in (ROOT / "Dockerfile").read_text().splitlines() if line.strip()]
+    users = [words[1] for words in lines if words[0] == "USER"]
+    assert users and users[-1] not in ("root", "0"), "the image must end as a non-root user"
+    final_stage = [words[0] for words in lines][max(i for i, words in enumerate(lines) if words[0] == "FROM") :]
+    assert final_stage.index("USER") < final_stage.index("CMD")

@@ -37,11 +37,12 @@ import cli.main
 from api.app import create_app
 from services.settings import Settings
 
-keys = {"ingest-key": ["ingest"]}
-app = create_app(Settings(data_dir=Path("data"), redis_url=None, api_keys=keys, token_secret="wheel-test"))
+keys = {"ingest-key-0123456789abcdef": ["ingest"]}
+secret = "wheel-test-secret-0123456789abcdef"
+app = create_app(Settings(data_dir=Path("data"), redis_url=None, api_keys=keys, token_secret=secret))
 with TestClient(app) as client:
     calibration = json.loads(sys.argv[1])
-    key = {"Authorization": "Bearer ingest-key"}
+    key = {"Authorization": "Bearer ingest-key-0123456789abcdef"}
     created = client.post("/v1/sessions", json={"calibration": calibration}, headers=key)
     page = client.get(created.json()["viewer_url"])
     osd = client.get("/static/vendor/openseadragon/openseadragon.min.js")

@@ -11,13 +11,14 @@ from pathlib import Path
 from typing import Any
 
 import redis
-from pydantic import Field
+from pydantic import Field, SecretBytes
 
 from services.jobs import reprocess as jobs
 from services.pacs.destinations import Destination
 from services.settings import Settings, WorkerSettings
 from services.store.audit import AuditLog
 from services.store.results_store import LIVE_VERSION, ResultsStore
+from services.store.secrets import audit_key_bytes
 from services.store.session_version import SessionVersion
 from services.store.storage import SessionStore
 
@@ -39,6 +40,7 @@ class WorkerConfig(WorkerSettings):
     consumer: str = Field(default_factory=default_consumer)
     pacs_destinations: dict[str, Destination] = Field(default_factory=dict, repr=False)  # the Settings'
     pacs_timeout_s: float = Field(default=30.0, gt=0)
+    audit_key: SecretBytes | None = Field(default=None, repr=False)  # the Settings' (None: from data_dir's settings)
 
     @classmethod
     def from_settings(cls, settings: Settings, **overrides: Any) -> WorkerConfig:
@@ -50,6 +52,7 @@ class WorkerConfig(WorkerSettings):
             "prefix": settings.redis_prefix,
             "pacs_destinations": settings.pacs_destinations,
             "pacs_timeout_s": settings.pacs_timeout_s,
+            "audit_key": audit_key_bytes(settings),
         }
         doc.update({k: v for k, v in overrides.items() if v is not None})
         return cls.model_validate(doc)
@@ -84,5 +87,7 @@ class Context:
 
     @cached_property
     def audit(self) -> AuditLog:
-        """Return the data directory's audit log (the API's; safe across processes on one host)."""
-        return AuditLog(self.config.data_dir / "audit" / "audit.jsonl")
+        """Return the data directory's audit log (the API's, with its key; safe across processes on one host)."""
+        key = self.config.audit_key
+        secret = key.get_secret_value() if key is not None else audit_key_bytes(Settings(data_dir=self.config.data_dir))
+        return AuditLog(self.config.data_dir / "audit" / "audit.jsonl", secret)

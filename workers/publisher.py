@@ -49,7 +49,7 @@ class Publisher:
         self.ctx.audit.append(
             {
                 "ts": round(time.time(), 3),
-                "actor": f"key:{owner[:16]}" if owner else "worker",
+                "actor": self.ctx.audit.key_actor(owner) if owner else "worker",
                 "action": "pacs.send",
                 "session": sid,
                 "job": job_id,

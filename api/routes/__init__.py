@@ -5,6 +5,7 @@ from api.routes.export import router as export_router
 from api.routes.health import router as health_router
 from api.routes.ingest import router as ingest_router
 from api.routes.metrics import router as metrics_router
+from api.routes.openapi import router as openapi_router
 from api.routes.report import router as report_router
 from api.routes.reprocess import router as reprocess_router
 from api.routes.results import router as results_router
@@ -15,6 +16,7 @@ from api.routes.viewer import router as viewer_router
 ROUTERS = (
     health_router,
     metrics_router,
+    openapi_router,
     sessions_router,
     ingest_router,
     results_router,
@@ -33,6 +35,7 @@ __all__ = [
     "health_router",
     "ingest_router",
     "metrics_router",
+    "openapi_router",
     "report_router",
     "reprocess_router",
     "results_router",

@@ -35,6 +35,6 @@ async def read_audit(
 
 @router.get("/verify", response_model=AuditVerification)
 async def verify_audit(request: Request, principal: AdminPrincipal) -> AuditVerification:
-    """Return the check of the whole hash chain: ok false with the first bad line if a record was altered (admin)."""
+    """Return the check of the whole keyed chain: ok false with the first bad line if a record was altered (admin)."""
     result = await run_in_threadpool(get_audit(request).verify)
     return AuditVerification(**result.to_dict())

@@ -4,8 +4,10 @@ Both need the finished mosaic's raw layers (layers.npz, written when a results v
 that they answer 404 not_ready. Both are built by services.store.session_export, as the PACS send job's are, so
 a download and a send are the same objects with the same UIDs. Patient attributes come only from the session's
 study context, and only for its owner and admins; without one they are present and empty. The files are patient
-images: never cached by shared caches, never logged. The one-page report is rendered on every call, so the
-sheet and export.dcm?layer=report are rate-limited per client and caller (api.limits: 429 with Retry-After).
+images: never cached by shared caches, never logged. Each output of a finished version is made once and kept
+(services.store.session_export: made again when the reference or the version's files change); the first
+rendering of the one-page report takes about a second, so the sheet and export.dcm?layer=report are also
+rate-limited per client and caller (api.limits: 429 with Retry-After).
 """
 
 from __future__ import annotations

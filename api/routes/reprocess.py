@@ -54,7 +54,7 @@ def _enqueue(
     options: dict[str, Any],
     batch: str = "",
 ) -> list[str]:
-    owner = principal.fingerprint or ""  # QueueFullError: 503 queue_full (api/errors.py)
+    owner = principal.fingerprint or ""  # QueueFullError: 503 queue_full; OwnerQuotaError: 429 (api/errors.py)
     return jobs.enqueue_jobs(
         r,
         settings.redis_prefix,
@@ -64,6 +64,7 @@ def _enqueue(
         batch=batch,
         ledger=store.jobs,
         max_depth=settings.queue_max_depth,
+        max_per_owner=settings.queue_max_jobs_per_key,
     )
 
 

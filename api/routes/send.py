@@ -36,7 +36,7 @@ def send_session(
     if meta.status == "failed":
         raise Conflict("the session failed: it has no results to send", code="session_failed")
     options = {"destination": body.destination}
-    (job_id,) = jobs.enqueue_jobs(  # QueueFullError: 503 queue_full (api/errors.py)
+    (job_id,) = jobs.enqueue_jobs(  # QueueFullError: 503 queue_full; OwnerQuotaError: 429 (api/errors.py)
         r,
         settings.redis_prefix,
         principal.fingerprint or "",
@@ -45,6 +45,7 @@ def send_session(
         ledger=store.jobs,
         kind="send",
         max_depth=settings.queue_max_depth,
+        max_per_owner=settings.queue_max_jobs_per_key,
     )
     log.info("send queued", extra={"session": meta.id})
     return JobAccepted(job=job_id, session=meta.id, status_url=f"/v1/jobs/{job_id}")

@@ -19,12 +19,25 @@ from services.core.registration.features import FEATURE_KINDS
 USER_KEYS = ("method", "method_options", "calibration")
 SYSTEM_KEYS = ("source", "job")  # written by the workers into options.json
 
-MAX_COUNT = 1_000_000
-# ranges beyond "a finite number >= 0" (floats) and "a whole number 0..MAX_COUNT" (ints)
+MAX_COUNT = 100_000  # any whole-number option (min_inliers=100000 switches features off: docs/method.md)
+# ranges beyond "a finite number >= 0" (floats) and "a whole number 0..MAX_COUNT" (ints). The counts that set a
+# frame's cost (keypoints, neighbours matched, refinements) are held to what a frame can use, so one reprocess
+# request cannot queue hours of work per frame
 _BOUNDS: dict[str, dict[str, float]] = {
     "vein_scale": {"gt": 0, "le": 1},  # a fraction of full resolution
     "ratio": {"ge": 0, "le": 1},  # Lowe ratio
     "min_correlation": {"ge": 0, "le": 1},  # ECC correlation
+    "confirmed_inlier_share": {"ge": 0, "le": 1},  # a share
+    "blur_ratio": {"ge": 0, "le": 1},  # a fraction of the running median
+    "contrast_threshold": {"ge": 0, "le": 1},  # SIFT's (0.03 by default)
+    "scale_prior": {"ge": 0, "le": 1},  # a relative sigma
+    "ransac_px": {"ge": 0, "le": 50},  # pixels of a rectified frame
+    "max_jump_mm": {"ge": 0, "le": 1000},  # a breast is smaller
+    "max_features": {"ge": 0, "le": 20_000},  # SIFT's cap per view (0: no cap)
+    "target_features": {"ge": 0, "le": 10_000},  # keypoints kept per frame
+    "sift_finest_octave": {"ge": -1, "le": 0},  # -1 OpenCV's doubled image, 0 the image's own pixels
+    "neighbours": {"ge": 0, "le": 32},  # keyframes matched per frame
+    "refine_every": {"ge": 1, "le": MAX_COUNT},  # 0 would re-optimise the pose graph at every frame
 }
 
 
@@ -45,7 +58,8 @@ def _overrides_model() -> type[BaseModel]:
         elif isinstance(default, bool):
             kind = StrictBool
         elif isinstance(default, int):
-            kind = Annotated[int, Field(strict=True, ge=0, le=MAX_COUNT)]
+            bounds = _BOUNDS.get(f.name, {"ge": 0, "le": MAX_COUNT})
+            kind = Annotated[int, Field(strict=True, **bounds)]
         elif isinstance(default, float):
             bounds = _BOUNDS.get(f.name, {"ge": 0})
             kind = Annotated[float, Field(strict=True, allow_inf_nan=False, **bounds)]

@@ -255,6 +255,11 @@ def job_key(job_id: str, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{prefix}job:{job_id}"
 
 
+def owner_jobs_key(owner: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the set of an owner's (a key fingerprint's) jobs not known to be finished."""
+    return f"{prefix}owner:{owner}:jobs"
+
+
 JOB_KINDS = ("reprocess", "send")  # a new results version; a session's DICOM objects sent to a PACS
 
 

@@ -6,6 +6,13 @@ total, session, version, error, owner, created, options, batch, attempts} plus a
 "session", "options"} on the stream <prefix>jobs, written in one MULTI so a worker never sees an entry without
 its hash; a job's progress and outcome are written by `update_job` only. A batch is a hash <prefix>batch:<id>
 {jobs: json list, owner, created, sessions}. Both expire JOB_TTL_S after they were created.
+
+Per-key quota: every job is also a member of its owner's set <prefix>owner:<fingerprint>:jobs, written in the
+same MULTI. With max_per_owner, enqueue_jobs first counts the owner's open jobs (queued or running): members
+whose record is done, failed or gone are taken out of the set then (lazily, only when the set is at the
+quota, so the workers never write it), and OwnerQuotaError refuses jobs that would take the owner beyond the
+quota. The check and the write are one optimistic transaction (WATCH on the owner's set): two concurrent
+requests of one key cannot both pass it.
 """
 
 from __future__ import annotations
@@ -70,6 +77,78 @@ class QueueFullError(RuntimeError):
     """The job stream holds max_depth entries already: nothing was queued (the API answers 503 queue_full)."""
 
 
+class OwnerQuotaError(RuntimeError):
+    """The key has max_per_owner open jobs already: nothing was queued (the API answers 429 quota_exceeded)."""
+
+
+FINISHED_STATES = ("done", "failed")
+
+
+def _finished_members(r: redis.Redis, prefix: str, members: list[str]) -> list[str]:
+    """Return the members of an owner's job set whose job is finished (done, failed) or whose record is gone."""
+    pipe = r.pipeline(transaction=False)
+    for job_id in members:
+        pipe.hget(queue.job_key(job_id, prefix), "state")
+    states = pipe.execute()
+    return [
+        job_id
+        for job_id, state in zip(members, states, strict=True)
+        if state is None or (state.decode() if isinstance(state, bytes) else str(state)) in FINISHED_STATES
+    ]
+
+
+def open_jobs(r: redis.Redis, prefix: str, owner: str) -> int:
+    """Return how many of an owner's jobs are open (queued or running): the count its quota is checked against."""
+    members = sorted(
+        m.decode() if isinstance(m, bytes) else str(m) for m in r.smembers(queue.owner_jobs_key(owner, prefix))
+    )
+    return len(members) - len(_finished_members(r, prefix, members))
+
+
+def _write_jobs(
+    pipe: Any,
+    prefix: str,
+    owner: str,
+    sessions: list[str],
+    options: dict[str, Any],
+    batch: str,
+    kind: str,
+    ids: list[str],
+    now: float,
+    max_per_owner: int | None,
+) -> list[Any]:
+    """Return the replies of the MULTI writing the jobs (batch hash first, then hash, expiry and entry per job,
+    then the owner's set), after the owner's quota check on its WATCHed set (redis.WatchError: try again)."""
+    owned = queue.owner_jobs_key(owner, prefix)
+    finished: list[str] = []
+    if owner and max_per_owner is not None:
+        pipe.watch(owned)  # immediate mode until multi(): the reads below answer now
+        members = sorted(m.decode() if isinstance(m, bytes) else str(m) for m in pipe.smembers(owned))
+        if len(members) + len(ids) > max_per_owner:
+            finished = _finished_members(pipe, prefix, members)
+            if len(members) - len(finished) + len(ids) > max_per_owner:
+                pipe.unwatch()
+                raise OwnerQuotaError(f"this key has {max_per_owner} jobs queued or running (its quota); retry later")
+    pipe.multi()
+    if batch:
+        pipe.hset(
+            queue.batch_key(batch, prefix),
+            mapping={"jobs": json.dumps(ids), "owner": owner, "created": repr(now), "sessions": json.dumps(sessions)},
+        )
+        pipe.expire(queue.batch_key(batch, prefix), JOB_TTL_S)
+    encoded = json.dumps(options, separators=(",", ":"))
+    for job_id, sid in zip(ids, sessions, strict=True):
+        pipe.hset(queue.job_key(job_id, prefix), mapping=_job_fields(job_id, sid, owner, encoded, now, batch, kind))
+        pipe.expire(queue.job_key(job_id, prefix), JOB_TTL_S)
+        pipe.xadd(queue.jobs_stream(prefix), queue.job_entry(job_id, sid, encoded, kind))
+    if owner:
+        if finished:
+            pipe.srem(owned, *finished)
+        pipe.sadd(owned, *ids)
+        pipe.expire(owned, JOB_TTL_S)
+    return list(pipe.execute())
+
+
 def enqueue_jobs(
     r: redis.Redis,
     prefix: str,
@@ -80,36 +159,33 @@ def enqueue_jobs(
     ledger: Ledger | None = None,
     kind: str = "reprocess",
     max_depth: int | None = None,
+    max_per_owner: int | None = None,
 ) -> list[str]:
     """Return the ids of the jobs written: one job hash per session and its stream entry (one MULTI).
 
     Each job is then recorded durably in the ledger (the 202's promise: the reconciler re-enqueues a recorded job
     Redis lost).
 
-    With max_depth, QueueFullError (nothing queued) when the jobs would take the stream beyond it. If the durable
-    record fails (a full disk), the jobs are taken off Redis again and the OSError is raised.
+    With max_depth, QueueFullError (nothing queued) when the jobs would take the stream beyond it; with
+    max_per_owner, OwnerQuotaError (nothing queued) when they would give `owner` more open jobs than that. If the
+    durable record fails (a full disk), the jobs are taken off Redis again and the OSError is raised.
     """
     if max_depth is not None and queue_full(r, prefix, len(sessions), max_depth):
         raise QueueFullError("the job queue is full; retry later")
     now = time.time()
     ids = [new_id() for _ in sessions]
-    pipe = r.pipeline(transaction=True)
-    if batch:
-        pipe.hset(
-            queue.batch_key(batch, prefix),
-            mapping={"jobs": json.dumps(ids), "owner": owner, "created": repr(now), "sessions": json.dumps(sessions)},
-        )
-        pipe.expire(queue.batch_key(batch, prefix), JOB_TTL_S)
+    with r.pipeline(transaction=True) as pipe:
+        while True:
+            try:
+                replies = _write_jobs(pipe, prefix, owner, sessions, options, batch, kind, ids, now, max_per_owner)
+                break
+            except redis.WatchError:  # another request of this owner changed its set meanwhile: count again
+                continue
     encoded = json.dumps(options, separators=(",", ":"))
     records = {
         job_id: _job_fields(job_id, sid, owner, encoded, now, batch, kind)
         for job_id, sid in zip(ids, sessions, strict=True)
     }
-    for job_id, sid in zip(ids, sessions, strict=True):
-        pipe.hset(queue.job_key(job_id, prefix), mapping=records[job_id])
-        pipe.expire(queue.job_key(job_id, prefix), JOB_TTL_S)
-        pipe.xadd(queue.jobs_stream(prefix), queue.job_entry(job_id, sid, encoded, kind))
-    replies = pipe.execute()
     if ledger is not None:
         try:
             for job_id in ids:
@@ -117,12 +193,15 @@ def enqueue_jobs(
                 keys = ("kind", "session", "owner", "created", "options", "batch")
                 ledger.record(job_id, {k: fields[k] for k in keys})
         except OSError:
-            entries = replies[2 if batch else 0 :][2::3]  # the XADD replies: the entry ids
+            start = 2 if batch else 0  # the batch's HSET and EXPIRE, then HSET, EXPIRE, XADD per job
+            entries = replies[start : start + 3 * len(ids)][2::3]  # the XADD replies: the entry ids
             with contextlib.suppress(redis.RedisError, OSError):
                 undo = r.pipeline(transaction=True)
                 if entries:
                     undo.xdel(queue.jobs_stream(prefix), *entries)
                 undo.delete(*(queue.job_key(job_id, prefix) for job_id in ids))
+                if owner:
+                    undo.srem(queue.owner_jobs_key(owner, prefix), *ids)
                 undo.execute()
             for job_id in ids:
                 with contextlib.suppress(OSError):
@@ -142,6 +221,9 @@ def requeue_job(r: redis.Redis, prefix: str, fields: dict[str, str], ttl_s: int 
     pipe.xadd(
         queue.jobs_stream(prefix), queue.job_entry(job_id, fields.get("session", ""), fields.get("options", "{}"), kind)
     )
+    if fields.get("owner"):  # it counts against its key's quota again
+        pipe.sadd(queue.owner_jobs_key(fields["owner"], prefix), job_id)
+        pipe.expire(queue.owner_jobs_key(fields["owner"], prefix), ttl_s)
     pipe.execute()
 
 

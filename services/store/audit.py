@@ -1,9 +1,13 @@
-"""Append-only, hash-chained audit log: one JSON line per record in data_dir/audit/audit.jsonl.
+"""Append-only, keyed hash-chained audit log: one JSON line per record in data_dir/audit/audit.jsonl.
 
-Every record carries `prev`, the SHA-256 of the record before it (64 zeros for the first), and `hash`, the
-SHA-256 of its own canonical JSON without `hash` (sorted keys, no spaces). Editing, deleting, inserting or
-reordering any record breaks the chain at that point, which `verify` reports; truncating the tail is only
-visible against a hash kept elsewhere (`verify` returns the last hash: an operator may export it).
+Every record carries `prev`, the hash of the record before it (64 zeros for the first), `chain`
+("hmac-sha256") and `hash`, the HMAC-SHA256 with the audit key (services/store/secrets.py) of its own canonical
+JSON without `hash` (sorted keys, no spaces). Editing, deleting, inserting or reordering any record breaks the
+chain at that point, which `verify` reports; so does a record whose hash was recomputed without the key (a
+writer of the volume who does not hold the secret cannot re-chain an edited log). Truncating the tail is only
+visible against a hash kept elsewhere (`verify` returns the last hash: an operator may export it). Records
+written before the chain was keyed (no `chain` field, a plain SHA-256) are accepted only as a prefix: `verify`
+counts them (`unkeyed`), and an unkeyed record after a keyed one breaks the chain.
 
 Durability: a record is written with O_APPEND under an exclusive flock (so several processes on one host
 chain correctly: the writer re-reads the last hash whenever the file changed under it) and fsynced before
@@ -13,8 +17,9 @@ cut off when the log is next opened.
 
 Why a file on the data volume and not a Redis stream: the audit trail must outlive Redis (which may lose its
 last second of AOF, or be wiped and rebuilt from the uploads), and it belongs with the patient data it
-describes, under the same backups and access control. Records hold ids, key fingerprints and addresses,
-never labels, calibrations, tokens or keys.
+describes, under the same backups and access control. Records hold ids, keyed key ids (`key_actor`: an HMAC
+of the key's fingerprint with the audit key, so a record cannot be matched against a guessed key without the
+secret) and addresses, never labels, calibrations, tokens or keys.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import hashlib
+import hmac
 import json
 import os
 import threading
@@ -31,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 GENESIS = "0" * 64
+CHAIN = "hmac-sha256"  # the `chain` field of a keyed record
 _TAIL = 64 * 1024
 
 
@@ -40,8 +47,13 @@ def canonical(record: dict[str, Any]) -> bytes:
 
 
 def record_hash(record: dict[str, Any]) -> str:
-    """Return the SHA-256 hex of a record's canonical JSON without its `hash` field."""
+    """Return the SHA-256 hex of a record's canonical JSON without its `hash` field (an unkeyed, legacy record)."""
     return hashlib.sha256(canonical({k: v for k, v in record.items() if k != "hash"})).hexdigest()
+
+
+def record_mac(key: bytes, record: dict[str, Any]) -> str:
+    """Return the HMAC-SHA256 hex, with the audit key, of a record's canonical JSON without its `hash` field."""
+    return hmac.new(key, canonical({k: v for k, v in record.items() if k != "hash"}), hashlib.sha256).hexdigest()
 
 
 @dataclass(frozen=True)
@@ -53,6 +65,7 @@ class Verification:
     last_hash: str
     first_bad_line: int | None = None
     reason: str | None = None
+    unkeyed: int = 0  # records written before the chain was keyed (a prefix of the log)
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form."""
@@ -62,14 +75,18 @@ class Verification:
             "last_hash": self.last_hash,
             "first_bad_line": self.first_bad_line,
             "reason": self.reason,
+            "unkeyed": self.unkeyed,
         }
 
 
 class AuditLog:
-    """The audit log of one data directory; thread-safe, and safe across processes on one host."""
+    """The audit log of one data directory, chained with `key`; thread-safe, and safe across processes on one host."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, key: bytes) -> None:
+        if len(key) < 32:
+            raise ValueError("the audit key must hold at least 32 bytes")
         self.path = Path(path)
+        self._key = key
         self._lock = threading.Lock()
         self._sync_lock = threading.Lock()
         self._fd: int | None = None
@@ -83,6 +100,10 @@ class AuditLog:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o640)
         return self._fd
+
+    def key_actor(self, fingerprint: str) -> str:
+        """Return the actor of an API key in records: "key:" + 16 hex of an HMAC of its fingerprint (audit key)."""
+        return "key:" + hmac.new(self._key, b"key-id:" + fingerprint.encode(), hashlib.sha256).hexdigest()[:16]
 
     def close(self) -> None:
         """Close the file (a later append opens it again)."""
@@ -120,8 +141,8 @@ class AuditLog:
                     if good != size:
                         os.ftruncate(fd, good)  # a torn line from a crash: never acknowledged
                         size = good
-                body = {**record, "prev": self._last}
-                full = {**body, "hash": hashlib.sha256(canonical(body)).hexdigest()}
+                body = {**record, "prev": self._last, "chain": CHAIN}
+                full = {**body, "hash": record_mac(self._key, body)}
                 line = canonical(full) + b"\n"
                 try:
                     written = os.write(fd, line)
@@ -194,7 +215,7 @@ class AuditLog:
 
     def verify(self) -> Verification:
         """Return the check of the whole chain from the first record, naming the first line that does not follow."""
-        prev, n = GENESIS, 0
+        prev, n, unkeyed = GENESIS, 0, 0
         try:
             fh = open(self.path, "rb")  # noqa: SIM115 (closed by the with below)
         except FileNotFoundError:
@@ -204,10 +225,19 @@ class AuditLog:
                 try:
                     rec = json.loads(raw)
                 except ValueError:
-                    return Verification(False, n, prev, lineno, "not a JSON record")
+                    return Verification(False, n, prev, lineno, "not a JSON record", unkeyed)
                 if not isinstance(rec, dict) or rec.get("prev") != prev:
-                    return Verification(False, n, prev, lineno, "prev does not match the previous record's hash")
-                if rec.get("hash") != record_hash(rec):
-                    return Verification(False, n, prev, lineno, "hash does not match the record")
+                    reason = "prev does not match the previous record's hash"
+                    return Verification(False, n, prev, lineno, reason, unkeyed)
+                if rec.get("chain") == CHAIN:
+                    expected = record_mac(self._key, rec)
+                elif n > unkeyed:
+                    reason = "an unkeyed record after the keyed chain began"
+                    return Verification(False, n, prev, lineno, reason, unkeyed)
+                else:
+                    expected, unkeyed = record_hash(rec), unkeyed + 1
+                if not hmac.compare_digest(str(rec.get("hash")), expected):
+                    reason = "hash does not match the record (altered, or made without the audit key)"
+                    return Verification(False, n, prev, lineno, reason, unkeyed)
                 prev, n = rec["hash"], n + 1
-        return Verification(True, n, prev)
+        return Verification(True, n, prev, unkeyed=unkeyed)

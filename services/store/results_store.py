@@ -14,6 +14,8 @@ Layout under data_dir/sessions/<id>/results/:
     <v>/state.json              the version's VersionState (services.store.version_state; versioned)
     <v>/{mosaic,force,coverage,paths,errors}.png, <v>/report.json
     <v>/layers.npz              raw force (cN) and coverage planes of the finished mosaic (DICOM export, report)
+    <v>/outputs/<name>          rendered outputs kept for later calls (the one-page report, DICOM objects), each
+                                named by a digest of what it was made from (services.store.session_export)
 Version 1 is the live run; reprocess makes 2, 3, ... Every write is atomic (durable.atomic_write_bytes), so
 readers (the API, other workers) see a whole old or a whole new file, never a part.
 """
@@ -48,6 +50,7 @@ LIVE_VERSION = 1
 
 
 _SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
+_OUTPUT_NAME = re.compile(r"^[a-z0-9][a-z0-9.-]{0,120}$")
 
 
 def _json_bytes(doc: Any) -> bytes:
@@ -304,6 +307,42 @@ class ResultsStore:
             return (self.results_dir(sid) / "reference.csv").read_text()
         except FileNotFoundError:
             return None
+
+    # ----- rendered outputs ---------------------------------------------------------------------------------------
+    def output_path(self, sid: str, v: int, name: str) -> Path:
+        """Return the file of a rendered output of version v (a name of lowercase letters, digits, '.', '-')."""
+        if not _OUTPUT_NAME.match(name):
+            raise ValueError("an output name is lowercase letters, digits, '.' and '-'")
+        return self.version_dir(sid, v) / "outputs" / name
+
+    def read_output(self, sid: str, v: int, name: str) -> bytes | None:
+        """Return a rendered output of version v, or None when it was never stored."""
+        try:
+            return self.output_path(sid, v, name).read_bytes()
+        except FileNotFoundError:
+            return None
+
+    def write_output(self, sid: str, v: int, name: str, data: bytes, family: str) -> None:
+        """Store a rendered output of version v, removing the other outputs whose names start with `family`
+        (the same output made from older inputs: a reference posted since, another software version)."""
+        path = self.output_path(sid, v, name)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(path, data)
+        for old in path.parent.glob(f"{family}*"):
+            if old.name != name and _OUTPUT_NAME.match(old.name):
+                with contextlib.suppress(FileNotFoundError):
+                    old.unlink()
+
+    def version_stamp(self, sid: str, v: int) -> str:
+        """Return what identifies the finished files of version v (size and mtime of path, mosaic and layers)."""
+        parts = []
+        for name in ("path.json", "mosaic.json", "mosaic.png", "layers.npz", "options.json"):
+            try:
+                st = (self.version_dir(sid, v) / name).stat()
+                parts.append(f"{name}:{st.st_size}:{st.st_mtime_ns}")
+            except FileNotFoundError:
+                parts.append(f"{name}:-")
+        return ";".join(parts)
 
     # ----- images and tiles -------------------------------------------------------------------------------------
     def image_path(self, sid: str, v: int, name: str) -> Path:

@@ -1,7 +1,14 @@
-"""The HMAC key of viewer tokens: VEINMOSAIC_TOKEN_SECRET, else data_dir/secret, made once per deployment."""
+"""The server's HMAC keys: viewer tokens (VEINMOSAIC_TOKEN_SECRET, else data_dir/secret, made once per
+deployment) and the audit log's chain and key ids (VEINMOSAIC_AUDIT_SECRET, else derived from the token secret).
+
+The audit key protects the chain only against someone who can write the data volume but cannot read the
+secret: set VEINMOSAIC_TOKEN_SECRET (or VEINMOSAIC_AUDIT_SECRET) in the environment, not in data_dir/secret.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import os
 import time
 from pathlib import Path
@@ -10,6 +17,7 @@ from services.settings import Settings
 from services.store.durable import write_once
 
 SECRET_BYTES = 32
+AUDIT_KEY_LABEL = b"veinmosaic.audit-key"  # the derivation of the audit key from the token secret (its own use)
 
 
 def token_secret_bytes(settings: Settings) -> bytes:
@@ -30,3 +38,10 @@ def token_secret_bytes(settings: Settings) -> bytes:
             return data
         time.sleep(0.01)  # pragma: no cover - only a hand-made short file gets here
     raise RuntimeError(f"{path} holds fewer than {SECRET_BYTES} bytes; delete it to make a new one")
+
+
+def audit_key_bytes(settings: Settings) -> bytes:
+    """Return the audit chain's HMAC key: VEINMOSAIC_AUDIT_SECRET, else derived from the token secret."""
+    if settings.audit_secret is not None:
+        return settings.audit_secret.get_secret_value().encode()
+    return hmac.new(token_secret_bytes(settings), AUDIT_KEY_LABEL, hashlib.sha256).digest()

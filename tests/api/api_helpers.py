@@ -9,10 +9,10 @@ import numpy as np
 from fastapi.testclient import TestClient
 
 KEYS = {
-    "ingest-key-a": ["ingest"],
-    "ingest-key-b": ["ingest"],
-    "view-key": ["view"],
-    "admin-key": ["admin"],
+    "ingest-key-a-0123456789abcdef": ["ingest"],
+    "ingest-key-b-0123456789abcdef": ["ingest"],
+    "view-key-0123456789abcdef": ["view"],
+    "admin-key-0123456789abcdef": ["admin"],
 }
 WIDTH, HEIGHT = 64, 48
 
@@ -22,7 +22,7 @@ def auth(key: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {key}"}
 
 
-INGEST = auth("ingest-key-a")
+INGEST = auth("ingest-key-a-0123456789abcdef")
 
 
 def calibration_doc(**extra: Any) -> dict[str, Any]:

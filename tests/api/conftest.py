@@ -48,7 +48,7 @@ def make_client(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, backend: str) -
             "redis_url": os.environ.get("REDIS_URL") if backend == "real" else None,
             "redis_prefix": prefix,
             "api_keys": KEYS,
-            "token_secret": "test-secret",
+            "token_secret": "test-secret-0123456789abcdef-0123",
         }
         values.update(overrides)
         client = TestClient(create_app(Settings(**values)))
@@ -76,7 +76,7 @@ def client(make_client: Callable[..., TestClient]) -> TestClient:
 
 @pytest.fixture
 def session_id(client: TestClient) -> str:
-    """Return the id of a fresh session owned by ingest-key-a."""
+    """Return the id of a fresh session owned by ingest-key-a-0123456789abcdef."""
     resp = client.post(
         "/v1/sessions", json={"calibration": calibration_doc(), "label": "Jane Doe 1970"}, headers=INGEST
     )

@@ -25,13 +25,15 @@ def test_missing_or_unknown_key_is_401_with_challenge(client: TestClient) -> Non
 
 
 def test_key_without_scope_is_403(client: TestClient) -> None:
-    resp = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=auth("view-key"))
+    resp = client.post(
+        "/v1/sessions", json={"calibration": calibration_doc()}, headers=auth("view-key-0123456789abcdef")
+    )
     assert resp.status_code == 403
     assert resp.json()["error"]["code"] == "forbidden"
 
 
 def test_other_owner_gets_404_admin_sees_all(client: TestClient, session_id: str) -> None:
-    other = auth("ingest-key-b")
+    other = auth("ingest-key-b-0123456789abcdef")
     assert client.get(f"/v1/sessions/{session_id}", headers=other).status_code == 404
     assert upload(client, session_id, 0, frame_bytes(), headers=other).status_code == 404
     assert client.post(f"/v1/sessions/{session_id}/finish", headers=other).status_code == 404
@@ -40,18 +42,18 @@ def test_other_owner_gets_404_admin_sees_all(client: TestClient, session_id: str
     assert (
         missing.status_code == 404 and missing.json() == client.get(f"/v1/sessions/{session_id}", headers=other).json()
     )
-    assert client.get(f"/v1/sessions/{session_id}", headers=auth("admin-key")).status_code == 200
+    assert client.get(f"/v1/sessions/{session_id}", headers=auth("admin-key-0123456789abcdef")).status_code == 200
     assert client.get(f"/v1/sessions/{session_id}", headers=INGEST).status_code == 200
     # a view-only key did not create the session, so it cannot see it either
-    assert client.get(f"/v1/sessions/{session_id}", headers=auth("view-key")).status_code == 404
+    assert client.get(f"/v1/sessions/{session_id}", headers=auth("view-key-0123456789abcdef")).status_code == 404
 
 
 def test_session_owner_is_key_fingerprint_never_key(client: TestClient, session_id: str) -> None:
     store = client.app.state.store  # type: ignore[attr-defined]
     meta = store.get_meta(session_id)
-    assert meta.owner == fingerprint("ingest-key-a")
+    assert meta.owner == fingerprint("ingest-key-a-0123456789abcdef")
     raw = (store.session_dir(session_id) / "session.json").read_text()
-    assert "ingest-key-a" not in raw
+    assert "ingest-key-a-0123456789abcdef" not in raw
 
 
 def test_viewer_token_from_create_grants_view_only(client: TestClient) -> None:

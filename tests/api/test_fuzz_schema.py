@@ -114,7 +114,7 @@ def test_schemathesis_finds_nothing(tmp_path: Path) -> None:
         env = {**os.environ, "SCHEMATHESIS_HOOKS": ""}
         done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=TIMEOUT_S)
         server_errors = [line for line in api.log_lines() if '"status": 500' in line or "Traceback" in line]
-        schema = httpx.get(f"{api.base_url}/openapi.json").json()
+        schema = httpx.get(f"{api.base_url}/openapi.json", headers={"Authorization": f"Bearer {key}"}).json()
     session_operations = {
         f"{method.upper()} {path}"
         for path, item in schema["paths"].items()

@@ -67,7 +67,7 @@ def _send_chunked_until_answered(base_url: str, path: str, total: int, chunk: in
     sent = 0
     try:
         head = (
-            f"POST {path} HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer ingest-key-a\r\n"
+            f"POST {path} HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer ingest-key-a-0123456789abcdef\r\n"
             "Content-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n"
         )
         sock.sendall(head.encode())
@@ -146,7 +146,7 @@ def test_max_frame_side_caps_calibrations_and_is_in_the_schema(make_client: Call
     resp = client.post("/v1/sessions", json={"calibration": calibration_doc(image_size=[2048, 1536])}, headers=INGEST)
     assert resp.status_code == 422 and _error(resp)["code"] == "invalid_calibration"
     assert "1024" in _error(resp)["message"]
-    schema = client.get("/openapi.json").json()["components"]["schemas"]["CalibrationDoc"]
+    schema = client.get("/openapi.json", headers=INGEST).json()["components"]["schemas"]["CalibrationDoc"]
     assert [item["maximum"] for item in schema["properties"]["image_size"]["prefixItems"]] == [1024, 1024]
 
 
@@ -157,7 +157,7 @@ def test_calibration_shape_is_required_by_schema_and_code(client: TestClient) ->
     assert {"calibration.image_size", "calibration.camera_matrix", "calibration.px_per_mm"} <= fields
     skewed = calibration_doc(camera_matrix=[[80.0, 1.0, 31.5], [0.0, 80.0, 23.5], [0.0, 0.0, 1.0]])
     assert client.post("/v1/sessions", json={"calibration": skewed}, headers=INGEST).status_code == 422
-    schema = client.get("/openapi.json").json()["components"]["schemas"]["CalibrationDoc"]
+    schema = client.get("/openapi.json", headers=INGEST).json()["components"]["schemas"]["CalibrationDoc"]
     assert set(schema["required"]) == {"image_size", "camera_matrix", "px_per_mm"}
     assert schema["additionalProperties"] is False
 
@@ -392,7 +392,7 @@ def test_reprocess_not_recorded_durably_is_503_and_not_queued(
 
 
 def test_schema_documents_a_full_disk_as_503_with_retry_after(client: TestClient) -> None:
-    paths = client.get("/openapi.json").json()["paths"]
+    paths = client.get("/openapi.json", headers=INGEST).json()["paths"]
     for path, method in (
         ("/v1/sessions/{session_id}/frames", "post"),
         ("/v1/sessions/{session_id}/forces", "post"),

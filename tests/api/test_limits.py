@@ -76,14 +76,18 @@ def test_anonymous_refusals_are_recorded_per_client_without_raw_ids(make_client:
     for sid in (uuid.uuid4().hex, junk, uuid.uuid4().hex):
         assert client.get(f"/v1/sessions/{sid}").status_code == 401
     assert client.get(f"/v1/sessions/{junk}/path", headers=auth("no-such-key")).status_code == 401
-    records = client.get("/v1/audit", params={"actor": "anonymous"}, headers=auth("admin-key")).json()["records"]
+    records = client.get("/v1/audit", params={"actor": "anonymous"}, headers=auth("admin-key-0123456789abcdef")).json()[
+        "records"
+    ]
     assert len(records) == 1  # one record per client and status in the window, whatever the route and id
     assert records[0]["status"] == 401 and records[0]["session"] is not None and len(records[0]["session"]) == 32
     raw = (client.app.state.settings.data_dir / "audit" / "audit.jsonl").read_text()  # type: ignore[attr-defined]
     assert "Jane" not in raw
     # an authenticated caller's invalid id is recorded as the placeholder too
     client.get(f"/v1/sessions/{junk}", headers=INGEST)
-    mine = client.get("/v1/audit", params={"session": "(invalid)"}, headers=auth("admin-key")).json()["records"]
+    mine = client.get("/v1/audit", params={"session": "(invalid)"}, headers=auth("admin-key-0123456789abcdef")).json()[
+        "records"
+    ]
     assert [r["status"] for r in mine] == [404]
 
 
@@ -121,7 +125,7 @@ def test_expensive_reads_are_rate_limited_per_caller(make_client: Any) -> None:
 
 
 def test_429_is_documented_on_authenticated_routes(client: TestClient) -> None:
-    paths = client.get("/openapi.json").json()["paths"]
+    paths = client.get("/openapi.json", headers=INGEST).json()["paths"]
     assert "429" in paths["/v1/sessions/{session_id}"]["get"]["responses"]
     assert "Retry-After" in paths["/v1/sessions/{session_id}"]["get"]["responses"]["429"]["headers"]
     assert "429" not in paths["/healthz"]["get"]["responses"]

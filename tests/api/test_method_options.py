@@ -24,7 +24,13 @@ def test_every_method_option_but_its_name_is_validated() -> None:
     [
         ({"min_inliers": CANARY}, "method_options: min_inliers must be a whole number"),
         ({"min_inliers": 2.5}, "method_options: min_inliers must be a whole number"),
-        ({"min_inliers": 10**9}, "method_options: min_inliers must be <= 1000000"),
+        ({"min_inliers": 10**9}, "method_options: min_inliers must be <= 100000"),
+        ({"neighbours": 10**6}, "method_options: neighbours must be <= 32"),  # the counts that cost work per frame
+        ({"target_features": 10**6}, "method_options: target_features must be <= 10000"),
+        ({"max_features": 10**6}, "method_options: max_features must be <= 20000"),
+        ({"refine_every": 0}, "method_options: refine_every must be >= 1"),
+        ({"sift_finest_octave": 3}, "method_options: sift_finest_octave must be <= 0"),
+        ({"ransac_px": 1e9}, "method_options: ransac_px must be <= 50"),
         ({"refine": 1}, "method_options: refine must be a boolean"),
         ({"ransac_px": "2"}, "method_options: ransac_px must be a number"),
         ({"ransac_px": -97741.25}, "method_options: ransac_px must be >= 0"),
@@ -48,6 +54,7 @@ def test_refusals_name_the_field_and_constraint_never_the_value(overrides: dict,
 def test_valid_overrides_keep_only_what_was_given() -> None:
     assert check_overrides({"ransac_px": 3, "min_inliers": 12}) == {"ransac_px": 3.0, "min_inliers": 12}
     assert check_overrides(None) == {} and check_overrides({}) == {}
+    assert check_overrides({"sift_finest_octave": -1, "neighbours": 32}) == {"sift_finest_octave": -1, "neighbours": 32}
     opts, _ = parse_options({"method": "paper", "method_options": {"ransac_px": 3}})
     assert opts.ransac_px == 3.0 and isinstance(opts.ransac_px, float) and opts.features == "modified-asift"
 

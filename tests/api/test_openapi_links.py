@@ -22,7 +22,7 @@ def _takes(operation: dict[str, Any], name: str) -> bool:
 
 
 def test_every_session_operation_is_linked_from_session_creation(client: TestClient) -> None:
-    doc = client.get("/openapi.json").json()
+    doc = client.get("/openapi.json", headers=INGEST).json()
     operations = _operations(doc)
     links = doc["paths"]["/v1/sessions"]["post"]["responses"]["201"]["links"]
     takers = {op_id for op_id, (_, _, op) in operations.items() if _takes(op, "session_id")}
@@ -33,7 +33,7 @@ def test_every_session_operation_is_linked_from_session_creation(client: TestCli
 
 
 def test_job_and_batch_answers_link_to_their_status(client: TestClient) -> None:
-    doc = client.get("/openapi.json").json()
+    doc = client.get("/openapi.json", headers=INGEST).json()
     operations = _operations(doc)
     for path, field, target in [
         ("/v1/sessions/{session_id}/reprocess", "job", "/v1/jobs/{job_id}"),
@@ -54,7 +54,7 @@ def test_job_and_batch_answers_link_to_their_status(client: TestClient) -> None:
 
 
 def test_a_new_route_gets_its_link_without_being_listed() -> None:
-    app = create_app(Settings(api_keys={}, token_secret="x"))
+    app = create_app(Settings(api_keys={}, token_secret="openapi-test-secret-0123456789abcdef"))
 
     def shiny(session_id: str) -> dict[str, str]:
         return {"session": session_id}
@@ -66,7 +66,7 @@ def test_a_new_route_gets_its_link_without_being_listed() -> None:
 
 
 def test_no_link_when_the_producer_lacks_its_field() -> None:
-    app = create_app(Settings(api_keys={}, token_secret="x"))
+    app = create_app(Settings(api_keys={}, token_secret="openapi-test-secret-0123456789abcdef"))
     doc = get_openapi(title="t", version="1", routes=app.routes)
     del doc["components"]["schemas"]["SessionCreated"]["properties"]["id"]
     links = add_links(doc)["paths"]["/v1/sessions"]["post"]["responses"]["201"].get("links")
@@ -75,7 +75,7 @@ def test_no_link_when_the_producer_lacks_its_field() -> None:
 
 
 def test_image_size_bounds_agree_between_schema_and_code(client: TestClient) -> None:
-    schema = client.get("/openapi.json").json()["components"]["schemas"]["CalibrationDoc"]
+    schema = client.get("/openapi.json", headers=INGEST).json()["components"]["schemas"]["CalibrationDoc"]
     sides = schema["properties"]["image_size"]["prefixItems"]
     assert [side["minimum"] for side in sides] == [16, 16]
     assert all(set(side) <= {"type", "minimum", "maximum"} for side in sides)  # no raw ge/le keys

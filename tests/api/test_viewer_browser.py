@@ -25,7 +25,7 @@ from tests.sim_cache import simulated
 
 pytestmark = pytest.mark.slow
 
-KEY = "browser-test-key"
+KEY = "browser-test-key-0123456789abcdef"
 FIRST_PART = 26  # the workers compute the window mask from the first 24 frames: the view starts after them
 WAIT_S = 60.0
 

@@ -33,7 +33,7 @@ from services.store.version_state import VersionState
 
 pytestmark = pytest.mark.slow
 
-KEY = "viewer-tools-key"
+KEY = "viewer-tools-key-0123456789abcdef"
 PX_PER_MM = 8.0
 N_FRAMES = 30
 STEP_MM = 2.0

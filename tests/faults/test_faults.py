@@ -259,7 +259,7 @@ def _restarts(port: int) -> int:
 
 
 def test_serve_restarts_a_killed_api_and_worker(tmp_path: Path, redis_server: RedisServer) -> None:
-    key = "fault-test-key"
+    key = "fault-test-key-0123456789abcdef"
     serve, port = start_serve(tmp_path, tmp_path / "data", key, redis_server.url)
     client = VeinmosaicClient(f"http://127.0.0.1:{port}", key, timeout_s=10.0, max_retries=12)
     try:
@@ -370,10 +370,15 @@ def test_reprocess_job_redis_forgot_is_reconciled(
     for name in ("VEINMOSAIC_API_KEYS", "REDIS_URL", "VEINMOSAIC_REDIS_URL"):
         monkeypatch.delenv(name, raising=False)
     settings = Settings(
-        data_dir=data, redis_url=redis_server.url, redis_prefix=PREFIX, api_keys={"admin-key": ["admin", "ingest"]}
+        data_dir=data,
+        redis_url=redis_server.url,
+        redis_prefix=PREFIX,
+        api_keys={"admin-key-0123456789abcdef": ["admin", "ingest"]},
     )
     with TestClient(create_app(settings)) as api:
-        resp = api.post(f"/v1/sessions/{sid}/reprocess", json={}, headers={"Authorization": "Bearer admin-key"})
+        resp = api.post(
+            f"/v1/sessions/{sid}/reprocess", json={}, headers={"Authorization": "Bearer admin-key-0123456789abcdef"}
+        )
         assert resp.status_code == 202, resp.text
         job = resp.json()["job"]
         assert [d["id"] for d in store.jobs.open_jobs()] == [job]  # durable before the 202
@@ -384,7 +389,7 @@ def test_reprocess_job_redis_forgot_is_reconciled(
         deadline = time.monotonic() + 180
         state: dict = {}
         while time.monotonic() < deadline:
-            got = api.get(f"/v1/jobs/{job}", headers={"Authorization": "Bearer admin-key"})
+            got = api.get(f"/v1/jobs/{job}", headers={"Authorization": "Bearer admin-key-0123456789abcdef"})
             state = got.json() if got.status_code == 200 else {}
             if state.get("state") in ("done", "failed"):
                 break

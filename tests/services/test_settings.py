@@ -10,7 +10,8 @@ from pydantic import ValidationError
 
 from cli.commands_service import _settings_for
 from cli.main import build_parser as cli_parser
-from services.settings import Settings, WorkerSettings
+from cli.main import main as cli_main
+from services.settings import MIN_API_KEY_CHARS, MIN_TOKEN_SECRET_CHARS, Settings, WorkerSettings
 from workers.config import WorkerConfig
 from workers.main import build_parser as worker_parser
 from workers.main import worker_config
@@ -66,3 +67,33 @@ def test_serve_defaults_come_from_the_settings(monkeypatch: pytest.MonkeyPatch, 
     args = cli_parser().parse_args(["serve", "--workers", "1", "--port", "9001"])
     _settings_for(args)
     assert (args.port, args.workers) == (9001, 1)
+
+
+def test_short_api_keys_and_token_secret_are_refused_at_start_up(monkeypatch: pytest.MonkeyPatch) -> None:
+    short_key, short_secret = "k" * (MIN_API_KEY_CHARS - 1), "s" * (MIN_TOKEN_SECRET_CHARS - 1)
+    monkeypatch.setenv("VEINMOSAIC_API_KEYS", json.dumps({short_key: ["ingest"], "k" * MIN_API_KEY_CHARS: ["view"]}))
+    with pytest.raises(ValidationError, match=f"at least {MIN_API_KEY_CHARS}") as refused:
+        Settings()
+    assert short_key not in str(refused.value) and "scopes ingest" in str(refused.value)  # named, never echoed
+    monkeypatch.setenv("VEINMOSAIC_API_KEYS", json.dumps({"k" * MIN_API_KEY_CHARS: ["view"]}))
+    monkeypatch.setenv("VEINMOSAIC_TOKEN_SECRET", short_secret)
+    with pytest.raises(ValidationError, match=f"at least {MIN_TOKEN_SECRET_CHARS}") as refused:
+        Settings()
+    assert short_secret not in str(refused.value)
+    monkeypatch.setenv("VEINMOSAIC_TOKEN_SECRET", "s" * MIN_TOKEN_SECRET_CHARS)
+    assert Settings().token_secret is not None  # the minimum itself is accepted
+
+
+def test_a_short_key_stops_the_command_line_with_a_clear_error(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("VEINMOSAIC_API_KEYS", json.dumps({"short-key": ["ingest"]}))
+    assert cli_main(["serve", "--port", "0"]) != 0
+    err = capsys.readouterr().err
+    assert "at least 24 are required" in err and "short-key" not in err
+
+
+def test_a_redis_password_never_shows_in_the_settings_repr(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("REDIS_URL", "redis://:s3cret-redis-password@redis:6379/0")
+    settings = Settings()
+    assert settings.redis_url is not None and "s3cret" not in repr(settings) and "s3cret" not in str(settings)

@@ -27,7 +27,7 @@ from tests.workers.conftest import Backend, store_scan, wait_for
 
 pytestmark = pytest.mark.slow
 
-ADMIN = "admin-key"
+ADMIN = "admin-key-0123456789abcdef"
 HEADERS = {"Authorization": f"Bearer {ADMIN}"}
 DONE_TIMEOUT_S = 120.0
 # the paths agree to 1e-6 mm (tests/workers/test_live_pipeline.py); figures derived from them to well within this
@@ -46,7 +46,7 @@ def api(backend: Backend) -> Iterator[TestClient]:
         redis_url=backend.url,
         redis_prefix=backend.prefix,
         api_keys={ADMIN: ["admin"]},
-        token_secret="test-secret",
+        token_secret="test-secret-0123456789abcdef-0123",
     )
     with TestClient(create_app(settings)) as client:
         yield client

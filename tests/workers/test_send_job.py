@@ -20,8 +20,10 @@ import pytest
 from cli.client import ApiError, VeinmosaicClient, upload_scan_folder
 from cli.launcher import Service, free_port
 from services.pacs.destinations import DicomWebDestination, DimseDestination
+from services.settings import Settings
 from services.store.audit import AuditLog
 from services.store.scan_folder import write_scan_folder
+from services.store.secrets import audit_key_bytes
 from tests.pacs_server import Orthanc
 from tests.sim_cache import simulated
 from workers.stages.send import public_error
@@ -67,6 +69,12 @@ def served(orthanc: Orthanc, tmp_path_factory: pytest.TempPathFactory) -> Iterat
         client = VeinmosaicClient(service.base_url, key)
         yield service, client
         client.close()
+
+
+def audit_log(service: Service) -> AuditLog:
+    """Return the service's audit log with its key (the service's environment: this one's, data_dir/secret)."""
+    path = service.data_dir / "audit" / "audit.jsonl"
+    return AuditLog(path, audit_key_bytes(Settings(data_dir=service.data_dir)))
 
 
 def wait_for_study(orthanc: Orthanc, accession: str, series: int, timeout_s: float) -> dict:
@@ -119,15 +127,18 @@ def test_a_session_reaches_orthanc_by_both_protocols_filed_and_rendered(
     assert sorted(same["Series"]) == sorted(study["Series"])
     assert sum(len(orthanc.get(f"/series/{s}")["Instances"]) for s in same["Series"]) == OBJECTS
 
-    records = AuditLog(service.data_dir / "audit" / "audit.jsonl").query(session=sid, limit=100)
+    records = audit_log(service).query(session=sid, limit=100)
     sends = [r for r in records if r.get("action") == "pacs.send"]
     assert sorted((r["destination"], r["outcome"]) for r in sends) == [
         ("dimse", "done"),
         ("web", "done"),
         ("web", "done"),
     ]
-    assert all(r["actor"].startswith("key:") and r["instances"] == OBJECTS for r in sends)
-    assert len([r for r in records if r.get("action") == "pacs.send.request"]) == 2  # the auto-send is not a request
+    requests = [r for r in records if r.get("action") == "pacs.send.request"]
+    assert len(requests) == 2  # the auto-send is not a request
+    # the worker names the job's key as the API does (the same keyed id)
+    assert {r["actor"] for r in sends} == {requests[0]["actor"]} and all(r["instances"] == OBJECTS for r in sends)
+    assert audit_log(service).verify().ok  # the API's and the worker's records make one keyed chain
     audit_text = (service.data_dir / "audit" / "audit.jsonl").read_text()
     assert STUDY["patient_name"] not in audit_text and STUDY["accession_number"] not in audit_text
 
@@ -144,7 +155,7 @@ def test_an_unreachable_destination_is_retried_then_fails(
     job = client.wait_job(client.send(sid, "dead"), timeout_s=120)
     assert job["state"] == "failed" and job["attempts"] == 2, job
     assert "unreachable" in (job["error"] or "")
-    records = AuditLog(service.data_dir / "audit" / "audit.jsonl").query(session=sid, limit=100)
+    records = audit_log(service).query(session=sid, limit=100)
     outcomes = [r["outcome"] for r in records if r.get("action") == "pacs.send" and r["destination"] == "dead"]
     assert sorted(outcomes) == ["failed", "retry"]
     with pytest.raises(ApiError) as refused:

@@ -16,15 +16,16 @@ from live_server import live_api
 from api.auth import fingerprint
 from services.store.audit import AuditLog
 
-ADMIN = auth("admin-key")
+ADMIN = auth("admin-key-0123456789abcdef")
+KEY = b"audit-test-key-0123456789abcdef-0123"
 
 
 def test_chain_verifies_and_any_edit_breaks_it(tmp_path: Path) -> None:
-    log = AuditLog(tmp_path / "audit.jsonl")
+    log = AuditLog(tmp_path / "audit.jsonl", KEY)
     for i in range(5):
         log.append({"ts": float(i), "actor": "key:x", "action": "session.read", "session": f"s{i}"})
     assert log.verify().ok and log.verify().records == 5
-    other = AuditLog(tmp_path / "audit.jsonl")  # a second writer (another process) continues the chain
+    other = AuditLog(tmp_path / "audit.jsonl", KEY)  # a second writer (another process) continues the chain
     other.append({"ts": 5.0, "actor": "key:y", "action": "session.read", "session": "s5"})
     log.append({"ts": 6.0, "actor": "key:x", "action": "session.read", "session": "s6"})
     assert log.verify().ok and log.verify().records == 7
@@ -34,19 +35,19 @@ def test_chain_verifies_and_any_edit_breaks_it(tmp_path: Path) -> None:
     edited = lines.copy()
     edited[2] = edited[2].replace('"s2"', '"s9"')
     (tmp_path / "audit.jsonl").write_text("\n".join(edited) + "\n")
-    bad = AuditLog(tmp_path / "audit.jsonl").verify()
+    bad = AuditLog(tmp_path / "audit.jsonl", KEY).verify()
     assert not bad.ok and bad.first_bad_line == 3 and "hash" in (bad.reason or "")
     (tmp_path / "audit.jsonl").write_text("\n".join(lines[:2] + lines[3:]) + "\n")  # a record deleted
-    gone = AuditLog(tmp_path / "audit.jsonl").verify()
+    gone = AuditLog(tmp_path / "audit.jsonl", KEY).verify()
     assert not gone.ok and gone.first_bad_line == 3 and "prev" in (gone.reason or "")
 
 
 def test_a_torn_last_line_is_cut_off_before_the_next_append(tmp_path: Path) -> None:
     path = tmp_path / "audit.jsonl"
-    AuditLog(path).append({"ts": 1.0, "actor": "a", "action": "x"})
+    AuditLog(path, KEY).append({"ts": 1.0, "actor": "a", "action": "x"})
     with open(path, "ab") as fh:
         fh.write(b'{"ts": 2.0, "act')  # a crash mid-write (never acknowledged)
-    log = AuditLog(path)
+    log = AuditLog(path, KEY)
     log.append({"ts": 3.0, "actor": "a", "action": "y"})
     result = log.verify()
     assert result.ok and result.records == 2
@@ -59,21 +60,24 @@ def test_requests_are_audited_and_admins_query_them(client: TestClient, session_
     assert client.get(f"/v1/sessions/{session_id}/path?format=csv", headers=INGEST).status_code == 200
     viewer = client.get(f"/v1/sessions/{token['id']}?token={token['viewer_token']}")
     assert viewer.status_code == 200
-    assert client.get(f"/v1/sessions/{session_id}", headers=auth("ingest-key-b")).status_code == 404
+    assert client.get(f"/v1/sessions/{session_id}", headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404
 
     assert client.get("/v1/audit", headers=INGEST).status_code == 403  # admin scope only
     assert client.get("/v1/audit").status_code == 401
     page = client.get("/v1/audit", params={"session": session_id, "limit": 50}, headers=ADMIN).json()
     actions = [(r["action"], r["actor"], r["status"]) for r in page["records"]]
-    owner = f"key:{fingerprint('ingest-key-a')[:16]}"
+    audit: AuditLog = client.app.state.audit  # type: ignore[attr-defined]
+    owner = audit.key_actor(fingerprint("ingest-key-a-0123456789abcdef"))
+    assert owner != f"key:{fingerprint('ingest-key-a-0123456789abcdef')[:16]}"  # keyed: not the key's plain hash
     assert ("frame.upload", owner, 202) in actions and actions.count(("frame.upload", owner, 202)) == 2
     assert ("path.export", owner, 200) in actions
-    assert ("session.read", f"key:{fingerprint('ingest-key-b')[:16]}", 404) in actions  # a refused look
+    other = audit.key_actor(fingerprint("ingest-key-b-0123456789abcdef"))
+    assert ("session.read", other, 404) in actions  # a refused look
     assert all(r["client"] and r["request_id"] for r in page["records"])
     by_token = client.get("/v1/audit", params={"session": token["id"]}, headers=ADMIN).json()["records"]
     assert ("session.read", f"token:{token['id']}") in [(r["action"], r["actor"]) for r in by_token]
     raw = (client.app.state.settings.data_dir / "audit" / "audit.jsonl").read_text()  # type: ignore[attr-defined]
-    assert "ingest-key-a" not in raw and token["viewer_token"] not in raw  # never a key or a token
+    assert "ingest-key-a-0123456789abcdef" not in raw and token["viewer_token"] not in raw  # never a key or a token
     verified = client.get("/v1/audit/verify", headers=ADMIN).json()
     assert verified["ok"] and verified["records"] >= 8
 
@@ -149,14 +153,14 @@ def test_label_canary_never_in_logs_or_foreign_responses(tmp_path: Path) -> None
         owner_view = call("GET", f"/v1/sessions/{sid}", headers=INGEST)
         admin_view = call("GET", f"/v1/sessions/{sid}", headers=ADMIN)
         call("GET", f"/v1/sessions/{sid}?token={token}")
-        call("GET", f"/v1/sessions/{sid}", headers=auth("ingest-key-b"))
+        call("GET", f"/v1/sessions/{sid}", headers=auth("ingest-key-b-0123456789abcdef"))
         for path in ("/path", "/path?format=csv", "/mosaic.json", "/report", "/mosaic.png"):
             call("GET", f"/v1/sessions/{sid}{path}", params={"token": token})
         call("POST", f"/v1/sessions/{sid}/finish", headers=INGEST)
         call("POST", f"/v1/sessions/{sid}/reprocess", json={"options": {"method": "best"}}, headers=INGEST)
         call("GET", "/v1/audit", params={"session": sid}, headers=ADMIN)
         call("GET", "/metrics")
-        call("GET", "/openapi.json")
+        call("GET", "/openapi.json", headers=INGEST)
         http.close()
         logs = api.log_lines()
         audit_text = (api.data_dir / "audit" / "audit.jsonl").read_text()

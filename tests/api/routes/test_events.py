@@ -135,14 +135,16 @@ def test_events_auth(client: TestClient, session_id: str) -> None:
     publish(client, session_id, "done", processed=0)
     url = f"/v1/sessions/{session_id}/events"
     assert client.get(url).status_code == 401
-    assert client.get(url, headers=auth("ingest-key-b")).status_code == 404
-    other = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=auth("ingest-key-b")).json()
+    assert client.get(url, headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404
+    other = client.post(
+        "/v1/sessions", json={"calibration": calibration_doc()}, headers=auth("ingest-key-b-0123456789abcdef")
+    ).json()
     assert client.get(f"{url}?token={other['viewer_token']}").status_code == 401
     token = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()
     assert client.get(f"/v1/sessions/{token['id']}/events?token={other['viewer_token']}").status_code == 401
     state = client.get(f"/v1/sessions/{session_id}", headers=INGEST).json()
     assert state["id"] == session_id
-    resp = client.get(url, headers=auth("admin-key"))
+    resp = client.get(url, headers=auth("admin-key-0123456789abcdef"))
     assert resp.status_code == 200 and parse_sse(resp.text)[0][-1]["event"] == "done"
 
 

@@ -208,22 +208,26 @@ AUTH_ROUTES = (
 def test_export_and_sheet_auth(ready: tuple[TestClient, dict, MosaicImage]) -> None:
     client, created, _ = ready
     sid, token = created["id"], created["viewer_token"]
-    other = create(client, key=auth("ingest-key-b"))
+    other = create(client, key=auth("ingest-key-b-0123456789abcdef"))
     expired = make_viewer_token(client.app.state.token_secret, sid, 10, now=1000.0)  # type: ignore[attr-defined]
     for route in AUTH_ROUTES:
         url = f"/v1/sessions/{sid}{route}"
         sep = "&" if "?" in url else "?"
         assert client.get(url).status_code == 401, route  # no key
         assert client.get(url, headers=auth("no-such-key")).status_code == 401, route
-        assert client.get(url, headers=auth("ingest-key-b")).status_code == 404, route  # another key's session
-        assert client.get(url, headers=auth("view-key")).status_code == 404, route  # view scope, not the owner
+        assert client.get(url, headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404, (
+            route
+        )  # another key's session
+        assert client.get(url, headers=auth("view-key-0123456789abcdef")).status_code == 404, (
+            route
+        )  # view scope, not the owner
         assert client.get(f"{url}{sep}token={other['viewer_token']}").status_code == 401, route  # another session
         assert client.get(f"{url}{sep}token={expired}").status_code == 401, route
-        assert client.get(url, headers=auth("admin-key")).status_code == 200, route
+        assert client.get(url, headers=auth("admin-key-0123456789abcdef")).status_code == 200, route
         assert client.get(url, headers=INGEST).status_code == 200, route
         assert client.get(f"{url}{sep}token={token}").status_code == 200, route  # the viewer's link
     # a refusal says nothing about the session (no patient data in errors)
-    refused = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=auth("ingest-key-b"))
+    refused = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=auth("ingest-key-b-0123456789abcdef"))
     assert _error(refused)["code"] == "not_found" and "Jane" not in refused.text
 
 
@@ -336,3 +340,45 @@ def test_sheet_shows_accuracy_with_a_reference(ready: tuple[TestClient, dict, Mo
     # (no "fi" in what is looked for: the PDF draws it as one ligature glyph, which pdf_text does not map back)
     assert re.search(r"RMSE \d+\.\d{3} mm", text) and "max error" in text and "drift / path length" in text, text
     assert "reference track" in text  # the reference track is drawn (and named) over the mosaic with the estimate
+
+
+def test_outputs_are_made_once_and_again_when_their_inputs_change(
+    ready: tuple[TestClient, dict, MosaicImage], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from services.store import session_export
+
+    client, created, _ = ready
+    sid, token = created["id"], created["viewer_token"]
+    renders: list[tuple[str, bool]] = []
+    render = session_export.render_sheet
+
+    def counted(store: Any, rs: Any, sid: str, version: int, fmt: str, with_study: bool = True) -> bytes:
+        renders.append((fmt, with_study))
+        return render(store, rs, sid, version, fmt, with_study)
+
+    monkeypatch.setattr(session_export, "render_sheet", counted)
+    first = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=INGEST)
+    again = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=INGEST)
+    assert first.status_code == again.status_code == 200 and first.content == again.content
+    report = client.get(f"/v1/sessions/{sid}/export.dcm?layer=report", headers=INGEST)
+    assert report.status_code == 200 and renders == [("pdf", True)]  # the report object holds the kept sheet
+    vein = [client.get(f"/v1/sessions/{sid}/export.dcm?layer=vein", headers=INGEST).content for _ in range(2)]
+    assert vein[0] == vein[1]  # the same bytes, export time included
+    assert client.get(f"/v1/sessions/{sid}/sheet.pdf?token={token}").status_code == 200  # without the study: its own
+    assert renders == [("pdf", True), ("pdf", False)]
+    assert "no reference track" in " ".join(pdf_text(first.content).split())
+
+    lines = ["seq,x_mm,y_mm", *(f"{s},{1.02 * s:.4f},0.5" for s in range(N_FRAMES))]
+    posted = client.post(
+        f"/v1/sessions/{sid}/reference",
+        content="\n".join(lines).encode(),
+        headers={**INGEST, "Content-Type": "text/csv"},
+    )
+    assert posted.status_code == 200
+    newer = client.get(f"/v1/sessions/{sid}/sheet.pdf", headers=INGEST)
+    assert renders[-1] == ("pdf", True) and len(renders) == 3  # a new reference: made again, with its accuracy
+    assert re.search(r"RMSE \d+\.\d{3} mm", " ".join(pdf_text(newer.content).split()))
+    outputs = ResultsStore(client.app.state.settings.data_dir).output_path(sid, 1, "x").parent  # type: ignore[attr-defined]
+    names = sorted(p.name for p in outputs.iterdir())
+    assert len([n for n in names if n.startswith("sheet.pdf.study.")]) == 1  # the stale one was removed
+    assert all(STUDY["patient_id"].lower() not in n and "doe" not in n for n in names)  # names are digests

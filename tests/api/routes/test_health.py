@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from api_helpers import INGEST
 from fastapi.testclient import TestClient
 
 from services.settings import Settings
@@ -36,21 +38,22 @@ def test_readyz_503_when_storage_not_writable(client: TestClient, monkeypatch: p
 
 
 def test_openapi_served(client: TestClient) -> None:
-    doc = client.get("/openapi.json").json()
+    doc = client.get("/openapi.json", headers=INGEST).json()
     assert doc["info"]["title"] == "veinmosaic"
     assert "/v1/sessions/{session_id}/frames" in doc["paths"]
 
 
 def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    monkeypatch.setenv("VEINMOSAIC_API_KEYS", '{"k1": ["ingest", "view"], "k2": ["admin"]}')
+    k1, k2 = "k1-0123456789abcdef0123456", "k2-0123456789abcdef0123456"
+    monkeypatch.setenv("VEINMOSAIC_API_KEYS", json.dumps({k1: ["ingest", "view"], k2: ["admin"]}))
     monkeypatch.setenv("REDIS_URL", "redis://example:6379/3")
     monkeypatch.setenv("VEINMOSAIC_DATA_DIR", str(tmp_path))
     monkeypatch.setenv("VEINMOSAIC_QUEUE_MAX_DEPTH", "12")
     s = Settings()
-    assert s.api_keys == {"k1": ["ingest", "view"], "k2": ["admin"]}
+    assert s.api_keys == {k1: ["ingest", "view"], k2: ["admin"]}
     assert s.redis_url == "redis://example:6379/3" and s.data_dir == tmp_path and s.queue_max_depth == 12
-    assert "k1" not in repr(s)  # keys never end up in a logged repr
-    monkeypatch.setenv("VEINMOSAIC_API_KEYS", '{"k1": ["superuser"]}')
+    assert k1 not in repr(s)  # keys never end up in a logged repr
+    monkeypatch.setenv("VEINMOSAIC_API_KEYS", json.dumps({k1: ["superuser"]}))
     with pytest.raises(ValueError, match="api_keys"):
         Settings()
 
@@ -62,4 +65,4 @@ def test_token_secret_file_made_once_and_private(tmp_path: Path, monkeypatch: py
     assert len(first) == 32 and token_secret_bytes(Settings(data_dir=tmp_path, token_secret=None)) == first
     assert stat.S_IMODE(os.stat(tmp_path / "secret").st_mode) == 0o600
     assert [p.name for p in tmp_path.iterdir()] == ["secret"]  # no temp file left behind
-    assert token_secret_bytes(Settings(data_dir=tmp_path, token_secret="abc")) == b"abc"
+    assert token_secret_bytes(Settings(data_dir=tmp_path, token_secret="s" * 32)) == b"s" * 32

@@ -69,8 +69,8 @@ def test_reference_report_and_plots(ready: tuple[TestClient, str, dict], bundle:
 
     for url in (f"/v1/sessions/{sid}/report", report["plots"]["paths"]):
         assert client.get(url).status_code == 401
-        assert client.get(url, headers=auth("ingest-key-b")).status_code == 404
-        assert client.get(url, headers=auth("admin-key")).status_code == 200
+        assert client.get(url, headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404
+        assert client.get(url, headers=auth("admin-key-0123456789abcdef")).status_code == 200
     got = client.get(f"/v1/sessions/{sid}/report", headers=INGEST)
     assert got.status_code == 200 and got.json()["rmse_mm"] == report["rmse_mm"]
     assert client.get(f"/v1/sessions/{sid}/report?token={created['viewer_token']}").status_code == 200
@@ -113,8 +113,8 @@ def test_reference_media_type_auth_and_not_ready(
     _, sid, created = ready
     text = reference_csv(bundle.truth_mm)
     assert post_reference(client, sid, text, **{"Content-Type": "application/json"}).status_code == 415
-    assert post_reference(client, sid, text, Authorization="Bearer ingest-key-b").status_code == 404
-    assert post_reference(client, sid, text, Authorization="Bearer view-key").status_code == 403
+    assert post_reference(client, sid, text, Authorization="Bearer ingest-key-b-0123456789abcdef").status_code == 404
+    assert post_reference(client, sid, text, Authorization="Bearer view-key-0123456789abcdef").status_code == 403
     assert post_reference(client, sid, text, Authorization=f"Bearer {created['viewer_token']}").status_code == 401
     bad_utf8 = client.post(
         f"/v1/sessions/{sid}/reference",

@@ -78,6 +78,16 @@ def test_default_options_are_best(client: TestClient) -> None:
         ({"method_options": {"refine": 1}}, "invalid_options", "refine"),
         ({"method_options": {"features": "orb"}}, "invalid_options", "features"),
         ({"method_options": {"ransac_px": -1.0}}, "invalid_options", "ransac_px"),
+        (
+            {"method_options": {"target_features": 10**6}},
+            "invalid_options",
+            "target_features: Input should be less than or equal to 10000",
+        ),
+        (
+            {"method_options": {"neighbours": 10**6}},
+            "invalid_options",
+            "neighbours: Input should be less than or equal to 32",
+        ),
         ({"method_options": {"name": "x"}}, "invalid_options", "name"),
         ({"calibration": {"young_modulus_kpa": -2}}, "invalid_calibration", "young_modulus_kpa"),
         ({"calibration": {"colour": "red"}}, "invalid_calibration", "colour"),
@@ -100,12 +110,12 @@ def test_reprocess_preconditions_and_auth(client: TestClient, session_id: str) -
     sid = finished_session(client)
     url = f"/v1/sessions/{sid}/reprocess"
     assert client.post(url, json={}).status_code == 401
-    assert client.post(url, json={}, headers=auth("ingest-key-b")).status_code == 404
-    assert client.post(url, json={}, headers=auth("view-key")).status_code == 403
+    assert client.post(url, json={}, headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404
+    assert client.post(url, json={}, headers=auth("view-key-0123456789abcdef")).status_code == 403
     token = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()
     assert client.post(url, json={}, headers={"Authorization": f"Bearer {token['viewer_token']}"}).status_code == 401
     assert client.post(url, json={"options": {}, "extra": 1}, headers=INGEST).status_code == 422
-    assert client.post(url, json={}, headers=auth("admin-key")).status_code == 202
+    assert client.post(url, json={}, headers=auth("admin-key-0123456789abcdef")).status_code == 202
     empty = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()["id"]
     client.post(f"/v1/sessions/{empty}/finish", headers=INGEST)
     resp = client.post(f"/v1/sessions/{empty}/reprocess", json={}, headers=INGEST)
@@ -117,9 +127,9 @@ def test_job_visibility(client: TestClient) -> None:
     job = client.post(f"/v1/sessions/{sid}/reprocess", json={}, headers=INGEST).json()["job"]
     url = f"/v1/jobs/{job}"
     assert client.get(url, headers=INGEST).status_code == 200
-    assert client.get(url, headers=auth("admin-key")).status_code == 200
-    assert client.get(url, headers=auth("ingest-key-b")).status_code == 404
-    assert client.get(url, headers=auth("view-key")).status_code == 404
+    assert client.get(url, headers=auth("admin-key-0123456789abcdef")).status_code == 200
+    assert client.get(url, headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404
+    assert client.get(url, headers=auth("view-key-0123456789abcdef")).status_code == 404
     assert client.get(url).status_code == 401
     assert client.get("/v1/jobs/0123456789abcdef0123456789abcdef", headers=INGEST).status_code == 404
     assert client.get("/v1/jobs/..%2Fsecret", headers=INGEST).status_code == 404
@@ -127,7 +137,7 @@ def test_job_visibility(client: TestClient) -> None:
 
 def test_batch_reprocess(client: TestClient) -> None:
     a1, a2 = finished_session(client), finished_session(client)
-    b1 = finished_session(client, key=auth("ingest-key-b"))
+    b1 = finished_session(client, key=auth("ingest-key-b-0123456789abcdef"))
     body = {"sessions": [a1, a2, a1], "options": {"method": "sift-chain"}}
     resp = client.post("/v1/reprocess", json=body, headers=INGEST)
     assert resp.status_code == 202, resp.text
@@ -136,7 +146,7 @@ def test_batch_reprocess(client: TestClient) -> None:
     assert [e["session"] for e in jobs_on_stream(client)] == [a1, a2]
     state = client.get(batch["status_url"], headers=INGEST).json()
     assert state["status"] == "queued" and [j["session"] for j in state["jobs"]] == [a1, a2]
-    assert client.get(batch["status_url"], headers=auth("ingest-key-b")).status_code == 404
+    assert client.get(batch["status_url"], headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404
     assert client.get(f"/v1/jobs/{batch['jobs'][0]}", headers=INGEST).json()["batch"] == batch["batch"]
 
     # a session of another key: 404 for the whole batch, nothing queued
@@ -147,7 +157,7 @@ def test_batch_reprocess(client: TestClient) -> None:
     bad = client.post("/v1/reprocess", json={"sessions": [a1], "options": {"method": "x"}}, headers=INGEST)
     assert bad.status_code == 422 and len(jobs_on_stream(client)) == 2
     # admin may batch sessions of several owners
-    resp = client.post("/v1/reprocess", json={"sessions": [a1, b1]}, headers=auth("admin-key"))
+    resp = client.post("/v1/reprocess", json={"sessions": [a1, b1]}, headers=auth("admin-key-0123456789abcdef"))
     assert resp.status_code == 202 and len(jobs_on_stream(client)) == 4
 
     r, prefix = _r_prefix(client)
@@ -183,8 +193,26 @@ def test_a_job_says_status_like_a_session_and_state_only_as_its_deprecated_alias
     batch = client.post("/v1/reprocess", json={"sessions": [sid]}, headers=INGEST).json()
     state = client.get(batch["status_url"], headers=INGEST).json()
     assert state["status"] == state["state"] == "queued" and state["jobs"][0]["status"] == "queued"
-    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    schemas = client.get("/openapi.json", headers=INGEST).json()["components"]["schemas"]
     for name in ("JobState", "BatchState"):
         props = schemas[name]["properties"]
         assert "status" in schemas[name]["required"] and not props["status"].get("deprecated")
         assert props["state"]["deprecated"] is True and "alias of `status`" in props["state"]["description"]
+
+
+def test_a_key_over_its_job_quota_gets_429_and_other_keys_are_unaffected(make_client: Any) -> None:
+    client = make_client(queue_max_jobs_per_key=2, pacs_destinations={"web": {"dicomweb": "http://pacs.example/dw"}})
+    other = auth("ingest-key-b-0123456789abcdef")
+    mine, theirs = finished_session(client), finished_session(client, other)
+    first = client.post(f"/v1/sessions/{mine}/reprocess", json={}, headers=INGEST)
+    assert first.status_code == 202
+    assert client.post(f"/v1/sessions/{mine}/send", json={"destination": "web"}, headers=INGEST).status_code == 202
+    for url, body in [(f"/v1/sessions/{mine}/reprocess", {}), (f"/v1/sessions/{mine}/send", {"destination": "web"})]:
+        refused = client.post(url, json=body, headers=INGEST)  # reprocess and send share the quota
+        assert refused.status_code == 429 and int(refused.headers["Retry-After"]) >= 1, refused.text
+        assert _error(refused)["code"] == "quota_exceeded" and "2 jobs" in _error(refused)["message"]
+    assert len(jobs_on_stream(client)) == 2  # nothing queued for the refused requests
+    assert client.post(f"/v1/sessions/{theirs}/reprocess", json={}, headers=other).status_code == 202  # its own quota
+    r, prefix = _r_prefix(client)
+    r.hset(queue.job_key(first.json()["job"], prefix), "state", "done")  # a worker finished one: a place is free
+    assert client.post(f"/v1/sessions/{mine}/reprocess", json={}, headers=INGEST).status_code == 202

@@ -213,7 +213,7 @@ VIEW_ROUTES = (
 
 def test_view_routes_auth(ready: tuple[TestClient, str, dict], short_scan: Scan) -> None:
     client, sid, created = ready
-    other = create_session(client, short_scan, key=auth("ingest-key-b"))
+    other = create_session(client, short_scan, key=auth("ingest-key-b-0123456789abcdef"))
     token, other_token = created["viewer_token"], other["viewer_token"]
     secret = client.app.state.token_secret  # type: ignore[attr-defined]
     expired = make_viewer_token(secret, sid, 10, now=1000.0)
@@ -221,9 +221,11 @@ def test_view_routes_auth(ready: tuple[TestClient, str, dict], short_scan: Scan)
         url = f"/v1/sessions/{sid}{route}"
         sep = "&" if "?" in url else "?"
         assert client.get(url).status_code == 401, route
-        assert client.get(url, headers=auth("ingest-key-b")).status_code == 404, route  # not the owner
-        assert client.get(url, headers=auth("view-key")).status_code == 404, route  # view scope, not owner
-        assert client.get(url, headers=auth("admin-key")).status_code == 200, route
+        assert client.get(url, headers=auth("ingest-key-b-0123456789abcdef")).status_code == 404, route  # not the owner
+        assert client.get(url, headers=auth("view-key-0123456789abcdef")).status_code == 404, (
+            route
+        )  # view scope, not owner
+        assert client.get(url, headers=auth("admin-key-0123456789abcdef")).status_code == 200, route
         assert client.get(url, headers=INGEST).status_code == 200, route
         assert client.get(f"{url}{sep}token={token}").status_code == 200, route
         assert client.get(f"{url}{sep}token={other_token}").status_code == 401, route  # token of another session

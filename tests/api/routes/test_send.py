@@ -93,11 +93,15 @@ def test_a_failed_session_has_nothing_to_send(pacs_client: TestClient) -> None:
 
 def test_only_the_owner_or_an_admin_may_send(pacs_client: TestClient) -> None:
     sid = _session(pacs_client)
-    assert _send(pacs_client, sid, "web", auth("ingest-key-b")).status_code == 404  # another owner's: not found
-    assert _send(pacs_client, sid, "web", auth("view-key")).status_code == 403  # may look, may not send
+    assert (
+        _send(pacs_client, sid, "web", auth("ingest-key-b-0123456789abcdef")).status_code == 404
+    )  # another owner's: not found
+    assert (
+        _send(pacs_client, sid, "web", auth("view-key-0123456789abcdef")).status_code == 403
+    )  # may look, may not send
     assert pacs_client.post(f"/v1/sessions/{sid}/send", json={"destination": "web"}).status_code == 401
     assert _jobs_on_stream(pacs_client) == []
-    assert _send(pacs_client, sid, "web", auth("admin-key")).status_code == 202
+    assert _send(pacs_client, sid, "web", auth("admin-key-0123456789abcdef")).status_code == 202
 
 
 def test_the_first_finish_queues_one_send_per_auto_send_destination(make_client: Callable[..., TestClient]) -> None:

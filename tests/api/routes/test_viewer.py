@@ -28,13 +28,16 @@ def test_viewer_page_with_token(client: TestClient) -> None:
 
 
 def test_viewer_page_auth(client: TestClient) -> None:
-    mine, theirs = _create(client), _create(client, auth("ingest-key-b"))
+    mine, theirs = _create(client), _create(client, auth("ingest-key-b-0123456789abcdef"))
     assert client.get(f"/viewer/{mine['id']}").status_code == 401
     assert client.get(f"/viewer/{mine['id']}?token={theirs['viewer_token']}").status_code == 401
     assert client.get(f"/viewer/{mine['id']}?token=123.abc").status_code == 401
     assert client.get(f"/viewer/{theirs['id']}", headers=INGEST).status_code == 404
     assert client.get(f"/viewer/{mine['id']}", headers=INGEST).status_code == 200
-    assert client.get("/viewer/0123456789abcdef0123456789abcdef", headers=auth("admin-key")).status_code == 404
+    assert (
+        client.get("/viewer/0123456789abcdef0123456789abcdef", headers=auth("admin-key-0123456789abcdef")).status_code
+        == 404
+    )
 
 
 def test_static_assets(client: TestClient) -> None:

@@ -63,3 +63,52 @@ def test_update_job_writes_progress_and_outcome(rq) -> None:  # type: ignore[no-
 def test_unknown_kind_is_refused() -> None:
     with pytest.raises(ValueError, match="job kind"):
         queue.job_entry("j", "s", "{}", kind="delete-everything")
+
+
+def test_an_owner_over_its_quota_queues_nothing_and_others_are_unaffected(rq, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    r, prefix = rq
+    ledger = JobLedger(tmp_path / "jobs")
+    mine, theirs = "a" * 64, "b" * 64
+    ids = jobs.enqueue_jobs(r, prefix, mine, ["1" * 32, "2" * 32], {}, ledger=ledger, max_per_owner=3)
+    before = r.xlen(queue.jobs_stream(prefix))
+    with pytest.raises(jobs.OwnerQuotaError, match="quota"):
+        jobs.enqueue_jobs(r, prefix, mine, ["3" * 32, "4" * 32], {}, ledger=ledger, max_per_owner=3)  # 2 + 2 > 3
+    assert r.xlen(queue.jobs_stream(prefix)) == before and len(ledger.open_jobs()) == 2  # nothing queued
+    (one,) = jobs.enqueue_jobs(r, prefix, mine, ["3" * 32], {}, max_per_owner=3)  # exactly at the quota
+    assert jobs.open_jobs(r, prefix, mine) == 3
+    assert jobs.enqueue_jobs(r, prefix, theirs, ["5" * 32] * 3, {}, max_per_owner=3)  # another key: its own quota
+    with pytest.raises(jobs.OwnerQuotaError):
+        jobs.enqueue_jobs(r, prefix, mine, ["4" * 32], {}, max_per_owner=3)
+    jobs.update_job(r, prefix, ids[0], state="running")  # running still counts ...
+    with pytest.raises(jobs.OwnerQuotaError):
+        jobs.enqueue_jobs(r, prefix, mine, ["4" * 32], {}, max_per_owner=3)
+    jobs.update_job(r, prefix, ids[0], state="done")  # ... finished (or failed, or expired) frees a place
+    r.delete(queue.job_key(one, prefix))
+    assert jobs.open_jobs(r, prefix, mine) == 1
+    assert len(jobs.enqueue_jobs(r, prefix, mine, ["4" * 32, "6" * 32], {}, max_per_owner=3)) == 2
+    assert r.scard(queue.owner_jobs_key(mine, prefix)) == 3  # the finished ones left the owner's set then
+    jobs.enqueue_jobs(r, prefix, mine, ["7" * 32], {})  # no quota given (an auto-send): queued, and counted
+    assert jobs.open_jobs(r, prefix, mine) == 4
+
+
+def test_concurrent_requests_of_one_owner_cannot_both_pass_its_quota(rq) -> None:  # type: ignore[no-untyped-def]
+    import threading
+
+    r, prefix = rq
+    owner, outcomes, start = "c" * 64, [], threading.Barrier(8)
+
+    def attempt() -> None:
+        start.wait()
+        try:
+            jobs.enqueue_jobs(r, prefix, owner, ["8" * 32], {}, max_per_owner=5)
+            outcomes.append("queued")
+        except jobs.OwnerQuotaError:
+            outcomes.append("refused")
+
+    threads = [threading.Thread(target=attempt) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(outcomes) == ["queued"] * 5 + ["refused"] * 3
+    assert jobs.open_jobs(r, prefix, owner) == 5 == r.xlen(queue.jobs_stream(prefix))
