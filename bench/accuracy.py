@@ -28,7 +28,8 @@ skimage/data/retina.jpg from it).
 
 Usage: python bench/accuracy.py [--quick] [--methods best,sift-chain,paper] [--scenarios raster,revisit,hard]
        [--cells default,faint,...] [--seeds 1,2] [--shared DIR | --no-shared] [--texture PHOTO] [--json OUT]
-`paper` costs about 1 s/frame: leave it out of --methods for a fast run. --quick: the shared scans and five
+`paper` costs about 1 s/frame: leave it out of --methods for a fast run. best-nodrag: best without the skin drag
+model (fit_drag=false), to show what learning the drag is worth. --quick: the shared scans and five
 cells of the 40-frame `short` scenario, seed 1 (a few minutes without `paper`).
 """
 
@@ -80,6 +81,8 @@ LOOKS: dict[str, Callable[[ImagingVariant], ImagingVariant]] = {
 }
 # a patient as on the shared scans: a hand's tilt and a tissue law of each shape (simulate(..., tissue=...))
 TISSUE_CELLS = {f"tissue-{law}": law for law in TISSUE_LAWS}
+# a method as `best` with one model left out, to show what it is worth on the same scans
+ABLATIONS = {"best-nodrag": ("best", {"fit_drag": False})}
 DRAG_CELLS = {"drag": "linear"}  # a patient (linear law, a hand's tilt) whose skin the sliding window drags
 QUICK_LOOKS = ("default", "faint", "noise4", "heavy-blur", "16bit", *TISSUE_CELLS, *DRAG_CELLS)
 QUICK_SCENARIOS = ("short",)
@@ -148,7 +151,9 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
     bar.reset(total=len(scan))
     bar.set_description(f"{cell.name} {method}")
     try:
-        recon = reconstruct(scan, method_options(method), progress=lambda done, _total: bar.update(done - bar.n))
+        base, overrides = ABLATIONS.get(method, (method, {}))
+        options = method_options(base).with_overrides(overrides)
+        recon = reconstruct(scan, options, progress=lambda done, _total: bar.update(done - bar.n))
         report = evaluate_path(recon.estimate_mm, recon.registered, scan.by_seq(scan.reference_mm))
     except Exception as exc:  # a bench reports a crash as a row and carries on with the other cells
         row["error"] = f"{type(exc).__name__}: {exc}"
@@ -251,9 +256,9 @@ def main() -> int:
     args = parser.parse_args()
 
     methods = [m for m in args.methods.split(",") if m]
-    bad = [m for m in methods if m not in ALL_METHODS]
+    bad = [m for m in methods if m not in ALL_METHODS and m not in ABLATIONS]
     if bad:
-        parser.error(f"unknown methods {bad}; expected some of {', '.join(ALL_METHODS)}")
+        parser.error(f"unknown methods {bad}; expected some of {', '.join([*ALL_METHODS, *ABLATIONS])}")
     scenarios = args.scenarios.split(",") if args.scenarios else list(QUICK_SCENARIOS if args.quick else FULL_SCENARIOS)
     looks = args.cells.split(",") if args.cells else list(QUICK_LOOKS if args.quick else LOOKS)
     seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else ([1] if args.quick else [1, 2])
