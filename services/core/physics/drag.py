@@ -118,32 +118,57 @@ class _Terms:
     hh: np.ndarray
 
 
-def _weights(evidence: Sequence[DragEvidence]) -> np.ndarray:
-    """Return each edge's weight (1/mm^2): one point noise for the scan (the median edge's affine RMS residual),
-    Cauchy-down-weighted where an edge's own residual is far above it (a match that no affine nor drag explains)."""
-    rms = np.empty(len(evidence))
+@dataclass(frozen=True)
+class _Batch:
+    """The evidence padded to (E, n) pairs: p_j, p_i (complex mm), which are real (not padding), each edge's
+    orthonormal basis (E, n, 3) of what an affine of p_j explains, P p_i (complex), and each edge's weight (1/mm^2)."""
+
+    pj: np.ndarray
+    pi: np.ndarray
+    real: np.ndarray
+    basis: np.ndarray
+    h: np.ndarray
+    weight: np.ndarray
+
+    def project(self, v: np.ndarray) -> np.ndarray:
+        """Return P v of real (E, n) vectors (0 at padding): v less its least-squares fit by an affine of p_j."""
+        v = np.where(self.real, v, 0.0)
+        return v - np.einsum("enk,ek->en", self.basis, np.einsum("enk,en->ek", self.basis, v))
+
+
+def _batch(evidence: Sequence[DragEvidence]) -> _Batch:
+    """Return the evidence as one padded _Batch (one batched QR), with its weights: one point noise for the scan
+    (the median edge's affine RMS residual), Cauchy-down-weighted where an edge's own residual is far above it (a
+    match that neither an affine nor a drag explains)."""
+    n = max(len(ev.pairs) for ev in evidence)
+    raw = np.zeros((len(evidence), n, 4))
+    real = np.zeros((len(evidence), n), bool)
     for k, ev in enumerate(evidence):
-        pj, pi = _complex(ev.pairs)
-        design = np.column_stack([pj.real, pj.imag, np.ones(len(pj))])
-        target = np.column_stack([pi.real, pi.imag])
-        fit, *_ = np.linalg.lstsq(design, target, rcond=None)
-        rms[k] = math.sqrt(float(np.sum((design @ fit - target) ** 2)) / max(len(pj) - 3, 1))
+        raw[k, : len(ev.pairs)] = ev.pairs
+        real[k, : len(ev.pairs)] = True
+    pj, pi = raw[..., 0] + 1j * raw[..., 1], raw[..., 2] + 1j * raw[..., 3]
+    design = np.stack([pj.real, pj.imag, np.ones(pj.shape)], axis=-1) * real[..., None]  # padding fits nothing
+    basis, _ = np.linalg.qr(design)
+    batch = _Batch(pj, pi, real, basis, np.zeros(pj.shape, complex), np.zeros(len(evidence)))
+    h = batch.project(pi.real) + 1j * batch.project(pi.imag)
+    rms = np.sqrt(np.sum(np.abs(h) ** 2, axis=1) / np.maximum(real.sum(axis=1) - 3, 1))
     noise = max(float(np.median(rms)), NOISE_FLOOR_MM)
-    return 1.0 / (noise**2 * (1.0 + (rms / (3.0 * noise)) ** 2))
+    weight = 1.0 / (noise**2 * (1.0 + (rms / (3.0 * noise)) ** 2))
+    return _Batch(pj, pi, real, basis, h, weight)
 
 
-def _terms(evidence: Sequence[DragEvidence], weights: np.ndarray, width_mm: float) -> _Terms:
-    out = np.zeros((6, len(evidence)), complex)
-    for k, ev in enumerate(evidence):
-        pj, pi = _complex(ev.pairs)
-        basis, _ = np.linalg.qr(np.column_stack([pj.real, pj.imag, np.ones(len(pj))]))
-
-        def project(v: np.ndarray, q: np.ndarray = basis) -> np.ndarray:
-            return v - q @ (q.T @ v.real) - 1j * (q @ (q.T @ v.imag)) if np.iscomplexobj(v) else v - q @ (q.T @ v)
-
-        gi, gj, h = project(profile(pi, width_mm)), project(profile(pj, width_mm)), project(pi)
-        out[:, k] = weights[k] * np.array([gi @ gi, gi @ gj, gj @ gj, gi @ h, gj @ h, np.vdot(h, h)])
-    return _Terms(out[0].real, out[1].real, out[2].real, out[3], out[4], out[5].real)
+def _terms(batch: _Batch, width_mm: float) -> _Terms:
+    w, h = batch.weight, batch.h
+    gi = batch.project(profile(batch.pi, width_mm))
+    gj = batch.project(profile(batch.pj, width_mm))
+    return _Terms(
+        w * np.sum(gi * gi, axis=1),
+        w * np.sum(gi * gj, axis=1),
+        w * np.sum(gj * gj, axis=1),
+        w * np.sum(gi * h, axis=1),
+        w * np.sum(gj * h, axis=1),
+        w * np.sum(np.abs(h) ** 2, axis=1),
+    )
 
 
 def _solve(
@@ -193,9 +218,9 @@ def fit_drag(
     prior_mean = np.array([loads_n.get(f, 0.0) * directions.get(f, 0j) for f in frames], complex)
     best: tuple[float, float, np.ndarray, complex] | None = None
     without = 0.0
-    weights = _weights(usable)
+    batch = _batch(usable)
     for width in widths_mm:
-        terms = _terms(usable, weights, width)
+        terms = _terms(batch, width)
         without = float(np.sum(terms.hh))
         drags, gain, cost = _solve(usable, terms, frames, prior_mean)
         if best is None or cost < best[0]:
