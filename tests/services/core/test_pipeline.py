@@ -167,7 +167,7 @@ def test_veins_from_a_photograph_are_registered_as_well_as_procedural_ones() -> 
     # vessels as the world (simulate(..., texture=photo)); the pipeline must not depend on its own network's look
     photo, _ = vessel_photo()
     scan = simulate("short", 1, tissue="linear", texture=photo)
-    procedural = simulate("short", 1, tissue="linear")
+    procedural = simulated("short", 1, tissue="linear")
     assert scan.truth["texture"] == "photograph" and procedural.truth["texture"] == "procedural"
     assert not np.array_equal(scan.frame(0), procedural.frame(0))
     np.testing.assert_array_equal(scan.reference_mm, procedural.reference_mm)  # the same probe, other skin
