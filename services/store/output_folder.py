@@ -23,8 +23,9 @@ import numpy as np
 from services.core.mosaic.canvas import MosaicImage
 from services.core.mosaic.layer_images import layers_from_bytes, mosaic_image_files
 from services.core.outputs.documents import folder_mosaic_json
-from services.core.outputs.plots import SheetIdentity, plot_coverage_map, plot_force_map
+from services.core.outputs.plots import plot_coverage_map, plot_force_map
 from services.core.outputs.session_report import SessionReport, build_session_report
+from services.core.outputs.sheet import SheetIdentity
 from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
 
 

@@ -22,16 +22,10 @@ from matplotlib.transforms import Bbox
 from services.core.inputs.study import StudyContext
 from services.core.mosaic.canvas import MosaicImage
 from services.core.outputs.evaluation import AccuracyReport, evaluate_angles, evaluate_path
-from services.core.outputs.plots import (
-    NOT_GIVEN,
-    SCALEBAR_GID,
-    SHEET_DPI,
-    SHEET_TEXT_GID,
-    SheetIdentity,
-    build_sheet_figure,
-)
+from services.core.outputs.plots import SCALEBAR_GID
 from services.core.outputs.scan_quality import FrameSummary, scan_warnings
 from services.core.outputs.session_report import build_session_report
+from services.core.outputs.sheet import NOT_GIVEN, SHEET_DPI, SHEET_TEXT_GID, SheetIdentity, build_sheet_figure
 from services.core.session_reconstruction import PathRow
 
 OVERLAP_TOL_PX = 1.0  # two text boxes may touch (antialiasing, rounding) but not overlap by more than 1 px
