@@ -26,7 +26,7 @@ from services.core.outputs.evaluation import AccuracyReport, evaluate_angles, ev
 from services.core.outputs.plots import plot_error_along_scan, plot_paths_over_mosaic
 from services.core.outputs.scan_quality import FrameSummary, scan_warnings, summarize_frames
 from services.core.outputs.sheet import SheetIdentity, build_sheet_figure, render_sheet
-from services.core.session_reconstruction import PathRow
+from services.core.path_rows import PathRow
 
 ACCURACY_PLOTS = ("paths.png", "errors.png")
 PLOT_NAMES = ("paths", "errors")  # the report plots a results version keeps (ACCURACY_PLOTS without ".png")

@@ -11,8 +11,9 @@ import pytest
 from services.core.inputs.scan import Scan
 from services.core.methods import method_options
 from services.core.outputs.evaluation import AccuracyReport, evaluate_path
+from services.core.path_rows import PATH_COLUMNS
 from services.core.physics.compliance import STIFFENING_MIN_CHI2
-from services.core.pipeline import PATH_COLUMNS, Reconstruction, reconstruct
+from services.core.pipeline import Reconstruction, reconstruct
 from services.core.simulation.scenarios import simulate
 from services.store.scan_folder import read_scan_folder
 from tests.services.core.synthetic_veins import vessel_photo

@@ -26,7 +26,7 @@ from services.core.outputs.plots import SCALEBAR_GID
 from services.core.outputs.scan_quality import FrameSummary, scan_warnings
 from services.core.outputs.session_report import build_session_report
 from services.core.outputs.sheet import NOT_GIVEN, SHEET_DPI, SHEET_TEXT_GID, SheetIdentity, build_sheet_figure
-from services.core.session_reconstruction import PathRow
+from services.core.path_rows import PathRow
 
 OVERLAP_TOL_PX = 1.0  # two text boxes may touch (antialiasing, rounding) but not overlap by more than 1 px
 BAR_TOL_PX = 1.0  # a colour bar's top and bottom are its panel's within 1 px
