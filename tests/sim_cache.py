@@ -26,9 +26,12 @@ def _frozen(a: np.ndarray | None) -> np.ndarray | None:
 
 
 @cache
-def simulated(scenario: str, seed: int, imaging: str = "realistic") -> Scan:
-    """Return simulate(scenario, seed, imaging), made once per run, with read-only frames and arrays."""
-    scan = simulate(scenario, seed, imaging)
+def simulated(
+    scenario: str, seed: int, imaging: str = "realistic", tissue: str | None = None, imu: bool = False
+) -> Scan:
+    """Return simulate(scenario, seed, imaging, tissue=tissue, imu=imu), made once per run, with read-only frames
+    and arrays."""
+    scan = simulate(scenario, seed, imaging, tissue=tissue, imu=imu)
     frames = [_frozen(scan.frame(i)) for i in range(len(scan))]
     for name in ("frame_seq", "frame_t_s", "force_t_s", "forces_n", "mask", "imu_t_s", "imu_tilt_deg", "reference_mm"):
         _frozen(getattr(scan, name))
@@ -36,13 +39,14 @@ def simulated(scenario: str, seed: int, imaging: str = "realistic") -> Scan:
 
 
 @cache
-def live_short(seed: int) -> Scan:
+def live_short(seed: int, tissue: str | None = None, imu: bool = False) -> Scan:
     """The simulated "short" scan (40 frames) without its mask, as a live session has it (the window is estimated
     from the frames): what the workers and the HTTP service get."""
-    return dataclasses.replace(simulated("short", seed), mask=None)
+    return dataclasses.replace(simulated("short", seed, tissue=tissue, imu=imu), mask=None)
 
 
 @cache
-def offline_best(seed: int) -> Reconstruction:
-    """The offline pipeline's "best" reconstruction of live_short(seed): what a live run must reproduce."""
-    return reconstruct(live_short(seed), method_options("best"))
+def offline_best(seed: int, tissue: str | None = None, imu: bool = False) -> Reconstruction:
+    """The offline pipeline's "best" reconstruction of live_short(seed, tissue, imu): what a live run must
+    reproduce."""
+    return reconstruct(live_short(seed, tissue, imu), method_options("best"))

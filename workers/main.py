@@ -102,7 +102,8 @@ def worker_config(args: argparse.Namespace, settings: Settings) -> WorkerConfig:
     if not isinstance(overrides, dict):
         raise ValueError("--config-json: expected a JSON object of WorkerSettings fields")
     for name in ("lost_timeout_s", "lease_ms", "claim_idle_ms", "heartbeat_file"):
-        overrides[name] = getattr(args, name)
+        if getattr(args, name) is not None:  # an option left out keeps --config-json's value
+            overrides[name] = getattr(args, name)
     for name in ("data_dir", "redis_url", "prefix", "consumer"):
         if getattr(args, name) is not None:
             overrides[name] = getattr(args, name)

@@ -16,8 +16,8 @@ from typing import Any
 
 from services.core.mosaic.canvas import MosaicImage
 from services.core.mosaic.deepzoom import TilePyramid
-from services.core.outputs.documents import LAYERS, mosaic_json, path_tail
-from services.core.session_reconstruction import PathRow
+from services.core.outputs.documents import LAYERS, mosaic_json
+from services.core.path_rows import PathRow, path_tail
 from services.jobs import queue
 from services.jobs import reprocess as jobs
 from services.store.results_store import LIVE_VERSION

@@ -36,7 +36,7 @@ from api.deps import AppSettings, RedisClient, Store, ViewPrincipal, ViewSession
 from api.errors import ServiceUnavailable
 from api.limits import principal_key
 from api.results_access import Results, resolve_version
-from services.core.outputs.documents import path_rows_from_json, path_tail
+from services.core.path_rows import path_rows_from_json, path_tail
 from services.jobs import queue
 from services.jobs.redis_backend import read_embedded_url
 from services.store.results_store import ResultsStore

@@ -24,8 +24,7 @@ from api.deps import AppSettings, RedisClient, ViewSession, incr
 from api.errors import NotFound
 from api.results_access import Results, VersionQuery, resolve_version, served_mosaic, served_version
 from services.core.mosaic.deepzoom import DziGeometry, blank_png
-from services.core.outputs.documents import path_rows_from_json
-from services.store.output_folder import path_csv
+from services.core.path_rows import path_csv, path_rows_from_json
 
 router = APIRouter(prefix="/v1/sessions", tags=["results"])
 

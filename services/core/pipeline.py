@@ -15,6 +15,7 @@ from services.core.inputs.scan import Scan
 from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import MosaicImage
+from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit
 from services.core.physics.force_model import interpolate_forces
 from services.core.physics.tissue_model import reference_tilts_at
@@ -25,10 +26,10 @@ from services.core.registration.frame_prep import (
     prepare_frame,
 )
 from services.core.registration.outcome import STATUS_OK
-from services.core.session_reconstruction import PATH_COLUMNS, PathRow, SessionReconstruction
+from services.core.session_reconstruction import SessionReconstruction
 from services.core.similarity import Similarity
 
-__all__ = ["PATH_COLUMNS", "PathRow", "Reconstruction", "reconstruct"]
+__all__ = ["Reconstruction", "reconstruct"]
 
 Progress = Callable[[int, int], None]
 MASK_SAMPLE_FRAMES = 24  # the window mask and vignetting come from the first frames, as a live session must

@@ -21,6 +21,7 @@ from services.core.inputs.calibration import Calibration
 from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, blend_weight
+from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit, fit_compliance
 from services.core.physics.force_clock import ClockOffset, estimate_clock_offset
 from services.core.physics.tissue_model import tilt_angles_rad
@@ -56,63 +57,6 @@ LIVE_REPASTE_PX = 2.0
 REPAINT_PER_FRAME = 4
 RESTITCH_AHEAD = 4  # a whole restitch builds this many frames' planes (~5 MB each) ahead of the paste
 REPAINT_AT_ONCE = 12  # moved frames this recent are re-pasted at once (their planes are usually kept)
-
-PATH_COLUMNS = (
-    "seq",
-    "t_s",
-    "x_mm",
-    "y_mm",
-    "yaw_deg",
-    "fz_n",
-    "tilt_x_deg",
-    "tilt_y_deg",
-    "stretch",
-    "inliers",
-    "status",
-    "reason",  # this project's: why a frame was not placed (the spec's columns keep their order around it)
-    "stroke",
-    "drag_x_mm",  # the skin's friction drag under the window's centre (physics.drag), the path's axes
-    "drag_y_mm",
-)
-
-
-@dataclass(frozen=True)
-class PathRow:
-    """One row of the path (spec §4); x, y, yaw are NaN for frames that were not registered."""
-
-    seq: int
-    t_s: float
-    x_mm: float
-    y_mm: float
-    yaw_deg: float
-    fz_n: float
-    tilt_x_deg: float
-    tilt_y_deg: float
-    stretch: float
-    inliers: int
-    status: str
-    reason: str = ""  # why a frame is lost or rejected (services.core.registration.outcome.REASONS); "" when ok
-    stroke: int | None = None  # the run of contact frames it belongs to, from 0; None off the skin or missing
-    # the skin under the window's centre displaced by friction (mm, the path's axes): x_mm, y_mm are where it
-    # rests; NaN where the frame is not placed, 0 where no drag was learned (the scan's evidence did not keep it)
-    drag_x_mm: float = math.nan
-    drag_y_mm: float = math.nan
-
-
-def path_rows_json(rows: Sequence[PathRow]) -> list[dict[str, Any]]:
-    """Return path rows as spec §4 dicts (null where a value is not finite, i.e. the frame was not placed)."""
-    out = []
-    for r in rows:
-        d: dict[str, Any] = {}
-        for c in PATH_COLUMNS:
-            v = getattr(r, c)
-            if isinstance(v, float | np.floating):
-                v = float(v) if math.isfinite(v) else None
-            elif isinstance(v, np.integer):
-                v = int(v)
-            d[c] = v
-        out.append(d)
-    return out
 
 
 @dataclass

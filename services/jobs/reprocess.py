@@ -33,7 +33,7 @@ JOB_TTL_S = queue.JOB_TTL_S
 
 
 class Ledger(Protocol):
-    """The durable record of accepted jobs (services.store.storage.JobLedger)."""
+    """The durable record of accepted jobs (services.store.job_ledger.JobLedger)."""
 
     def record(self, job_id: str, fields: dict[str, str]) -> None:
         """Record an accepted job durably (its Redis hash fields at creation); a no-op once it finished."""

@@ -10,12 +10,8 @@ errors.png; sheet.png and sheet.pdf (the one-page report).
 
 from __future__ import annotations
 
-import csv
-import io
 import json
-import math
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -23,27 +19,11 @@ import numpy as np
 from services.core.mosaic.canvas import MosaicImage
 from services.core.mosaic.layer_images import layers_from_bytes, mosaic_image_files
 from services.core.outputs.documents import folder_mosaic_json
-from services.core.outputs.plots import SheetIdentity, plot_coverage_map, plot_force_map
+from services.core.outputs.plots import plot_coverage_map, plot_force_map
 from services.core.outputs.session_report import SessionReport, build_session_report
-from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
-
-
-def _cell(value: Any) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, float):
-        return "" if not math.isfinite(value) else f"{value:.4f}"
-    return str(value)
-
-
-def path_csv(rows: list[PathRow]) -> str:
-    """Return the path as CSV text (spec §4 columns; empty cells where a frame was not registered)."""
-    out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(PATH_COLUMNS)
-    for r in rows:
-        writer.writerow([_cell(getattr(r, c)) for c in PATH_COLUMNS])
-    return out.getvalue()
+from services.core.outputs.sheet import SheetIdentity
+from services.core.path_rows import path_csv
+from services.core.pipeline import Reconstruction
 
 
 def write_reconstruction(

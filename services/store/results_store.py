@@ -38,8 +38,8 @@ import numpy as np
 from services.core.mosaic.canvas import MosaicImage
 from services.core.mosaic.layer_images import layers_from_bytes, mosaic_image_files
 from services.core.outputs.documents import LAYERS
+from services.core.path_rows import PathRow, path_rows_json
 from services.core.registration.frame_prep import PreparedFrame
-from services.core.session_reconstruction import PathRow, path_rows_json
 from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, replace_bytes, write_once
 from services.store.file_formats import npz_bytes
 from services.store.prepared_file import prepared_from_bytes, prepared_pixels_from_bytes, prepared_to_bytes

@@ -25,9 +25,9 @@ from importlib import metadata
 
 from services.core.mosaic.canvas import MosaicImage
 from services.core.outputs.dicom_export import STUDY_OBJECTS, ExportInfo, export_study
-from services.core.outputs.documents import path_rows_from_json
-from services.core.outputs.plots import SheetIdentity
 from services.core.outputs.session_report import build_session_report
+from services.core.outputs.sheet import SheetIdentity
+from services.core.path_rows import path_rows_from_json
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
 from services.store.stored_report import BadReferenceError, reference_for_rows

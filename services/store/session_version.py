@@ -20,9 +20,8 @@ from services.core.inputs.calibration import Calibration
 from services.core.inputs.image_header import BadImageError
 from services.core.method_options import apply_calibration, parse_options
 from services.core.methods import MethodOptions
-from services.core.outputs.documents import rejected_row
+from services.core.path_rows import PathRow, rejected_row
 from services.core.registration.frame_prep import PreparedFrame
-from services.core.session_reconstruction import PathRow
 from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.storage import SessionStore, StorageError
 from services.store.version_state import VersionState

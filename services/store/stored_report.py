@@ -15,9 +15,8 @@ import cv2
 import numpy as np
 
 from services.core.inputs.reference import parse_reference_csv
-from services.core.outputs.documents import path_rows_from_json
 from services.core.outputs.session_report import Backdrop, version_report
-from services.core.session_reconstruction import PathRow
+from services.core.path_rows import PathRow, path_rows_from_json
 from services.store.results_store import ResultsStore
 
 

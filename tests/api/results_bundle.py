@@ -17,8 +17,9 @@ from services.core.inputs.scan import Scan
 from services.core.methods import method_options
 from services.core.mosaic.canvas import force_to_color
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
+from services.core.path_rows import PathRow, path_rows_json
 from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
-from services.core.session_reconstruction import PathRow, SessionReconstruction, path_rows_json
+from services.core.session_reconstruction import SessionReconstruction
 from services.store.results_store import LAYERS, ResultsStore
 
 

@@ -371,7 +371,7 @@ def test_reprocess_not_recorded_durably_is_503_and_not_queued(
 ) -> None:
     """A job is answered 202 only once its ledger record is on disk; a full disk takes it off Redis again."""
     from services.jobs import queue
-    from services.store.storage import JobLedger
+    from services.store.job_ledger import JobLedger
 
     assert upload(client, session_id, 0, frame_bytes(0)).status_code == 202
     assert client.post(f"/v1/sessions/{session_id}/finish", headers=INGEST).status_code == 202

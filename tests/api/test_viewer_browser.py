@@ -70,7 +70,7 @@ def wait_until(predicate: Any, what: str, timeout_s: float = WAIT_S) -> Any:
         value = predicate()
         if value:
             return value
-        time.sleep(0.2)
+        time.sleep(0.1)
     pytest.fail(f"timed out waiting for {what}")
 
 

@@ -25,7 +25,7 @@ from cli.launcher import Service
 from services.core.mosaic.canvas import FrameLayers, SparseCanvas, blend_weight
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
 from services.core.outputs.documents import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json
-from services.core.session_reconstruction import PathRow
+from services.core.path_rows import PathRow
 from services.core.similarity import Similarity
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from cli.main import main
-from services.core.pipeline import PATH_COLUMNS
+from services.core.path_rows import PATH_COLUMNS
 from tests.services.core.synthetic_veins import vessel_photo
 from tests.tolerances import TOL
 

@@ -18,9 +18,6 @@ import pytest
 from cli.client import VeinmosaicClient, upload_scan_folder
 from cli.launcher import Service, free_port
 from services.core.inputs.scan import Scan
-from services.core.methods import method_options
-from services.core.pipeline import reconstruct
-from services.core.simulation.scenarios import simulate
 from services.jobs import queue
 from services.jobs.redis_backend import connect, read_embedded_url
 from services.store.scan_folder import frame_name, read_scan_folder, write_scan_folder
@@ -112,10 +109,11 @@ def test_an_imu_scan_uploaded_as_a_device_would_equals_offline(tmp_path: Path) -
     # a hand-tilted patient with an IMU: the client sends the IMU's rows with each force batch, so every frame's
     # IMU tilts are stored before the frame is prepared, and the live path equals the offline one
     folder = tmp_path / "scan"
-    write_scan_folder(simulate("short", 3, tissue="stiffening", imu=True), folder)
+    write_scan_folder(simulated("short", 3, tissue="stiffening", imu=True), folder)
     (folder / "mask.png").unlink()
     scan = read_scan_folder(folder)
-    offline = reconstruct(scan, method_options("best"))
+    assert_same_scan(scan, live_short(3, tissue="stiffening", imu=True))  # what the API gets is the simulated scan
+    offline = offline_best(3, tissue="stiffening", imu=True)  # = reconstruct(scan, best), made once per run
     key = f"k-{uuid.uuid4().hex}"
     env = {"VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view"]}), "VEINMOSAIC_LOG_LEVEL": "WARNING"}
     env["VEINMOSAIC_REDIS_PREFIX"] = f"vmtest{uuid.uuid4().hex[:8]}:"

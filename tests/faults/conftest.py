@@ -246,7 +246,7 @@ def wait_done(store: SessionStore, sid: str, timeout_s: float, workers: Workers 
         with contextlib.suppress(OSError, ValueError):
             if store.get_meta(sid).status == "done":
                 return
-        time.sleep(0.2)
+        time.sleep(0.1)
     alive = workers.alive() if workers else {}
     raise AssertionError(f"session not done after {timeout_s:.0f} s (workers alive: {alive})")
 

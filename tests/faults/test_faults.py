@@ -26,7 +26,6 @@ import redis
 from cli.client import VeinmosaicClient
 from cli.launcher import stop_processes, wait_until_ready
 from services.core.inputs.scan import Scan
-from services.core.simulation.scenarios import simulate
 from services.jobs import queue
 from services.jobs.redis_backend import read_embedded_url
 from services.store.results_store import LIVE_VERSION, ResultsStore
@@ -43,6 +42,7 @@ from tests.faults.conftest import (
     start_serve,
     wait_done,
 )
+from tests.sim_cache import simulated
 
 pytestmark = pytest.mark.slow
 
@@ -50,7 +50,7 @@ pytestmark = pytest.mark.slow
 @functools.cache
 def short_scan() -> Scan:
     """Return the simulated short scan (40 frames of 640x480), made once."""
-    return simulate("short", 3)
+    return simulated("short", 3)
 
 
 def test_worker_sigkill_mid_scan(
@@ -246,7 +246,7 @@ def _wait_session_done(client: VeinmosaicClient, sid: str, frames: int, timeout_
         state = client.session(sid)
         if state["status"] == "done":
             break
-        time.sleep(0.3)
+        time.sleep(0.1)
     assert state["status"] == "done", state
     assert state["frames_received"] == state["frames_processed"] == frames
 
@@ -268,7 +268,7 @@ def test_serve_restarts_a_killed_api_and_worker(tmp_path: Path, redis_server: Re
         # so wait for the line `serve` prints once it supervises
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and b"veinmosaic serving on" not in (tmp_path / "serve.log").read_bytes():
-            time.sleep(0.2)
+            time.sleep(0.1)
         sid = client.create_session(short_scan().calibration.to_dict(), "fault-test")["id"]
         client.upload_forces(sid, np.column_stack([short_scan().force_t_s, short_scan().forces_n]))
         kills = 0
@@ -393,7 +393,7 @@ def test_reprocess_job_redis_forgot_is_reconciled(
             state = got.json() if got.status_code == 200 else {}
             if state.get("state") in ("done", "failed"):
                 break
-            time.sleep(0.3)
+            time.sleep(0.1)
     assert state.get("state") == "done", state
     assert store.jobs.is_finished(job) and store.jobs.open_jobs() == []
     versions = sorted(p.name for p in ResultsStore(data).version_dir(sid, 1).parent.iterdir() if p.name.isdigit())

@@ -53,6 +53,10 @@ def test_worker_config_is_the_settings_then_the_command_line(monkeypatch: pytest
     args = ["--config-json", json.dumps({"linger_s": 1.0}), "--lease-ms", "900", "--prefix", "x:", "--consumer", "c"]
     cfg = worker_config(worker_parser().parse_args(args), settings)
     assert (cfg.lease_ms, cfg.linger_s, cfg.prefix, cfg.consumer) == (900, 1.0, "x:", "c")
+    # --config-json's fields that also have an option of their own hold when the option is left out
+    timings = {"lease_ms": 4000, "claim_idle_ms": 1500, "lost_timeout_s": 1.0, "heartbeat_file": "/tmp/beat"}
+    cfg = worker_config(worker_parser().parse_args(["--config-json", json.dumps(timings)]), settings)
+    assert (cfg.lease_ms, cfg.claim_idle_ms, cfg.lost_timeout_s, cfg.heartbeat_file) == (4000, 1500, 1.0, "/tmp/beat")
     with pytest.raises(ValidationError):
         worker_config(worker_parser().parse_args(["--config-json", '{"bogus": 1}']), settings)
 

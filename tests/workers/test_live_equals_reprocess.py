@@ -8,7 +8,6 @@ prepared frames to the same deterministic registration, so their values agree to
 
 from __future__ import annotations
 
-import dataclasses
 import io
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -18,11 +17,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from services.core.simulation.scenarios import simulate
 from services.jobs import reprocess as jobs
 from services.settings import Settings
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
+from tests.sim_cache import live_short
 from tests.workers.conftest import Backend, store_scan, wait_for
 
 pytestmark = pytest.mark.slow
@@ -100,7 +99,7 @@ def test_live_and_reprocess_serve_the_same_documents(
 ) -> None:
     spawn_worker("a")
     store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
-    scan = dataclasses.replace(simulate("short", 1), mask=None)  # the API carries no mask.png
+    scan = live_short(1)  # the API carries no mask.png
     assert scan.reference_mm is not None
     sid = store_scan(store, scan, backend.r, backend.prefix)
     wait_for(lambda: store.get_meta(sid).status == "done", DONE_TIMEOUT_S, "live status done")

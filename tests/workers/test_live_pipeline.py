@@ -4,7 +4,6 @@ lost frame that do not block the session, and reprocessing into a new version.""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import signal
 import time
@@ -17,7 +16,6 @@ import pytest
 from services.core.inputs.scan import Scan
 from services.core.methods import method_options
 from services.core.pipeline import Reconstruction, reconstruct
-from services.core.simulation.scenarios import simulate
 from services.jobs import queue
 from services.jobs import reprocess as jobs
 from services.store.results_store import ResultsStore
@@ -165,8 +163,8 @@ def test_an_imu_sent_with_the_forces_pins_kappa_live_as_offline(
     # IMU's as its prior, live exactly as offline (each prepared frame carries the IMU's tilts at its time)
     spawn_worker("a")
     store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
-    scan = dataclasses.replace(simulate("short", 3, tissue="stiffening", imu=True), mask=None)
-    off = reconstruct(scan, method_options("best"))
+    scan = live_short(3, tissue="stiffening", imu=True)
+    off = offline_best(3, tissue="stiffening", imu=True)  # made once per run, shared with the service's test
     assert off.learned["kappa_source"] == "imu+images"
     sid = store_scan(store, scan, backend.r, backend.prefix)
     wait_done(store, sid)

@@ -85,7 +85,7 @@ def wait_for_study(orthanc: Orthanc, accession: str, series: int, timeout_s: flo
         if len(found) == 1 and len(found[0]["Series"]) >= series:
             return found[0]
         assert time.monotonic() < deadline, f"the auto-send never reached Orthanc in full: {len(found)} studies"
-        time.sleep(0.5)
+        time.sleep(0.2)
 
 
 @pytest.mark.slow

@@ -21,9 +21,9 @@ from typing import Any
 from services.core.mosaic.canvas import MosaicImage, SparseCanvas
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
 from services.core.outputs.documents import canvas_extent_mm, empty_revisions
+from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit
 from services.core.pipeline import reconstruct
-from services.core.session_reconstruction import PathRow
 from services.jobs import queue
 from services.store.session_version import method_of
 from services.store.storage import SessionNotFoundError

@@ -1,4 +1,5 @@
-"""The one builder of each document of a results version: mosaic.json, the session extent, path rows.
+"""The one builder of each document of a results version: mosaic.json, the session extent, frame counts (the
+path rows themselves: services.core.path_rows).
 
 Pure functions (no I/O): the live register stage, the reprocess stage and the API routes all call them, so a
 live session and a reprocess of the same scan publish the same fields computed the same way.
@@ -14,61 +15,31 @@ blurred frames are placed but not stitched.
 
 from __future__ import annotations
 
-import math
 from collections import Counter
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from services.core.mosaic.canvas import FORCE_FULL_SCALE_N, TILE_PX, SparseCanvas
 from services.core.mosaic.deepzoom import MIN_WEIGHT, DziGeometry
+from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit
 from services.core.registration.outcome import (
-    REASON_BAD_FRAME,
     REASON_FRAGMENT,
     REASON_NO_CONTACT,
     STATUS_LOST,
     STATUS_OK,
     STATUS_REJECTED,
 )
-from services.core.session_reconstruction import PATH_COLUMNS, PathRow
 
 LAYERS = ("vein", "force")
 IMAGE_KEYS = ("px_per_mm", "origin_px", "width", "height", "force_full_scale_n")
-_FLOAT_COLUMNS = frozenset({"t_s", "x_mm", "y_mm", "yaw_deg", "fz_n", "tilt_x_deg", "tilt_y_deg", "stretch"})
 
 Revisions = dict[str, dict[str, int]]
 
 
-# ----- path rows --------------------------------------------------------------------------------------------------
-def path_row_from_json(d: Mapping[str, Any]) -> PathRow:
-    """Return the PathRow of one path.json dict (null numbers become NaN)."""
-    values: dict[str, Any] = {}
-    for c in PATH_COLUMNS:
-        v = d.get(c)
-        if c in _FLOAT_COLUMNS:
-            v = math.nan if v is None else float(v)
-        values[c] = v
-    values["seq"] = int(values["seq"])
-    values["inliers"] = int(values["inliers"] or 0)
-    values["status"] = str(values["status"])
-    values["reason"] = str(values.get("reason") or "")
-    values["stroke"] = None if values.get("stroke") is None else int(values["stroke"])
-    return PathRow(**values)
-
-
-def path_rows_from_json(docs: Iterable[Mapping[str, Any]]) -> list[PathRow]:
-    """Return the PathRows of path.json dicts, sorted by seq."""
-    return sorted((path_row_from_json(d) for d in docs), key=lambda r: r.seq)
-
-
-def rejected_row(seq: int, t_s: float = math.nan, reason: str = REASON_BAD_FRAME) -> PathRow:
-    """Return the path row of a frame that could not be processed (status rejected, no pose)."""
-    nan = math.nan
-    return PathRow(int(seq), float(t_s), nan, nan, nan, nan, nan, nan, nan, 0, STATUS_REJECTED, reason)
-
-
+# ----- frame counts -----------------------------------------------------------------------------------------------
 def frame_counts(rows: Sequence[PathRow]) -> dict[str, int]:
     """Return {"processed", "ok", "lost", "rejected", "no_contact", "in_fragments"}: frame counts of path rows.
 
@@ -85,21 +56,6 @@ def frame_counts(rows: Sequence[PathRow]) -> dict[str, int]:
         "no_contact": why[REASON_NO_CONTACT],
         "in_fragments": why[REASON_FRAGMENT],
     }
-
-
-def _num(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
-
-
-def path_tail(rows: Sequence[PathRow], seqs: Iterable[int]) -> list[list[Any]]:
-    """Return the event's path tail: [seq, x_mm or None, y_mm or None, status, stroke or None, reason] of the rows
-    of `seqs`, by seq."""
-    by_seq = {r.seq: r for r in rows}
-    return [
-        [s, _num(r.x_mm), _num(r.y_mm), r.status, r.stroke, r.reason]
-        for s in sorted(set(seqs))
-        if (r := by_seq.get(s)) is not None
-    ]
 
 
 # ----- the session extent -----------------------------------------------------------------------------------------
@@ -133,7 +89,7 @@ def extent_view(extent_mm: Sequence[float] | None) -> dict[str, float] | None:
     return {"xmin_mm": x0, "ymin_mm": y0, "xmax_mm": x1, "ymax_mm": y1, "width_mm": x1 - x0, "height_mm": y1 - y0}
 
 
-# ----- mosaic.json --------------------------------------------------------------------------------------------
+# ----- mosaic.json ------------------------------------------------------------------------------------------------
 def empty_image_meta(px_per_mm: float) -> dict[str, Any]:
     """Return the image part of mosaic.json before (or without) any rendered mosaic: 0 x 0 px."""
     return {

@@ -23,15 +23,10 @@ import numpy as np
 
 from services.core.mosaic.canvas import MosaicImage
 from services.core.outputs.evaluation import AccuracyReport, evaluate_angles, evaluate_path
-from services.core.outputs.plots import (
-    SheetIdentity,
-    build_sheet_figure,
-    plot_error_along_scan,
-    plot_paths_over_mosaic,
-    render_sheet,
-)
+from services.core.outputs.plots import plot_error_along_scan, plot_paths_over_mosaic
 from services.core.outputs.scan_quality import FrameSummary, scan_warnings, summarize_frames
-from services.core.session_reconstruction import PathRow
+from services.core.outputs.sheet import SheetIdentity, build_sheet_figure, render_sheet
+from services.core.path_rows import PathRow
 
 ACCURACY_PLOTS = ("paths.png", "errors.png")
 PLOT_NAMES = ("paths", "errors")  # the report plots a results version keeps (ACCURACY_PLOTS without ".png")

@@ -27,7 +27,7 @@ from api.auth import make_viewer_token
 from services.core.inputs.study import parse_study
 from services.core.mosaic.canvas import MosaicImage
 from services.core.outputs.dicom_export import ENCAPSULATED_PDF, SC_IMAGE, study_uid
-from services.core.session_reconstruction import PathRow
+from services.core.path_rows import PathRow
 from services.store.results_store import ResultsStore
 from services.store.version_state import VersionState
 from tests.services.core.outputs.test_dicom_export import dciodvfy

@@ -21,7 +21,7 @@ from results_bundle import Bundle, create_session
 
 from api.auth import make_viewer_token
 from services.core.inputs.scan import Scan
-from services.core.session_reconstruction import PATH_COLUMNS
+from services.core.path_rows import PATH_COLUMNS
 from services.store.results_store import ResultsStore
 
 

@@ -11,8 +11,9 @@ import pytest
 from services.core.inputs.scan import Scan
 from services.core.methods import method_options
 from services.core.outputs.evaluation import AccuracyReport, evaluate_path
+from services.core.path_rows import PATH_COLUMNS
 from services.core.physics.compliance import STIFFENING_MIN_CHI2
-from services.core.pipeline import PATH_COLUMNS, Reconstruction, reconstruct
+from services.core.pipeline import Reconstruction, reconstruct
 from services.core.simulation.scenarios import simulate
 from services.store.scan_folder import read_scan_folder
 from tests.services.core.synthetic_veins import vessel_photo
@@ -167,7 +168,7 @@ def test_veins_from_a_photograph_are_registered_as_well_as_procedural_ones() -> 
     # vessels as the world (simulate(..., texture=photo)); the pipeline must not depend on its own network's look
     photo, _ = vessel_photo()
     scan = simulate("short", 1, tissue="linear", texture=photo)
-    procedural = simulate("short", 1, tissue="linear")
+    procedural = simulated("short", 1, tissue="linear")
     assert scan.truth["texture"] == "photograph" and procedural.truth["texture"] == "procedural"
     assert not np.array_equal(scan.frame(0), procedural.frame(0))
     np.testing.assert_array_equal(scan.reference_mm, procedural.reference_mm)  # the same probe, other skin

@@ -9,7 +9,7 @@ import pytest
 
 from services.jobs import queue
 from services.jobs import reprocess as jobs
-from services.store.storage import JobLedger
+from services.store.job_ledger import JobLedger
 from tests.services.jobs.test_queue import rq
 
 __all__ = ["rq"]

@@ -1,9 +1,8 @@
-"""Writing a reconstruction (spec §4): path CSV/JSON with blanks for unregistered frames, mosaic, report."""
+"""Writing a reconstruction (spec §4) to an output folder: path.csv, mosaic, layers, report (the path row's CSV and
+JSON forms themselves: tests/services/core/test_path_rows.py)."""
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 from pathlib import Path
@@ -13,10 +12,10 @@ import numpy as np
 import pytest
 
 from services.core.mosaic.canvas import MosaicImage
-from services.core.pipeline import PATH_COLUMNS, PathRow, Reconstruction
-from services.core.session_reconstruction import path_rows_json
+from services.core.path_rows import PathRow
+from services.core.pipeline import Reconstruction
 from services.core.similarity import IDENTITY, Similarity
-from services.store.output_folder import path_csv, read_results_mosaic, write_reconstruction
+from services.store.output_folder import read_results_mosaic, write_reconstruction
 
 NAN = math.nan
 
@@ -37,41 +36,6 @@ def _recon() -> Reconstruction:
     mosaic = MosaicImage(vein, force, (vein > 0).astype(np.float32), 8.0, (20.0, 30.0))
     poses = {0: IDENTITY, 2: Similarity(1 + 0j, 1.23456 - 2.5j)}
     return Reconstruction("best", _rows(), poses, mosaic, None, 1.5)
-
-
-def test_path_csv_columns_and_blank_cells() -> None:
-    text = path_csv(_rows())
-    table = list(csv.reader(io.StringIO(text)))
-    assert tuple(table[0]) == PATH_COLUMNS
-    assert PATH_COLUMNS == (
-        "seq",
-        "t_s",
-        "x_mm",
-        "y_mm",
-        "yaw_deg",
-        "fz_n",
-        "tilt_x_deg",
-        "tilt_y_deg",
-        "stretch",
-        "inliers",
-        "status",
-        "reason",
-        "stroke",
-        "drag_x_mm",
-        "drag_y_mm",
-    )  # spec §4 in its order, with why a frame was not placed after its status (issue 6: never fail silently)
-    assert len(table) == 4
-    assert table[2][2:5] == ["", "", ""]  # the lost frame has no position
-    assert table[2][-5:] == ["lost", "few_inliers", "", "", ""] and table[2][0] == "1"  # no stroke, no drag: blank
-    assert table[3][2] == "1.2346"  # 4 decimals: 0.1 um, far below any accuracy the probe reaches
-
-
-def test_path_json_uses_null_for_unregistered() -> None:
-    doc = path_rows_json(_rows())
-    assert list(doc[0]) == list(PATH_COLUMNS)
-    assert doc[1]["x_mm"] is None and doc[1]["status"] == "lost"
-    assert doc[2]["x_mm"] == pytest.approx(1.23456)
-    json.dumps(doc, allow_nan=False)  # strict JSON: no NaN leaks
 
 
 def test_write_reconstruction_without_reference(tmp_path: Path) -> None:

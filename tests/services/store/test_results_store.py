@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from services.core.inputs.calibration import default_calibration
+from services.core.path_rows import PathRow
 from services.core.physics.force_model import LoadState
 from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
-from services.core.session_reconstruction import PathRow
 from services.store.durable import write_once
 from services.store.prepared_file import prepared_from_bytes, prepared_to_bytes
 from services.store.results_store import LIVE_VERSION, ResultsStore

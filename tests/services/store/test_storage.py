@@ -235,13 +235,3 @@ def test_load_frame_decodes(store: SessionStore, sid: str) -> None:
     img = (np.arange(48 * 64) % 251).astype(np.uint8).reshape(48, 64)
     store.put_frame(sid, 0, 0.0, cv2.imencode(".png", img)[1].tobytes(), "png")
     np.testing.assert_array_equal(store.load_frame(sid, 0), img)  # PNG is lossless: exact
-
-
-def test_job_run_lock_is_held_by_one_and_refuses_foreign_ids(store: SessionStore) -> None:
-    job = "a" * 32
-    with store.jobs.run_lock(job) as first, store.jobs.run_lock(job) as second:  # the second: another worker
-        assert first and not second
-    with store.jobs.run_lock(job) as again:
-        assert again  # released when its holder is done
-    with pytest.raises(ValueError):
-        store.jobs.run_lock("job-1")  # at once, not when entered

@@ -12,14 +12,12 @@ flush writes everything.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
-from dataclasses import replace
 
 from services.core.outputs.documents import canvas_extent_mm, empty_revisions, image_meta
+from services.core.path_rows import PathRow, with_stored_times
 from services.core.registration.outcome import STATUS_OK
-from services.core.session_reconstruction import PathRow
 from services.store.results_store import LIVE_VERSION
 from services.store.version_state import VersionState
 from workers.config import Context
@@ -148,7 +146,4 @@ class Flusher:
     @staticmethod
     def _rows(held: HeldSession) -> list[PathRow]:
         """Return the path rows, with the stored time of frames registered without a prepared frame."""
-        rows = held.recon.path_rows()
-        return [
-            replace(r, t_s=held.times[r.seq]) if not math.isfinite(r.t_s) and r.seq in held.times else r for r in rows
-        ]
+        return with_stored_times(held.recon.path_rows(), held.times)

@@ -7,7 +7,7 @@ import math
 import pytest
 
 from services.core.outputs.scan_quality import WARN_FRACTION, frames_warning, scan_warnings, summarize_frames
-from services.core.session_reconstruction import PathRow
+from services.core.path_rows import PathRow
 
 
 def _rows(n: int, lost: dict[int, str], rejected: dict[int, str] | None = None) -> list[PathRow]:

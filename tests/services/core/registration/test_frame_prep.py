@@ -21,12 +21,12 @@ from services.core.registration.frame_prep import (
 )
 from services.core.registration.matching import estimate_similarity, match_features
 from services.core.simulation.renderer import WINDOW_SIZE_PX, vignette_gain
-from services.core.simulation.scenarios import simulate
+from tests.sim_cache import simulated
 
 
 @pytest.fixture(scope="module")
 def scan() -> Scan:
-    return simulate("short", 1)
+    return simulated("short", 1)  # made once per run, shared with other modules
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -22,17 +22,11 @@ from matplotlib.transforms import Bbox
 from services.core.inputs.study import StudyContext
 from services.core.mosaic.canvas import MosaicImage
 from services.core.outputs.evaluation import AccuracyReport, evaluate_angles, evaluate_path
-from services.core.outputs.plots import (
-    NOT_GIVEN,
-    SCALEBAR_GID,
-    SHEET_DPI,
-    SHEET_TEXT_GID,
-    SheetIdentity,
-    build_sheet_figure,
-)
+from services.core.outputs.plots import SCALEBAR_GID
 from services.core.outputs.scan_quality import FrameSummary, scan_warnings
 from services.core.outputs.session_report import build_session_report
-from services.core.session_reconstruction import PathRow
+from services.core.outputs.sheet import NOT_GIVEN, SHEET_DPI, SHEET_TEXT_GID, SheetIdentity, build_sheet_figure
+from services.core.path_rows import PathRow
 
 OVERLAP_TOL_PX = 1.0  # two text boxes may touch (antialiasing, rounding) but not overlap by more than 1 px
 BAR_TOL_PX = 1.0  # a colour bar's top and bottom are its panel's within 1 px
@@ -74,6 +68,10 @@ TISSUE = {
     "young_modulus_kpa": 17.28,
     "gauge": 1.00007,
     "compliance_residual_rms": 0.0022,
+    "drag_kept": True,
+    "drag_width_mm": 20.0,
+    "drag_gain_mm_per_n": 0.0376,
+    "drag_median_mm": 0.267,
 }
 
 
@@ -262,6 +260,7 @@ def test_identification_is_shown_when_given() -> None:
     assert report is not None and f"RMSE {report.rmse_mm:.3f} mm" in text
     assert "yaw RMS error 0.05°" in text and "0.70° (x)" in text
     assert "effective kappa 0.159 N/mm" in text and "68 % range 0.154 to 0.164 N/mm" in text
+    assert "skin drag 0.038 mm/N along the strokes" in text and "median 0.27 mm at the centre, width 20 mm" in text
     assert "lost: 3 (few inliers 3)" in text and "rejected: 1 (blur 1)" in text
     assert "WARNING: 4 of 60 frames" in text
 
