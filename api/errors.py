@@ -29,7 +29,7 @@ from services.core.inputs.calibration import CalibrationError
 from services.core.inputs.image_header import BadImageError
 from services.core.inputs.study import StudyContextError
 from services.core.method_options import without_values
-from services.jobs.reprocess import OwnerQuotaError, QueueFullError
+from services.jobs.job_records import OwnerQuotaError, QueueFullError
 from services.log_format import failure_frames, failure_reason
 from services.store.session_export import NotFinishedError
 from services.store.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError

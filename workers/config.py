@@ -13,7 +13,7 @@ from typing import Any
 import redis
 from pydantic import Field, SecretBytes
 
-from services.jobs import reprocess as jobs
+from services.jobs import job_records as jobs
 from services.pacs.destinations import Destination
 from services.settings import Settings, WorkerSettings
 from services.store.audit import AuditLog
@@ -78,7 +78,7 @@ class Context:
         return SessionVersion(self.store, self.results, sid, v)
 
     def update_job(self, job_id: str, **values: Any) -> None:
-        """Set fields of a job's record (state, done, total, error, ...): services.jobs.reprocess.update_job."""
+        """Set fields of a job's record (state, done, total, error, ...): services.jobs.job_records.update_job."""
         jobs.update_job(self.r, self.prefix, job_id, **values)
 
     def live_options(self) -> dict[str, str]:

@@ -18,8 +18,8 @@ from services.core.mosaic.canvas import MosaicImage
 from services.core.mosaic.deepzoom import TilePyramid
 from services.core.outputs.documents import LAYERS, mosaic_json
 from services.core.path_rows import PathRow, path_tail
+from services.jobs import job_records as jobs
 from services.jobs import queue
-from services.jobs import reprocess as jobs
 from services.store.results_store import LIVE_VERSION
 from services.store.version_state import VersionState
 from workers.config import Context

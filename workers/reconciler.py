@@ -23,8 +23,8 @@ import logging
 import time
 from typing import Any
 
+from services.jobs import job_records as jobs
 from services.jobs import queue, reconcile_turn
-from services.jobs import reprocess as jobs
 from services.store.results_store import LIVE_VERSION
 from services.store.storage import SessionNotFoundError
 from workers.config import Context

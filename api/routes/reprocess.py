@@ -1,7 +1,7 @@
 """Reprocessing (spec §5): a new results version from the stored raw uploads, with other options; jobs.
 
 The options document is validated by services.core.method_options (exactly as the workers read it); jobs and
-batches are written and read by services.jobs.reprocess. Jobs are visible to the key that created them and to
+batches are written and read by services.jobs.job_records. Jobs are visible to the key that created them and to
 admin keys.
 """
 
@@ -20,7 +20,7 @@ from api.errors import Conflict, NotFound, Validation
 from api.schemas import BatchAccepted, BatchReprocessRequest, BatchState, JobAccepted, JobState, ReprocessRequest
 from services.core import method_options
 from services.core.inputs.calibration import Calibration, CalibrationError
-from services.jobs import reprocess as jobs
+from services.jobs import job_records as jobs
 from services.store.storage import SessionMeta, SessionStore
 
 router = APIRouter(tags=["reprocess"])

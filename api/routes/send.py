@@ -1,6 +1,6 @@
 """Sending a session's DICOM objects to a PACS the operator configured (spec §5: POST /v1/sessions/{id}/send).
 
-The route only checks and queues: a durable job (services.jobs.reprocess, the one job record; the ledger on
+The route only checks and queues: a durable job (services.jobs.job_records, the one job record; the ledger on
 disk keeps the 202's promise) that a worker runs once the session's results are finished, retrying an
 unreachable PACS with back-off (workers/stages/send.py). Re-sending stores the same instances: the objects'
 UIDs come from the session's identity and content.
@@ -15,7 +15,7 @@ from fastapi import APIRouter, status
 from api.deps import AppSettings, IngestPrincipal, IngestSession, RedisClient, Store
 from api.errors import Conflict, Validation
 from api.schemas import JobAccepted, SendRequest
-from services.jobs import reprocess as jobs
+from services.jobs import job_records as jobs
 
 router = APIRouter(prefix="/v1/sessions", tags=["export"])
 log = logging.getLogger("veinmosaic.api")

@@ -21,8 +21,8 @@ from api.results_access import Results, reprocess_running, resolve_version, sess
 from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
 from services.core.inputs.calibration import parse_calibration
 from services.core.outputs.scan_quality import live_lag, scan_warnings, summarize_frames
+from services.jobs import job_records as jobs
 from services.jobs import queue
-from services.jobs import reprocess as jobs
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 log = logging.getLogger("veinmosaic.api")

@@ -206,7 +206,7 @@ def recent_lags(r: redis.Redis, session_id: str, prefix: str = DEFAULT_PREFIX) -
 # <prefix>delayed              ZSET of jobs to put back on a stream at a time (score = Unix seconds)
 # <prefix>events:<id>          stream of progress events of a session (MAXLEN ~ 1000)
 # <prefix>metrics              hash of counters (Prometheus totals)
-# <prefix>job:<id>             a job's record, <prefix>batch:<id> a batch's (services.jobs.reprocess owns both)
+# <prefix>job:<id>             a job's record, <prefix>batch:<id> a batch's (services.jobs.job_records owns both)
 # <prefix>lease:<id>:<v>       the registration lease of (session, results version): "<consumer>:<token>"
 # <prefix>fence:<id>:<v>       the fencing token counter of that lease (INCR on every acquisition)
 # <prefix>kick:<id>:<v>        flag: work arrived while another worker held the lease

@@ -5,7 +5,7 @@ Layout:
     jobs/finished/<id>.json   the record once the job is done or failed (with its state)
     jobs/running/<id>.lock    the run lock held by the worker running the job
 Redis holds the work list; this holds the promise. The workers' reconciler re-enqueues an open record whose job
-Redis lost (services.jobs.reprocess.requeue_job).
+Redis lost (services.jobs.job_records.requeue_job).
 """
 
 from __future__ import annotations

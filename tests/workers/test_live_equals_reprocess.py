@@ -17,7 +17,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from services.jobs import reprocess as jobs
+from services.jobs import job_records as jobs
 from services.settings import Settings
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore

@@ -16,8 +16,8 @@ import pytest
 from services.core.inputs.scan import Scan
 from services.core.methods import method_options
 from services.core.pipeline import Reconstruction, reconstruct
+from services.jobs import job_records as jobs
 from services.jobs import queue
-from services.jobs import reprocess as jobs
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
 from services.store.version_state import VersionState

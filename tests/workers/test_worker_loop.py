@@ -11,8 +11,8 @@ import pytest
 
 from services.core.inputs.calibration import default_calibration
 from services.core.method_options import parse_options, validate_options
+from services.jobs import job_records as jobs
 from services.jobs import queue
-from services.jobs import reprocess as jobs
 from services.store.results_store import LIVE_VERSION, ResultsStore
 from services.store.storage import SessionStore
 from tests.sim_cache import simulated

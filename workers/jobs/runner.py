@@ -10,7 +10,7 @@ from collections.abc import Callable
 import redis
 
 from services.jobs import consumer
-from services.jobs import reprocess as jobs
+from services.jobs import job_records as jobs
 from workers.config import Context
 from workers.faults import describe
 from workers.retry import Retry

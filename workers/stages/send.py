@@ -19,8 +19,8 @@ import time
 from collections.abc import Callable
 from urllib.parse import urlsplit
 
+from services.jobs import job_records as jobs
 from services.jobs import queue
-from services.jobs import reprocess as jobs
 from services.pacs.destinations import Destination, DicomWebDestination
 from services.pacs.send import PacsRejected, PacsUnreachable, send_objects
 from services.store.session_export import finished_version, session_objects

@@ -1,7 +1,7 @@
 """One writer: every Redis record (streams, job records, counters, sets, lists, locks) is written by services.jobs.
 
 The api and the workers decide what to write; only services/jobs calls Redis's write commands, each record
-through one function (jobs: services.jobs.reprocess; dead letters: services.jobs.dead_letters; counters:
+through one function (jobs: services.jobs.job_records; dead letters: services.jobs.dead_letters; counters:
 queue.incr_metric; events: queue.add_event; a consumer's reads and claims: services.jobs.consumer; the
 reconciler's lock: services.jobs.reconcile_turn). A raw write anywhere else fails this test with its place.
 
@@ -137,8 +137,8 @@ def test_each_record_has_its_one_writer() -> None:
     assert inside["dead_letters.py"] == [".xadd(", ".hincrby("]  # the dead-letter stream, failure counts
     assert {".xreadgroup(", ".xautoclaim(", ".xack(", ".xclaim("} <= set(inside["consumer.py"])
     assert inside["reconcile_turn.py"] == [".set(", ".set(", ".set(", ".eval("]
-    # the job records: written (created, re-queued, updated) by services.jobs.reprocess alone
+    # the job records: written (created, re-queued, updated) by services.jobs.job_records alone
     job_writers = [
         p.name for p in ONE_WRITER.glob("*.py") if "job_key(" in p.read_text() and ".hset(" in inside[p.name]
     ]
-    assert job_writers == ["reprocess.py"]
+    assert job_writers == ["job_records.py"]

@@ -1,4 +1,4 @@
-"""The one job record (services/jobs/reprocess.py) for both kinds of job: reprocess and send."""
+"""The one job record (services/jobs/job_records.py) for both kinds of job: reprocess and send."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from services.jobs import job_records as jobs
 from services.jobs import queue
-from services.jobs import reprocess as jobs
 from services.store.job_ledger import JobLedger
 from tests.services.jobs.test_queue import rq
 
