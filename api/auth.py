@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-from collections.abc import Awaitable, Callable, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -63,23 +63,28 @@ TOKEN_SALT = "veinmosaic.viewer-token"  # a signature made for another use of th
 MAX_TOKEN_CHARS = 512  # longer is never one of ours: refused before any signature work
 
 
-def token_serializer(secret: bytes) -> URLSafeSerializer:
-    """Return the itsdangerous serializer of viewer tokens (SHA-256 HMAC, the viewer-token salt)."""
-    return URLSafeSerializer(secret, salt=TOKEN_SALT, signer_kwargs={"digest_method": hashlib.sha256})
+def token_serializer(secrets: bytes | Sequence[bytes]) -> URLSafeSerializer:
+    """Return the itsdangerous serializer of viewer tokens (SHA-256 HMAC, the viewer-token salt).
+
+    secrets: one key, or the keys oldest first (rotation): itsdangerous signs with the last and verifies with any.
+    """
+    keys = [secrets] if isinstance(secrets, bytes) else list(secrets)
+    return URLSafeSerializer(keys, salt=TOKEN_SALT, signer_kwargs={"digest_method": hashlib.sha256})
 
 
-def make_viewer_token(secret: bytes, session_id: str, ttl_s: float, now: float) -> str:
-    """Return a URL-safe view-only token for `session_id` valid until now + ttl_s (Unix seconds)."""
-    token = token_serializer(secret).dumps({"sid": session_id, "scope": "view", "exp": int(now + ttl_s)})
+def make_viewer_token(secrets: bytes | Sequence[bytes], session_id: str, ttl_s: float, now: float) -> str:
+    """Return a URL-safe view-only token for `session_id` valid until now + ttl_s (Unix seconds), signed with the
+    newest secret."""
+    token = token_serializer(secrets).dumps({"sid": session_id, "scope": "view", "exp": int(now + ttl_s)})
     return str(token)
 
 
-def verify_viewer_token(secret: bytes, token: str, session_id: str, now: float) -> bool:
-    """Return True if `token` was made with `secret` for `session_id`, is view-only and has not expired at `now`."""
+def verify_viewer_token(secrets: bytes | Sequence[bytes], token: str, session_id: str, now: float) -> bool:
+    """Return True if `token` was made with one of `secrets` for `session_id`, is view-only and has not expired."""
     if len(token) > MAX_TOKEN_CHARS:
         return False
     try:
-        claims = token_serializer(secret).loads(token)  # the signature is checked before the payload is decoded
+        claims = token_serializer(secrets).loads(token)  # the signature is checked before the payload is decoded
     except BadSignature:
         return False
     if not isinstance(claims, dict) or claims.get("scope") != "view" or claims.get("sid") != session_id:
@@ -137,7 +142,7 @@ async def view_principal(request: Request, session_id: str) -> Principal:
             raise Forbidden("this key lacks the view scope")
         return principal
     for token in (request.query_params.get("token"), bearer(request)):
-        if token and verify_viewer_token(request.app.state.token_secret, token, session_id, _now(request)):
+        if token and verify_viewer_token(request.app.state.token_secrets, token, session_id, _now(request)):
             return remember(request, Principal(fingerprint=None, scopes=frozenset({"view"}), session_id=session_id))
     refusal = Unauthorized("a valid bearer key or an unexpired viewer token for this session is required")
     raise refuse_unauthenticated(request, refusal)  # 429 when this client is over its limit

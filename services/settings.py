@@ -90,6 +90,9 @@ class Settings(BaseSettings):
     redis_prefix: str = "vm:"
     api_keys: dict[str, list[Scope]] = Field(default_factory=dict, repr=False)
     token_secret: SecretStr | None = None
+    # rotation: tokens signed with these older secrets still verify until they expire (new ones use token_secret);
+    # JSON list in VEINMOSAIC_PREVIOUS_TOKEN_SECRETS, dropped once the longest token lifetime has passed
+    previous_token_secrets: list[SecretStr] = Field(default_factory=list, repr=False)
     # keys the audit log's chain and the key ids in its records; unset: derived from the token secret
     audit_secret: SecretStr | None = None
     max_frame_bytes: int = Field(default=20 * 1024 * 1024, gt=0)
@@ -118,7 +121,7 @@ class Settings(BaseSettings):
     # one key cannot fill the queue (queue_max_depth) and make every other key's jobs answer 503
     queue_max_jobs_per_key: int = Field(default=1000, gt=0)
     retry_after_s: int = Field(default=2, gt=0)
-    viewer_token_ttl_s: int = Field(default=8 * 3600, gt=0)
+    viewer_token_ttl_s: int = Field(default=2 * 3600, gt=0)  # a viewing session's link, not a working day's
     # `veinmosaic serve` supervision: a dead child (API, worker, embedded Redis) is restarted after
     # restart_first_s, doubling per consecutive short-lived run up to restart_max_s; a child that has run
     # healthy_after_s counts as healthy again (back to the first delay)
@@ -164,15 +167,19 @@ class Settings(BaseSettings):
                 )
         return value
 
-    @field_validator("token_secret", "audit_secret")
+    @field_validator("token_secret", "audit_secret", "previous_token_secrets")
     @classmethod
-    def _secret_long_enough(cls, value: SecretStr | None, info: ValidationInfo) -> SecretStr | None:
+    def _secret_long_enough(
+        cls, value: SecretStr | list[SecretStr] | None, info: ValidationInfo
+    ) -> SecretStr | list[SecretStr] | None:
         """Refuse a secret shorter than MIN_TOKEN_SECRET_CHARS (the token secret unset: data_dir/secret is made)."""
-        if value is not None and len(value.get_secret_value()) < MIN_TOKEN_SECRET_CHARS:
-            raise ValueError(
-                f"VEINMOSAIC_{str(info.field_name).upper()} has {len(value.get_secret_value())} characters; at least "
-                f"{MIN_TOKEN_SECRET_CHARS} are required (make one with secrets.token_urlsafe(32))"
-            )
+        for secret in value if isinstance(value, list) else [value]:
+            if secret is not None and len(secret.get_secret_value()) < MIN_TOKEN_SECRET_CHARS:
+                raise ValueError(
+                    f"VEINMOSAIC_{str(info.field_name).upper()} has a secret of {len(secret.get_secret_value())} "
+                    f"characters; at least {MIN_TOKEN_SECRET_CHARS} are required (make one with "
+                    "secrets.token_urlsafe(32))"
+                )
         return value
 
     @field_validator("pacs_destinations", mode="before")

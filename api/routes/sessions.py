@@ -48,7 +48,7 @@ def create_session(
     assert principal.fingerprint is not None
     meta = store.create_session(principal.fingerprint, body.label, calibration, study=study)
     now = request.app.state.clock()
-    token = make_viewer_token(request.app.state.token_secret, meta.id, settings.viewer_token_ttl_s, now)
+    token = make_viewer_token(request.app.state.token_secrets, meta.id, settings.viewer_token_ttl_s, now)
     response.headers["Location"] = f"/v1/sessions/{meta.id}"
     log.info("session created", extra={"session": meta.id})
     return SessionCreated(

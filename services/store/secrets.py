@@ -20,6 +20,12 @@ SECRET_BYTES = 32
 AUDIT_KEY_LABEL = b"veinmosaic.audit-key"  # the derivation of the audit key from the token secret (its own use)
 
 
+def token_secrets(settings: Settings) -> list[bytes]:
+    """Return the viewer tokens' HMAC keys, oldest first: the previous secrets (still verified), then the current
+    one (token_secret_bytes: signs new tokens)."""
+    return [*(s.get_secret_value().encode() for s in settings.previous_token_secrets), token_secret_bytes(settings)]
+
+
 def token_secret_bytes(settings: Settings) -> bytes:
     """Return the HMAC key for viewer tokens: VEINMOSAIC_TOKEN_SECRET, else data_dir/secret (made once).
 

@@ -103,3 +103,13 @@ def test_token_of_another_use_or_scope_is_refused() -> None:
     ingest = token_serializer(SECRET).dumps({**claims, "scope": "ingest"})
     assert not verify_viewer_token(SECRET, str(ingest), "a" * 32, now=1000.0)
     assert verify_viewer_token(SECRET, str(token_serializer(SECRET).dumps(claims)), "a" * 32, now=1000.0)
+
+
+def test_rotated_secrets_verify_old_tokens_and_sign_with_the_newest() -> None:
+    old, new = b"o" * 32, b"n" * 32
+    issued_before = make_viewer_token(old, "a" * 32, ttl_s=60, now=1000.0)
+    assert verify_viewer_token([old, new], issued_before, "a" * 32, now=1010.0)  # still valid through rotation
+    assert not verify_viewer_token([new], issued_before, "a" * 32, now=1010.0)  # the old secret dropped: refused
+    issued_after = make_viewer_token([old, new], "a" * 32, ttl_s=60, now=1000.0)
+    assert verify_viewer_token(new, issued_after, "a" * 32, now=1010.0)  # signed with the newest (the last)
+    assert not verify_viewer_token(old, issued_after, "a" * 32, now=1010.0)

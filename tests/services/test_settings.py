@@ -86,6 +86,12 @@ def test_short_api_keys_and_token_secret_are_refused_at_start_up(monkeypatch: py
     assert short_secret not in str(refused.value)
     monkeypatch.setenv("VEINMOSAIC_TOKEN_SECRET", "s" * MIN_TOKEN_SECRET_CHARS)
     assert Settings().token_secret is not None  # the minimum itself is accepted
+    monkeypatch.setenv("VEINMOSAIC_PREVIOUS_TOKEN_SECRETS", json.dumps(["p" * MIN_TOKEN_SECRET_CHARS, short_secret]))
+    with pytest.raises(ValidationError, match=f"at least {MIN_TOKEN_SECRET_CHARS}") as refused:
+        Settings()  # a rotated-out secret is held to the same minimum
+    assert short_secret not in str(refused.value)
+    monkeypatch.setenv("VEINMOSAIC_PREVIOUS_TOKEN_SECRETS", json.dumps(["p" * MIN_TOKEN_SECRET_CHARS]))
+    assert len(Settings().previous_token_secrets) == 1
 
 
 def test_a_short_key_stops_the_command_line_with_a_clear_error(
