@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import logging
 import os
 import signal
 import threading
@@ -21,6 +22,7 @@ import cv2
 from services.core.inputs.image_header import DEFAULT_MAX_FRAME_SIDE
 from services.decoder_limits import set_decoder_limits
 from services.jobs.redis_backend import close, connect
+from services.pacs.destinations import without_tls
 from services.settings import Settings
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
@@ -121,6 +123,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         with contextlib.suppress(OSError):
             os.nice(settings.worker_nice)  # ingest (API) before processing when the CPU is short
     cv2.setNumThreads(settings.worker_cv_threads)
+    for line in without_tls(settings.pacs_destinations):
+        logging.getLogger("veinmosaic.worker").warning(line)
     config = worker_config(args, settings)
     return run_worker(
         config.data_dir,

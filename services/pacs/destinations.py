@@ -66,6 +66,18 @@ class DimseDestination:
 Destination = DicomWebDestination | DimseDestination
 
 
+def without_tls(destinations: Mapping[str, Destination]) -> list[str]:
+    """Return a warning line for each destination that sends patient images unencrypted (DICOMweb over http://,
+    and DIMSE: this C-STORE has no TLS), by name; no credentials."""
+    lines = []
+    for name, d in sorted(destinations.items()):
+        if isinstance(d, DimseDestination) or urlsplit(d.base_url).scheme != "https":
+            lines.append(
+                f"PACS destination {name!r} ({d.describe()}) sends without TLS: use it on a trusted network only"
+            )
+    return lines
+
+
 def parse_destinations(text: str) -> dict[str, Destination]:
     """Return the named destinations VEINMOSAIC_PACS_DESTINATIONS (a JSON object) holds; empty text: none."""
     if not text.strip():

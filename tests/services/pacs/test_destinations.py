@@ -13,6 +13,7 @@ from services.pacs.destinations import (
     DimseDestination,
     parse_destinations,
     parse_target,
+    without_tls,
 )
 from services.settings import Settings
 
@@ -141,3 +142,19 @@ def test_bad_destinations_stop_start_up_without_echoing_secrets(monkeypatch: pyt
     monkeypatch.setenv("VEINMOSAIC_PACS_TIMEOUT_S", "0")
     with pytest.raises(ValidationError):
         Settings()
+
+
+def test_destinations_without_tls_are_named_without_credentials() -> None:
+    dests = parse_destinations(
+        json.dumps(
+            {
+                "secure": {"dicomweb": "https://pacs.example/dicom-web"},
+                "plain": {"dicomweb": "http://user:pw@10.0.0.9:8042/dicom-web"},
+                "router": {"dimse": {"host": "10.0.0.5", "port": 104, "called_ae": "PACS"}},
+            }
+        )
+    )
+    lines = without_tls(dests)
+    assert [line.split("'")[1] for line in lines] == ["plain", "router"]  # https is the one that is fine
+    assert all("pw" not in line and "user" not in line for line in lines)
+    assert without_tls({}) == []
