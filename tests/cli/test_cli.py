@@ -61,7 +61,10 @@ def test_reconstruct_writes_the_path(outputs: Path) -> None:
     assert tuple(table[0]) == PATH_COLUMNS  # spec §4 columns in order
     assert len(table) == 41  # header + 40 frames
     assert [row[0] for row in table[1:]] == [str(i) for i in range(40)]
-    assert all(row[-3:] == ["ok", "", "0"] for row in table[1:])  # status, no reason, stroke (all one stroke)
+    status = PATH_COLUMNS.index("status")
+    assert all(row[status : status + 3] == ["ok", "", "0"] for row in table[1:])  # no reason, stroke 0 (one stroke)
+    drag = PATH_COLUMNS.index("drag_x_mm")
+    assert all(row[drag] != "" and row[drag + 1] != "" for row in table[1:])  # every placed frame: its drag (0 here)
     assert table[1][2:5] == ["0.0000", "0.0000", "0.0000"]  # frame 0 is the origin
 
 

@@ -305,7 +305,7 @@ def _embedded_redis_pid(data_dir: Path) -> int:
 def test_serve_restarts_a_dead_embedded_redis(tmp_path: Path) -> None:
     """No REDIS_URL: serve's embedded redis-server is SIGKILLed mid-scan; serve starts it again on the same data
     (AOF), restarts the API and workers on its new socket, and every accepted frame is processed once."""
-    key, data = "fault-test-key", tmp_path / "data"
+    key, data = "fault-test-key-of-24-chars", tmp_path / "data"  # serve refuses keys shorter than 24 characters
     serve, port = start_serve(tmp_path, data, key, None, restart_first_s="0.3")  # the back-off from the settings
     client = VeinmosaicClient(f"http://127.0.0.1:{port}", key, timeout_s=10.0, max_retries=14)
     scan = short_scan()
