@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
 from services.core.contact import ContactDetector
@@ -23,6 +24,7 @@ from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, blend_weight
 from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit, fit_compliance
+from services.core.physics.drag import undrag_maps
 from services.core.physics.force_clock import ClockOffset, estimate_clock_offset
 from services.core.physics.tissue_model import tilt_angles_rad
 from services.core.registration.atlas import Atlas
@@ -201,6 +203,8 @@ class SessionReconstruction:
                 self.registrar.refine_scales(self._expected_scales(self.compliance), self.options.scale_prior)
             self.gauge = self.compliance.gauge if self.compliance is not None else 1.0
         self.finished = True
+        if self.registrar.drag_fit is not None and self.registrar.drag_fit.kept:
+            self.recent = {}  # the newest frames' planes were built with their drag in: rebuilt, undragged
         return self._restitch() if self.live else set()
 
     def _estimate_clock(self) -> ClockOffset | None:
@@ -231,12 +235,29 @@ class SessionReconstruction:
         return fit_compliance(scales, loads, self.calibration.compliance_per_n, stiffening=self.options.stiffening)
 
     def _build_layers(self, image: np.ndarray, mask: np.ndarray, kept: KeptFrame) -> FrameLayers:
+        """Return a frame's paste planes: its intensity, blend weight and load, its skin drag undone (once learned)."""
+        image, mask = self._undragged(image, mask, kept.index)
         return FrameLayers.of(
             intensity=image.astype(np.float32) / 255.0,
             weight=blend_weight(mask),
             force_n=load_map_n(self.calibration, kept.load),
             centre_px=self.calibration.principal_point,
             px_per_mm=self.calibration.px_per_mm,
+        )
+
+    def _undragged(self, image: np.ndarray, mask: np.ndarray, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return a rectified frame and its window mask resampled with the frame's drag undone (physics.drag), so
+        the mosaic shows the skin at rest as the path does; as they are without a learned drag."""
+        fit = self.registrar.drag_fit
+        drag = fit.of(index) if fit is not None and self.finished else 0j
+        if fit is None or drag == 0:
+            return image, mask
+        maps = undrag_maps(
+            image.shape[:2], self.calibration.principal_point, self.calibration.px_per_mm, drag, fit.width_mm
+        )
+        return (
+            cv2.remap(image, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
+            cv2.remap(mask, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
         )
 
     def _layers(self, index: int) -> FrameLayers:
