@@ -180,13 +180,14 @@ class SessionReconstruction:
 
     def _origin_shift(self) -> complex:
         """Return mm (registrar units) to add to every pose so frame 0's rest centre is the origin (spec §4)."""
-        first = self.registrar.order[0] if self.registrar.order else None
-        if first is None or not self.finished:
+        if not self.registrar.order:
             return 0j
+        first = self.registrar.order[0]
         return self.registrar.poses[first].a * self._drag(first)
 
     def _drag(self, index: int) -> complex:
-        """Return a placed frame's learned drag (complex mm, its own axes; 0 without a kept drag fit)."""
+        """Return a placed frame's learned drag (complex mm, its own axes; 0 until one is learned and kept: the
+        drag is fitted by the final refinement only, so never while live)."""
         fit = self.registrar.drag_fit
         return fit.of(index) if fit is not None else 0j
 
@@ -203,7 +204,7 @@ class SessionReconstruction:
                 self.registrar.refine_scales(self._expected_scales(self.compliance), self.options.scale_prior)
             self.gauge = self.compliance.gauge if self.compliance is not None else 1.0
         self.finished = True
-        if self.registrar.drag_fit is not None and self.registrar.drag_fit.kept:
+        if self.registrar.dragged():
             self.recent = {}  # the newest frames' planes were built with their drag in: rebuilt, undragged
         return self._restitch() if self.live else set()
 
@@ -248,8 +249,7 @@ class SessionReconstruction:
     def _undragged(self, image: np.ndarray, mask: np.ndarray, index: int) -> tuple[np.ndarray, np.ndarray]:
         """Return a rectified frame and its window mask resampled with the frame's drag undone (physics.drag), so
         the mosaic shows the skin at rest as the path does; as they are without a learned drag."""
-        fit = self.registrar.drag_fit
-        drag = fit.of(index) if fit is not None and self.finished else 0j
+        drag, fit = self._drag(index), self.registrar.drag_fit
         if fit is None or drag == 0:
             return image, mask
         maps = undrag_maps(

@@ -108,6 +108,8 @@ class Registrar:
     _views: dict[int, np.ndarray] = field(default_factory=dict)  # each frame's view D under the current fit
     # each edge (by its frames) corrected under the current fit, with the edge it was corrected from
     _undeformed: dict[tuple[int, int], tuple[Edge, Edge]] = field(default_factory=dict)
+    # each edge (by identity) undragged under the current drag fit, with the edge it was undragged from
+    _undragged: dict[int, tuple[Edge, Edge]] = field(default_factory=dict)
 
     @property
     def ransac_mm(self) -> float:
@@ -402,8 +404,7 @@ class Registrar:
         Each edge is corrected once per view fit (cached by its frames until the next fit_tilt): a refinement
         re-reads hundreds of edges whose correction has not changed.
         """
-        dragged = self.drag_fit is not None and self.drag_fit.kept
-        if self.view_fit is None and not dragged:
+        if self.view_fit is None and not self.dragged():
             return edges
         out = []
         for e in edges:
@@ -418,21 +419,34 @@ class Registrar:
         return out
 
     def undragged(self, e: Edge) -> Edge:
-        """Return an edge between undragged frames (physics.drag), itself without a kept drag fit or inlier pairs."""
+        """Return an edge between undragged frames (physics.drag), itself without a kept drag fit or inlier pairs.
+
+        Made once per drag fit (the view fit and the pose graph both read it at the end: 30 000 edges over a
+        4-minute examination).
+        """
         fit = self.drag_fit
         if fit is None or not fit.kept or e.pairs is None:
             return e
-        relative, (affine, view_affine) = undragged_transforms(
-            e.relative, (e.affine, e.view_affine), e.pairs, fit.of(e.i), fit.of(e.j), fit.width_mm
-        )
-        return replace(e, relative=relative, affine=affine, view_affine=view_affine)
+        cached = self._undragged.get(id(e))
+        if cached is None or cached[0] is not e:
+            relative, (affine, view_affine) = undragged_transforms(
+                e.relative, (e.affine, e.view_affine), e.pairs, fit.of(e.i), fit.of(e.j), fit.width_mm
+            )
+            cached = (e, replace(e, relative=relative, affine=affine, view_affine=view_affine))
+            self._undragged[id(e)] = cached
+        return cached[1]
 
     def fit_drag(self) -> DragFit | None:
         """Return the skin's drag fitted to every edge's inlier pairs (physics.drag), also kept as drag_fit."""
         evidence = [DragEvidence(e.i, e.j, e.pairs, e.relative.a) for e in self.edges if e.pairs is not None]
         self.drag_fit = fit_drag(evidence, self.loads, self.directions())
         self._undeformed = {}
+        self._undragged = {}
         return self.drag_fit
+
+    def dragged(self) -> bool:
+        """Return whether a drag was learned and kept (physics.drag): the edges, path and mosaic undo it."""
+        return self.drag_fit is not None and self.drag_fit.kept
 
     def directions(self) -> dict[int, complex]:
         """Return each placed frame's unit direction of travel in its own axes (0 when still or alone in its run)."""

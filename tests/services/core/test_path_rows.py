@@ -27,7 +27,8 @@ from services.core.registration.outcome import REASON_BAD_FRAME, REASON_NO_CONTA
 NAN = math.nan
 
 
-def _rows() -> list[PathRow]:
+def three_rows() -> list[PathRow]:
+    """Return three rows: placed at the origin, lost, placed (shared with tests/services/store)."""
     return [
         PathRow(0, 0.0, 0.0, 0.0, 0.0, 3.25, 0.1, -0.2, 0.021, 300, "ok"),
         PathRow(1, 0.05, NAN, NAN, NAN, 4.0, 0.0, 0.0, 0.026, 0, "lost", "few_inliers"),
@@ -36,7 +37,7 @@ def _rows() -> list[PathRow]:
 
 
 def test_path_csv_columns_and_blank_cells() -> None:
-    text = path_csv(_rows())
+    text = path_csv(three_rows())
     table = list(csv.reader(io.StringIO(text)))
     assert tuple(table[0]) == PATH_COLUMNS
     assert PATH_COLUMNS == (
@@ -63,7 +64,7 @@ def test_path_csv_columns_and_blank_cells() -> None:
 
 
 def test_path_json_uses_null_for_unregistered() -> None:
-    doc = path_rows_json(_rows())
+    doc = path_rows_json(three_rows())
     assert list(doc[0]) == list(PATH_COLUMNS)
     assert doc[1]["x_mm"] is None and doc[1]["status"] == "lost"
     assert doc[2]["x_mm"] == pytest.approx(1.23456)
@@ -81,7 +82,7 @@ def _same(a: PathRow, b: PathRow) -> bool:
 
 
 def test_path_json_reads_back_as_the_rows_it_was_made_of() -> None:
-    rows = [*_rows(), PathRow(3, 0.15, 2.0, -2.0, 0.5, 5.5, 0.0, 0.0, 0.03, 120, "ok", "", 1)]
+    rows = [*three_rows(), PathRow(3, 0.15, 2.0, -2.0, 0.5, 5.5, 0.0, 0.0, 0.03, 120, "ok", "", 1)]
     doc = json.loads(json.dumps(path_rows_json(rows)))  # through strict JSON text, as path.json is stored
     back = path_rows_from_json(reversed(doc))  # sorted by seq whatever the order read
     assert [r.seq for r in back] == [0, 1, 2, 3]
@@ -109,7 +110,7 @@ def test_a_row_without_a_time_takes_the_stored_one() -> None:
 
 
 def test_the_path_tail_lists_the_rows_asked_for_by_seq() -> None:
-    rows = [*_rows(), PathRow(3, 0.15, 2.0, -2.0, 0.5, 5.5, 0.0, 0.0, 0.03, 120, "ok", "", 1)]
+    rows = [*three_rows(), PathRow(3, 0.15, 2.0, -2.0, 0.5, 5.5, 0.0, 0.0, 0.03, 120, "ok", "", 1)]
     assert path_tail(rows, [3, 1, 3, 9]) == [  # repeated and unknown seqs: once, or not at all
         [1, None, None, "lost", None, "few_inliers"],
         [3, 2.0, -2.0, "ok", 1, ""],

@@ -12,20 +12,12 @@ import numpy as np
 import pytest
 
 from services.core.mosaic.canvas import MosaicImage
-from services.core.path_rows import PathRow
 from services.core.pipeline import Reconstruction
 from services.core.similarity import IDENTITY, Similarity
 from services.store.output_folder import read_results_mosaic, write_reconstruction
+from tests.services.core.test_path_rows import three_rows as _rows
 
 NAN = math.nan
-
-
-def _rows() -> list[PathRow]:
-    return [
-        PathRow(0, 0.0, 0.0, 0.0, 0.0, 3.25, 0.1, -0.2, 0.021, 300, "ok"),
-        PathRow(1, 0.05, NAN, NAN, NAN, 4.0, 0.0, 0.0, 0.026, 0, "lost", "few_inliers"),
-        PathRow(2, 0.1, 1.23456, -2.5, 1.5, 5.0, 0.0, 0.0, 0.032, 250, "ok"),
-    ]
 
 
 def _recon() -> Reconstruction:
