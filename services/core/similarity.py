@@ -1,4 +1,5 @@
-"""The 2-D similarity transform every pose, relative measurement and mosaic placement is expressed in."""
+"""The 2-D similarity transform every pose, relative measurement and mosaic placement is expressed in, and the
+least-squares affine of point pairs (a match's full affine, the drag's correction of it)."""
 
 from __future__ import annotations
 
@@ -49,3 +50,12 @@ class Similarity:
 
 
 IDENTITY = Similarity(1.0 + 0j, 0j)
+
+
+def fit_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
+    """Return the least-squares affine (2x3, src -> dst units) of point pairs (N, 2), or None below 4 pairs."""
+    if len(src) < 4:
+        return None
+    design = np.hstack([np.asarray(src, np.float64), np.ones((len(src), 1))])
+    solution, _, rank, _ = np.linalg.lstsq(design, np.asarray(dst, np.float64), rcond=None)
+    return solution.T if rank == 3 else None

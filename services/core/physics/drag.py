@@ -32,7 +32,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import spsolve
 
-from services.core.similarity import Similarity
+from services.core.similarity import Similarity, fit_affine
 
 WIDTHS_MM = (8.0, 11.0, 15.0, 20.0, 27.0)  # the profile widths tried (the shared scans' window: ~78 x 58 mm)
 PRIOR_SIGMA_MM = 0.6  # a frame's drag about the prior g F u (1 sigma): stick-slip swings it by about this
@@ -232,12 +232,10 @@ def fit_drag(
     frames = sorted({ev.i for ev in usable} | {ev.j for ev in usable})
     prior_mean = np.array([loads_n.get(f, 0.0) * directions.get(f, 0j) for f in frames], complex)
     best: tuple[float, float, np.ndarray, complex] | None = None
-    without = 0.0
     batch = _batch(usable)
+    without = float(np.sum(batch.weight * np.sum(np.abs(batch.h) ** 2, axis=1)))  # no drag: what no affine explains
     for width in widths_mm:
-        terms = _terms(batch, width)
-        without = float(np.sum(terms.hh))
-        drags, gain, cost = _solve(usable, terms, frames, prior_mean)
+        drags, gain, cost = _solve(usable, _terms(batch, width), frames, prior_mean)
         if best is None or cost < best[0]:
             best = (cost, width, drags, gain)
     assert best is not None
@@ -273,19 +271,19 @@ def undragged_transforms(
     pj, pi = _complex(pairs)
     qj, qi = undrag(pj, drag_j, width_mm), undrag(pi, drag_i, width_mm)
     moved = _lsq_similarity(qj, qi).compose(_lsq_similarity(pj, pi).inverse()).compose(relative)
-    delta = _homogeneous(_lsq_affine(qj, qi)) @ np.linalg.inv(_homogeneous(_lsq_affine(pj, pi)))
+    raw, fixed = fit_affine(_xy(pj), _xy(pi)), fit_affine(_xy(qj), _xy(qi))
+    if raw is None or fixed is None:  # degenerate pairs (collinear): the affines as measured
+        return moved, list(affines)
+    delta = _homogeneous(fixed) @ np.linalg.inv(_homogeneous(raw))
     return moved, [None if a is None else (delta @ _homogeneous(a))[:2] for a in affines]
+
+
+def _xy(points: np.ndarray) -> np.ndarray:
+    return np.column_stack([points.real, points.imag])
 
 
 def _homogeneous(affine: np.ndarray) -> np.ndarray:
     return np.vstack([np.asarray(affine, np.float64), [0.0, 0.0, 1.0]])
-
-
-def _lsq_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Return the least-squares affine (2x3) dst ~ A src of complex point sets."""
-    design = np.column_stack([src.real, src.imag, np.ones(len(src))])
-    fit, *_ = np.linalg.lstsq(design, np.column_stack([dst.real, dst.imag]), rcond=None)
-    return fit.T
 
 
 def _lsq_similarity(src: np.ndarray, dst: np.ndarray) -> Similarity:

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from services.core.registration.features import Features
-from services.core.similarity import Similarity
+from services.core.similarity import Similarity, fit_affine
 
 PAIRS_KEPT = 64  # inlier pairs a fit keeps as evidence (1 KB): enough for the drag fit, bounded for long scans
 
@@ -34,15 +34,6 @@ class SimilarityFit:
     centre: complex = 0j  # the inliers' centroid (src units): where the fit's translation is best known
     spread: float = 0.0  # the inliers' RMS distance from it (src units): the lever of its rotation and scale
     pairs: np.ndarray | None = None  # float32 (n, 4): the unique inliers, src x, y then dst x, y (drag evidence)
-
-
-def fit_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
-    """Return the least-squares affine (2x3, src -> dst units) of point pairs (N, 2), or None below 4 pairs."""
-    if len(src) < 4:
-        return None
-    design = np.hstack([np.asarray(src, np.float64), np.ones((len(src), 1))])
-    solution, _, rank, _ = np.linalg.lstsq(design, np.asarray(dst, np.float64), rcond=None)
-    return solution.T if rank == 3 else None
 
 
 def nearest_descriptors(
