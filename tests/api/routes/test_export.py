@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import io
 import re
-import zlib
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ from services.core.outputs.dicom_export import ENCAPSULATED_PDF, SC_IMAGE, study
 from services.core.path_rows import PathRow
 from services.store.results_store import ResultsStore
 from services.store.version_state import VersionState
+from tests.pdf_text import pdf_text
 from tests.services.core.outputs.test_dicom_export import dciodvfy
 
 PX_PER_MM = 8.0
@@ -112,22 +112,6 @@ def _error(resp: Any) -> dict[str, Any]:
     body = resp.json()
     assert set(body) == {"error"}, body
     return body["error"]
-
-
-def pdf_text(data: bytes) -> str:
-    """Return the text drawn in a (matplotlib) PDF: the strings of its content streams' Tj/TJ operators."""
-    out = []
-    # the end-of-line before `endstream` is left in the match and ignored by decompressobj: a stream whose
-    # compressed bytes end in \r would otherwise lose that byte to an optional \r in the pattern (a flaky test)
-    for m in re.finditer(rb"stream\r?\n(.*?)endstream", data, re.S):
-        try:
-            content = zlib.decompressobj().decompress(m.group(1))
-        except zlib.error:
-            continue
-        for block in re.findall(rb"BT(.*?)ET", content, re.S):
-            parts = re.findall(rb"\(((?:\\.|[^\\)])*)\)", block)
-            out.append(b"".join(re.sub(rb"\\(.)", rb"\1", p) for p in parts).decode("latin-1"))
-    return "\n".join(out)
 
 
 # ----- DICOM ------------------------------------------------------------------------------------------------------

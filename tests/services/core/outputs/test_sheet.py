@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import itertools
 import re
-import zlib
 from datetime import UTC, datetime
 
 import numpy as np
@@ -27,6 +26,7 @@ from services.core.outputs.scan_quality import FrameSummary, scan_warnings
 from services.core.outputs.session_report import build_session_report
 from services.core.outputs.sheet import NOT_GIVEN, SHEET_DPI, SHEET_TEXT_GID, SheetIdentity, build_sheet_figure
 from services.core.path_rows import PathRow
+from tests.pdf_text import pdf_text
 
 OVERLAP_TOL_PX = 1.0  # two text boxes may touch (antialiasing, rounding) but not overlap by more than 1 px
 BAR_TOL_PX = 1.0  # a colour bar's top and bottom are its panel's within 1 px
@@ -297,17 +297,3 @@ def test_sheet_renders_one_a4_portrait_page_through_the_report_builder() -> None
     assert ACCESSION in pdf_text(pdf) and session in pdf_text(
         pdf
     )  # the identification is in the PDF's text, not only its image
-
-
-def pdf_text(data: bytes) -> str:
-    """Return the text a matplotlib PDF draws: each BT..ET block's Tj/TJ strings joined (kerning splits them)."""
-    out = []
-    for stream in re.findall(rb"stream\r?\n(.*?)endstream", data, re.S):
-        try:
-            content = zlib.decompressobj().decompress(stream)
-        except zlib.error:
-            continue
-        for block in re.findall(rb"BT(.*?)ET", content, re.S):
-            parts = re.findall(rb"\(((?:\\.|[^\\)])*)\)", block)
-            out.append(b"".join(re.sub(rb"\\(.)", rb"\1", p) for p in parts).decode("latin-1"))
-    return "\n".join(out)
