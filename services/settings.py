@@ -120,6 +120,12 @@ class Settings(BaseSettings):
     # open (queued or running) reprocess and send jobs per API key; beyond, 429 quota_exceeded with Retry-After, so
     # one key cannot fill the queue (queue_max_depth) and make every other key's jobs answer 503
     queue_max_jobs_per_key: int = Field(default=1000, gt=0)
+    # per-key quotas (services/jobs/quotas.py): sessions created and new frames uploaded by one API key in each
+    # fixed window of quota_window_s, shared by every API process (Redis); beyond, 429 quota_exceeded with
+    # Retry-After (the window's end) while other keys go on; 0: no limit. A probe at 10 frames/s makes 36000 an hour
+    quota_window_s: int = Field(default=3600, ge=1)
+    quota_sessions_per_key: int = Field(default=200, ge=0)
+    quota_frames_per_key: int = Field(default=200_000, ge=0)
     retry_after_s: int = Field(default=2, gt=0)
     viewer_token_ttl_s: int = Field(default=2 * 3600, gt=0)  # a viewing session's link, not a working day's
     # `veinmosaic serve` supervision: a dead child (API, worker, embedded Redis) is restarted after

@@ -260,6 +260,12 @@ def owner_jobs_key(owner: str, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{prefix}owner:{owner}:jobs"
 
 
+def owner_quota_key(owner: str, what: str, window: int, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the counter of what an owner (a key fingerprint) used of quota `what` ("sessions",
+    "frames") in fixed window number `window` (services.jobs.quotas)."""
+    return f"{prefix}owner:{owner}:quota:{what}:{int(window)}"
+
+
 JOB_KINDS = ("reprocess", "send")  # a new results version; a session's DICOM objects sent to a PACS
 
 
