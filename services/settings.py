@@ -120,6 +120,10 @@ class Settings(BaseSettings):
     # open (queued or running) reprocess and send jobs per API key; beyond, 429 quota_exceeded with Retry-After, so
     # one key cannot fill the queue (queue_max_depth) and make every other key's jobs answer 503
     queue_max_jobs_per_key: int = Field(default=1000, gt=0)
+    # fair queueing (services/jobs/job_lanes.py): reprocess and send jobs wait in one lane per key and are admitted
+    # round-robin onto the workers' job stream while it holds fewer than this (queued there or running), so one
+    # key's flood delays another key's job by at most this many jobs; at least the number of worker processes
+    queue_jobs_in_flight: int = Field(default=8, ge=1)
     # per-key quotas (services/jobs/quotas.py): sessions created and new frames uploaded by one API key in each
     # fixed window of quota_window_s, shared by every API process (Redis); beyond, 429 quota_exceeded with
     # Retry-After (the window's end) while other keys go on; 0: no limit. A probe at 10 frames/s makes 36000 an hour

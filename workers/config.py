@@ -40,6 +40,7 @@ class WorkerConfig(WorkerSettings):
     consumer: str = Field(default_factory=default_consumer)
     pacs_destinations: dict[str, Destination] = Field(default_factory=dict, repr=False)  # the Settings'
     pacs_timeout_s: float = Field(default=30.0, gt=0)
+    jobs_in_flight: int = Field(default=8, ge=1)  # the Settings' queue_jobs_in_flight (job_lanes.admit)
     audit_key: SecretBytes | None = Field(default=None, repr=False)  # the Settings' (None: from data_dir's settings)
 
     @classmethod
@@ -52,6 +53,7 @@ class WorkerConfig(WorkerSettings):
             "prefix": settings.redis_prefix,
             "pacs_destinations": settings.pacs_destinations,
             "pacs_timeout_s": settings.pacs_timeout_s,
+            "jobs_in_flight": settings.queue_jobs_in_flight,
             "audit_key": audit_key_bytes(settings),
         }
         doc.update({k: v for k, v in overrides.items() if v is not None})

@@ -117,7 +117,8 @@ def finish_session(meta: IngestSession, store: Store, r: RedisClient, settings: 
     if first and settings.pacs_auto_send:
         for name in settings.pacs_auto_send:
             jobs.enqueue_jobs(
-                r, settings.redis_prefix, meta.owner, [meta.id], {"destination": name}, ledger=store.jobs, kind="send"
-            )
+                r, settings.redis_prefix, meta.owner, [meta.id], {"destination": name}, ledger=store.jobs, kind="send",
+                in_flight=settings.queue_jobs_in_flight,
+            )  # fmt: skip
     log.info("session finished", extra={"session": meta.id, "frames": meta.frames_expected})
     return Accepted(id=meta.id, status=meta.status)
