@@ -155,6 +155,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            hub = getattr(app.state, "event_hub", None)  # the event streams' shared reader (api.event_hub)
+            if hub is not None:
+                await hub.close()
             close(app.state.redis)
             app.state.audit.close()
             log.info("stopped", extra={"route": "lifespan"})
