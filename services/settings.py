@@ -104,6 +104,9 @@ class Settings(BaseSettings):
     max_session_span_s: float = Field(default=86_400.0, gt=0)  # timestamps within this of the session's first
     min_free_mb: int = Field(default=200, ge=0)  # /readyz is 503 while the data volume has less free space
     audit_coalesce_s: float = Field(default=60.0, ge=0)  # repeated reads by one caller: one audit record per window
+    # audit.jsonl is rotated to audit-000001.jsonl, ... before a record would take it past this; the keyed chain runs
+    # on across the files (services/store/audit.py); 0: never rotated
+    audit_max_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
     # per-client rate limits (token buckets, per API process; 429 with Retry-After beyond; a burst of 0: no limit).
     # Requests without a valid credential, per client address: a flood is refused before it costs a disk write
     rate_limit_anonymous_per_s: float = Field(default=20.0, gt=0)
