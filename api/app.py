@@ -145,7 +145,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.token_secret = token_secret_bytes(s)
         app.state.token_secrets = token_secrets(s)  # oldest first: the previous secrets still verify
         app.state.store = SessionStore(s.data_dir)
-        app.state.audit = AuditLog(s.data_dir / "audit" / "audit.jsonl", audit_key_bytes(s))
+        app.state.audit = AuditLog(s.data_dir / "audit" / "audit.jsonl", audit_key_bytes(s), s.audit_max_bytes)
         app.state.redis = connect(s.redis_url, s.data_dir)
         try:
             queue.ensure_groups(app.state.redis, prefix=s.redis_prefix)
@@ -155,6 +155,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            hub = getattr(app.state, "event_hub", None)  # the event streams' shared reader (api.event_hub)
+            if hub is not None:
+                await hub.close()
             close(app.state.redis)
             app.state.audit.close()
             log.info("stopped", extra={"route": "lifespan"})

@@ -30,6 +30,7 @@ from services.core.inputs.image_header import BadImageError
 from services.core.inputs.study import StudyContextError
 from services.core.method_options import without_values
 from services.jobs.job_records import OwnerQuotaError, QueueFullError
+from services.jobs.quotas import KeyQuotaError
 from services.log_format import failure_frames, failure_reason
 from services.store.session_export import NotFinishedError
 from services.store.storage import ConflictError, ImplausibleTimeError, SessionClosedError, SessionNotFoundError
@@ -140,6 +141,7 @@ SERVICE_ERRORS: dict[type[Exception], tuple[int, str, str | None]] = {
         "the job queue is full; retry later",
     ),  # its message names the field, never the value
     OwnerQuotaError: (429, "quota_exceeded", None),  # its message names the quota
+    KeyQuotaError: (429, "quota_exceeded", None),  # sessions or frames per window; Retry-After: the window's end
     redis.ConnectionError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
     redis.TimeoutError: (503, "queue_unavailable", "the job queue is unreachable; retry later"),
 }
@@ -222,7 +224,8 @@ def add_exception_handlers(app: FastAPI) -> None:
         else:  # pragma: no cover - only registered classes reach this handler
             status, code, message = 500, "internal_error", "internal error"
         retry = status in RETRY_STATUSES
-        headers = {"Retry-After": str(request.app.state.settings.retry_after_s)} if retry else None
+        retry_after = getattr(exc, "retry_after_s", None) or request.app.state.settings.retry_after_s
+        headers = {"Retry-After": str(int(retry_after))} if retry else None
         if message is None:  # the exception's own message, less any submitted value it quotes
             message = f"calibration: {without_values(str(exc))}" if isinstance(exc, CalibrationError) else str(exc)
         return error_response(status, code, message, headers=headers)
@@ -271,7 +274,10 @@ ERROR_DESCRIPTIONS: dict[int, str] = {
     413: "request body larger than the limit",
     415: "unsupported media type",
     422: "the body or a parameter breaks the schema, or the content is invalid (the message names the field)",
-    429: "too many requests (a rate limit, or the key's quota of queued jobs); retry after Retry-After",
+    429: (
+        "too many requests (a rate limit, or the key's quota of sessions, frames or queued jobs); retry after "
+        "Retry-After"
+    ),
     503: (
         "unavailable, retry after Retry-After seconds: Redis down, queue full, or the data volume full (ENOSPC, "
         "EDQUOT: code insufficient_storage) or failing (EIO, EROFS: storage_unavailable); nothing was stored. "

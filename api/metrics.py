@@ -19,7 +19,7 @@ from prometheus_client.exposition import choose_encoder
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric, SummaryMetricFamily
 
 from services.core.outputs.scan_quality import LAG_WARNING_S, live_lag
-from services.jobs import queue
+from services.jobs import job_lanes, queue
 
 PREFIX = "veinmosaic_"
 # Redis hash field -> (help text). Fields ending in _total are counters.
@@ -88,7 +88,7 @@ class RedisMetrics:
             gauges = {
                 "frames": float(queue.queue_depth(r, prefix=prefix)),
                 "register": float(_stream_len(r, queue.register_stream(prefix))),
-                "jobs": float(_stream_len(r, queue.jobs_stream(prefix))),
+                "jobs": float(job_lanes.depth(r, prefix)),  # on the stream and waiting in the keys' lanes
             }
             delayed_key = queue.delayed_key(prefix)
             delayed = float(r.zcard(delayed_key)) if r.type(delayed_key) in (b"zset", "zset") else 0.0

@@ -321,3 +321,7 @@ class AuditVerification(Strict):
     first_bad_line: int | None = None
     reason: str | None = None
     unkeyed: int = Field(default=0, description="records written before the chain was keyed (a prefix of the log)")
+    files: int = Field(
+        default=1, description="files of the chain checked: the rotated ones, oldest first, and the current"
+    )
+    first_bad_file: str | None = Field(default=None, description="the file (in the audit folder) of first_bad_line")

@@ -104,6 +104,9 @@ class Settings(BaseSettings):
     max_session_span_s: float = Field(default=86_400.0, gt=0)  # timestamps within this of the session's first
     min_free_mb: int = Field(default=200, ge=0)  # /readyz is 503 while the data volume has less free space
     audit_coalesce_s: float = Field(default=60.0, ge=0)  # repeated reads by one caller: one audit record per window
+    # audit.jsonl is rotated to audit-000001.jsonl, ... before a record would take it past this; the keyed chain runs
+    # on across the files (services/store/audit.py); 0: never rotated
+    audit_max_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
     # per-client rate limits (token buckets, per API process; 429 with Retry-After beyond; a burst of 0: no limit).
     # Requests without a valid credential, per client address: a flood is refused before it costs a disk write
     rate_limit_anonymous_per_s: float = Field(default=20.0, gt=0)
@@ -120,6 +123,16 @@ class Settings(BaseSettings):
     # open (queued or running) reprocess and send jobs per API key; beyond, 429 quota_exceeded with Retry-After, so
     # one key cannot fill the queue (queue_max_depth) and make every other key's jobs answer 503
     queue_max_jobs_per_key: int = Field(default=1000, gt=0)
+    # fair queueing (services/jobs/job_lanes.py): reprocess and send jobs wait in one lane per key and are admitted
+    # round-robin onto the workers' job stream while it holds fewer than this (queued there or running), so one
+    # key's flood delays another key's job by at most this many jobs; at least the number of worker processes
+    queue_jobs_in_flight: int = Field(default=8, ge=1)
+    # per-key quotas (services/jobs/quotas.py): sessions created and new frames uploaded by one API key in each
+    # fixed window of quota_window_s, shared by every API process (Redis); beyond, 429 quota_exceeded with
+    # Retry-After (the window's end) while other keys go on; 0: no limit. A probe at 10 frames/s makes 36000 an hour
+    quota_window_s: int = Field(default=3600, ge=1)
+    quota_sessions_per_key: int = Field(default=200, ge=0)
+    quota_frames_per_key: int = Field(default=200_000, ge=0)
     retry_after_s: int = Field(default=2, gt=0)
     viewer_token_ttl_s: int = Field(default=2 * 3600, gt=0)  # a viewing session's link, not a working day's
     # `veinmosaic serve` supervision: a dead child (API, worker, embedded Redis) is restarted after

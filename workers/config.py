@@ -40,6 +40,8 @@ class WorkerConfig(WorkerSettings):
     consumer: str = Field(default_factory=default_consumer)
     pacs_destinations: dict[str, Destination] = Field(default_factory=dict, repr=False)  # the Settings'
     pacs_timeout_s: float = Field(default=30.0, gt=0)
+    jobs_in_flight: int = Field(default=8, ge=1)  # the Settings' queue_jobs_in_flight (job_lanes.admit)
+    audit_max_bytes: int = Field(default=64 * 1024 * 1024, ge=0)  # the Settings' (services.store.audit rotation)
     audit_key: SecretBytes | None = Field(default=None, repr=False)  # the Settings' (None: from data_dir's settings)
 
     @classmethod
@@ -52,6 +54,8 @@ class WorkerConfig(WorkerSettings):
             "prefix": settings.redis_prefix,
             "pacs_destinations": settings.pacs_destinations,
             "pacs_timeout_s": settings.pacs_timeout_s,
+            "jobs_in_flight": settings.queue_jobs_in_flight,
+            "audit_max_bytes": settings.audit_max_bytes,
             "audit_key": audit_key_bytes(settings),
         }
         doc.update({k: v for k, v in overrides.items() if v is not None})
@@ -90,4 +94,4 @@ class Context:
         """Return the data directory's audit log (the API's, with its key; safe across processes on one host)."""
         key = self.config.audit_key
         secret = key.get_secret_value() if key is not None else audit_key_bytes(Settings(data_dir=self.config.data_dir))
-        return AuditLog(self.config.data_dir / "audit" / "audit.jsonl", secret)
+        return AuditLog(self.config.data_dir / "audit" / "audit.jsonl", secret, self.config.audit_max_bytes)

@@ -23,8 +23,8 @@ import logging
 import time
 from typing import Any
 
+from services.jobs import job_lanes, queue, reconcile_turn
 from services.jobs import job_records as jobs
-from services.jobs import queue, reconcile_turn
 from services.store.results_store import LIVE_VERSION
 from services.store.storage import SessionNotFoundError
 from workers.config import Context
@@ -113,7 +113,7 @@ def reconcile_jobs(ctx: Context) -> int:
     records = ctx.store.jobs.open_jobs()
     if not records:
         return 0
-    known = queue.known_jobs(ctx.r, ctx.prefix)
+    known = job_lanes.known_jobs(ctx.r, ctx.prefix)  # in a key's lane, on the stream or delayed
     requeued = 0
     for record in records:
         job_id = record.get("id", "")

@@ -6,10 +6,12 @@ the SSE ids, so a client that reconnects with Last-Event-ID (the header EventSou
 trimmed away) first gets a "snapshot" event: the current mosaic.json, the whole path and the counters,
 with the id of the newest entry at that moment. The stream ends after a "done" entry, or at once (after the
 snapshot) when the session is already done or failed. sse-starlette writes the framing (id/event/data lines,
-retry, the keep-alive comment every KEEPALIVE_S) and ends the generator when the client goes away. Reads use
-redis.asyncio with BLOCK, so no thread and no event-loop time is held while waiting.
+retry, the keep-alive comment every KEEPALIVE_S) and ends the generator when the client goes away. The
+streams share Redis connections (api.event_hub): one reader per API process XREADs (BLOCK) every subscribed
+session's stream and fans the entries out, and a small pool serves the snapshot's and the catch-up's short
+reads, so no thread, no event-loop time and no connection of its own is held by a waiting stream.
 
-Each open stream holds a Redis connection, so they are capped per API process (api.limits.StreamSlots): at
+Open streams are still capped per API process (api.limits.StreamSlots: each holds a queue and a response): at
 most `events_max_per_principal` per caller (a key, or the viewer links of one session; 429 beyond) and
 `events_max_total` in all (503 beyond), both with Retry-After. The slot is freed when the stream ends or the
 client goes away. The stream is "private, no-store": it carries the path.
@@ -17,15 +19,14 @@ client goes away. The stream is "private, no-store": it carries the path.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import re
 from collections.abc import AsyncIterator, Callable
 from typing import Annotated, Any
 
-import anyio
 import redis
-import redis.asyncio as aioredis
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from sse_starlette import EventSourceResponse, ServerSentEvent
@@ -34,6 +35,7 @@ from starlette.types import Receive, Scope, Send
 from api.caching import PRIVATE_NO_STORE
 from api.deps import AppSettings, RedisClient, Store, ViewPrincipal, ViewSession
 from api.errors import ServiceUnavailable
+from api.event_hub import EventHub, id_tuple
 from api.limits import principal_key
 from api.results_access import Results, resolve_version
 from services.core.path_rows import path_rows_from_json, path_tail
@@ -48,14 +50,8 @@ log = logging.getLogger("veinmosaic.api")
 KEEPALIVE_S = 15.0  # a keep-alive comment this often (and the session's status checked when idle this long)
 RETRY_MS = 3000  # the reconnection delay suggested to EventSource
 SEP = "\n"  # line separator of the framing (the SSE spec allows \n, \r\n or \r)
-BATCH = 200  # stream entries read per XREAD
 FINAL_STATUSES = ("done", "failed")
 _STREAM_ID = re.compile(r"^\d{1,20}(-\d{1,20})?$")
-
-
-def _id_tuple(stream_id: str) -> tuple[int, int]:
-    ms, _, seq = stream_id.partition("-")
-    return int(ms), int(seq or 0)
 
 
 def sse(event: str, data: str, event_id: str | None = None) -> ServerSentEvent:
@@ -102,6 +98,14 @@ class CountedEventSource(EventSourceResponse):
             self._release()
 
 
+def event_hub(request: Request, url: str) -> EventHub:
+    """Return the app's event hub (one Redis reader for all its streams), made on the first stream."""
+    hub: EventHub | None = getattr(request.app.state, "event_hub", None)
+    if hub is None or hub.url != url:  # a restarted embedded Redis listens on a new socket
+        hub = request.app.state.event_hub = EventHub(url)
+    return hub
+
+
 def async_redis_url(settings: Any) -> str:
     """Return the URL of the Redis server the app uses (REDIS_URL, else the embedded server's socket)."""
     url = settings.redis_url or read_embedded_url(settings.data_dir)
@@ -133,50 +137,65 @@ async def events(
     url = async_redis_url(settings)
     stream = queue.events_stream(sid, prefix)
 
+    hub = event_hub(request, url)
+
     async def generate() -> AsyncIterator[ServerSentEvent]:
-        client = aioredis.Redis.from_url(
-            url, decode_responses=True, socket_connect_timeout=2.0, socket_timeout=KEEPALIVE_S + 10.0
-        )
+        sub = None
         try:
             yield ServerSentEvent(retry=RETRY_MS, sep=SEP)
             start = resume
             if start is not None:
-                first = await client.xrange(stream, count=1)
-                if first and _id_tuple(first[0][0]) > _id_tuple(start) and start != "0-0":
+                first = await hub.client.xrange(stream, count=1)
+                if first and id_tuple(first[0][0]) > id_tuple(start) and start != "0-0":
                     start = None  # entries after Last-Event-ID were trimmed: start over with a snapshot
             if start is None:
-                newest = await client.xrevrange(stream, count=1)
+                newest = await hub.client.xrevrange(stream, count=1)
                 start = newest[0][0] if newest else "0-0"
                 doc = await run_in_threadpool(snapshot, store, rs, r, sid, prefix)
                 yield sse("snapshot", json.dumps(doc, separators=(",", ":"), allow_nan=False), start)
                 if newest and newest[0][1].get("type") == "done":  # the run is over: nothing more will come
                     yield sse("done", newest[0][1].get("data", "{}"), start)
                     return
-            idle_checked = False
-            while True:
-                block = None if not idle_checked else int(KEEPALIVE_S * 1000)
-                got = await client.xread({stream: start}, count=BATCH, block=block)
-                entries = got[0][1] if got else []
+            sub = hub.subscribe(stream, start)  # first subscribe, then catch up: nothing falls between
+            while entries := await hub.catch_up(sub):
                 for entry_id, fields in entries:
-                    start = entry_id
-                    kind = fields.get("type", "progress")
-                    yield sse(kind, fields.get("data", "{}"), entry_id)
-                    if kind == "done":
+                    sub.last = entry_id
+                    yield sse(fields.get("type", "progress"), fields.get("data", "{}"), entry_id)
+                    if fields.get("type") == "done":
                         return
-                if entries:
-                    continue
-                # nothing new: if the session is already over, say so and end; else wait (keep-alive)
-                status = (await run_in_threadpool(store.get_meta, sid)).status
-                if status in FINAL_STATUSES:
-                    yield sse("done", json.dumps({"status": status, "session": sid}), start)
+            check = True  # the first time nothing is queued, and after each idle KEEPALIVE_S: is the session over?
+            while True:
+                try:
+                    entry = sub.queue.get_nowait()
+                except asyncio.QueueEmpty:
+                    if check:  # nothing new: if the session is already over, say so and end; else wait
+                        status = (await run_in_threadpool(store.get_meta, sid)).status
+                        if status in FINAL_STATUSES:
+                            yield sse("done", json.dumps({"status": status, "session": sid}), sub.last)
+                            return
+                    try:
+                        entry = await asyncio.wait_for(sub.queue.get(), timeout=KEEPALIVE_S)
+                    except TimeoutError:
+                        check = True
+                        continue
+                    check = False
+                if entry is None:  # the hub lost Redis, or this client fell too far behind: it reconnects
+                    yield ServerSentEvent(comment="interrupted, reconnect", sep=SEP)
                     return
-                idle_checked = True
+                entry_id, fields = entry
+                if sub.passed(entry_id):
+                    continue
+                sub.last = entry_id
+                kind = fields.get("type", "progress")
+                yield sse(kind, fields.get("data", "{}"), entry_id)
+                if kind == "done":
+                    return
         except (redis.RedisError, OSError):
             log.warning("event stream interrupted", extra={"session": sid})
             yield ServerSentEvent(comment="interrupted, reconnect", sep=SEP)
         finally:
-            with anyio.CancelScope(shield=True):  # a client that went away cancels us: still close the connection
-                await client.aclose()
+            if sub is not None:
+                hub.unsubscribe(sub)
 
     slots = request.app.state.stream_slots  # 429 over the caller's cap, 503 over the total (api.limits)
     release = slots.acquire(

@@ -23,7 +23,7 @@ from api.errors import (
 )
 from api.schemas import ForceBatch, ForcesAccepted, FrameAccepted, FrameMeta
 from services.core.inputs.image_header import check_frame_file, sniff_image
-from services.jobs import queue
+from services.jobs import queue, quotas
 
 router = APIRouter(prefix="/v1/sessions", tags=["ingest"])
 log = logging.getLogger("veinmosaic.api")
@@ -61,7 +61,8 @@ def upload_frame(
     """Return the acceptance of one frame stored durably and queued: 202; the same frame again 200; other bytes 409.
 
     Nothing is decoded for a seq already stored (a duplicate or a 409 is decided by its digest) nor for a
-    finished session (409); a new frame's header must state the calibrated size before it is decoded (422).
+    finished session (409); a new frame's header must state the calibrated size before it is decoded (422); a new
+    frame beyond its key's quota of frames in this window is 429.
     """
     data = image.file.read(settings.max_frame_bytes + 1)
     if len(data) > settings.max_frame_bytes:
@@ -72,6 +73,7 @@ def upload_frame(
     frame = parse_meta(meta)
     prefix = settings.redis_prefix
 
+    counted = None  # a new frame counts against its key's quota of frames (a re-sent one does not)
     if store.get_frame(session.id, frame.seq) is None:
         if not session.accepting_uploads or not store.get_meta(session.id).accepting_uploads:
             raise Conflict("session is finished; no more uploads are accepted", code="session_finished")
@@ -80,10 +82,17 @@ def upload_frame(
             raise ServiceUnavailable(
                 "the processing queue is full; retry later", settings.retry_after_s, code="queue_full"
             )
-    # 409 on conflict or after finish, 409 implausible_timestamp; "duplicate" for the same bytes and t_s
-    outcome = store.put_frame(session.id, frame.seq, frame.t_s, data, ext, max_span_s=settings.max_session_span_s)
+        quota, window_s = settings.quota_frames_per_key, settings.quota_window_s
+        counted = quotas.take(r, prefix, session.owner, "frames", quota, window_s)  # KeyQuotaError: 429 (api.errors)
+    try:  # 409 on conflict or after finish, 409 implausible_timestamp; "duplicate" for the same bytes and t_s
+        outcome = store.put_frame(session.id, frame.seq, frame.t_s, data, ext, max_span_s=settings.max_session_span_s)
+    except BaseException:
+        quotas.give_back(r, counted)
+        raise
     # Idempotent: a frame stored by an earlier attempt whose enqueue failed is queued now, never twice.
     duplicate = outcome == "duplicate"
+    if duplicate:  # stored by a concurrent request meanwhile: counted there
+        quotas.give_back(r, counted)
     queue.enqueue_frame(r, session.id, frame.seq, prefix=prefix, count=None if duplicate else "uploads_total")
     if duplicate:
         response.status_code = status.HTTP_200_OK

@@ -65,6 +65,7 @@ def _enqueue(
         ledger=store.jobs,
         max_depth=settings.queue_max_depth,
         max_per_owner=settings.queue_max_jobs_per_key,
+        in_flight=settings.queue_jobs_in_flight,
     )
 
 

@@ -46,6 +46,7 @@ def send_session(
         kind="send",
         max_depth=settings.queue_max_depth,
         max_per_owner=settings.queue_max_jobs_per_key,
+        in_flight=settings.queue_jobs_in_flight,
     )
     log.info("send queued", extra={"session": meta.id})
     return JobAccepted(job=job_id, session=meta.id, status_url=f"/v1/jobs/{job_id}")

@@ -22,7 +22,7 @@ from api.schemas import Accepted, SessionCreate, SessionCreated, SessionState
 from services.core.inputs.calibration import parse_calibration
 from services.core.outputs.scan_quality import live_lag, scan_warnings, summarize_frames
 from services.jobs import job_records as jobs
-from services.jobs import queue
+from services.jobs import queue, quotas
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 log = logging.getLogger("veinmosaic.api")
@@ -33,11 +33,13 @@ def create_session(
     body: SessionCreate,
     principal: IngestPrincipal,
     store: Store,
+    r: RedisClient,
     settings: AppSettings,
     request: Request,
     response: Response,
 ) -> SessionCreated:
-    """Return the session created (201), owned by the calling key; 422 naming the field for a bad calibration."""
+    """Return the session created (201), owned by the calling key; 422 naming the field for a bad calibration;
+    429 when the key created its quota of sessions in this window."""
     width, height = body.calibration.image_size
     if max(width, height) > settings.max_frame_side:
         raise Validation(
@@ -46,7 +48,15 @@ def create_session(
     calibration = parse_calibration(body.calibration.document())  # CalibrationError: 422 invalid_calibration
     study = body.study.context() if body.study is not None else None  # StudyContextError: 422 invalid_study
     assert principal.fingerprint is not None
-    meta = store.create_session(principal.fingerprint, body.label, calibration, study=study)
+    counted = quotas.take(  # KeyQuotaError: 429 quota_exceeded with Retry-After (api/errors.py)
+        r, settings.redis_prefix, principal.fingerprint, "sessions", settings.quota_sessions_per_key,
+        settings.quota_window_s,
+    )  # fmt: skip
+    try:
+        meta = store.create_session(principal.fingerprint, body.label, calibration, study=study)
+    except BaseException:
+        quotas.give_back(r, counted)
+        raise
     now = request.app.state.clock()
     token = make_viewer_token(request.app.state.token_secrets, meta.id, settings.viewer_token_ttl_s, now)
     response.headers["Location"] = f"/v1/sessions/{meta.id}"
@@ -107,7 +117,8 @@ def finish_session(meta: IngestSession, store: Store, r: RedisClient, settings: 
     if first and settings.pacs_auto_send:
         for name in settings.pacs_auto_send:
             jobs.enqueue_jobs(
-                r, settings.redis_prefix, meta.owner, [meta.id], {"destination": name}, ledger=store.jobs, kind="send"
-            )
+                r, settings.redis_prefix, meta.owner, [meta.id], {"destination": name}, ledger=store.jobs, kind="send",
+                in_flight=settings.queue_jobs_in_flight,
+            )  # fmt: skip
     log.info("session finished", extra={"session": meta.id, "frames": meta.frames_expected})
     return Accepted(id=meta.id, status=meta.status)

@@ -4,8 +4,9 @@
 package's build: the copy an installed wheel carries in api/static/vendor/openseadragon (setup.py puts it there
 at build time; never in git), else the checkout's node_modules/openseadragon/build/openseadragon (`npm ci`).
 The page holds nothing about the session: viewer.js reads the session id from the URL path and the view-only
-token from ?token=, and passes the token on to every API call. No referrer leaves the page (the URL
-carries the token), and a strict Content-Security-Policy allows only this origin.
+token from ?token=, keeps it in memory for every API call and takes it out of the address bar
+(history.replaceState), so it stays in no history entry. No referrer leaves the page (its first URL carries
+the token), and a strict Content-Security-Policy allows only this origin.
 """
 
 from __future__ import annotations

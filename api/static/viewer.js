@@ -3,6 +3,7 @@
  *
  * - The session id is the last part of the page path; a view-only token (?token=) is passed on to every
  *   API call (fetch, tile URLs, the EventSource), since a browser cannot add an Authorization header there.
+ *   It is kept in memory only: history.replaceState takes it out of the address bar as soon as it is read.
  * - Tiles come from a custom OpenSeadragon tile source built from mosaic.json "dzi"; each tile URL carries
  *   the results version (v) and the tile's revision (rev), so the browser may cache tiles for ever and a
  *   changed tile simply has a new URL.
@@ -26,7 +27,16 @@
 
   const parts = window.location.pathname.split("/").filter(Boolean);
   const sessionId = decodeURIComponent(parts[parts.length - 1] || "");
-  const token = new URLSearchParams(window.location.search).get("token") || "";
+  // The view-only token is read once, kept in this closure for every API call, and taken out of the address
+  // bar (so it stays in no history entry, bookmark or screenshot of the URL); a reload needs the link again.
+  const query = new URLSearchParams(window.location.search);
+  const token = query.get("token") || "";
+  if (query.has("token")) {
+    query.delete("token");
+    const rest = query.toString();
+    const bare = window.location.pathname + (rest ? "?" + rest : "") + window.location.hash;
+    window.history.replaceState(window.history.state, "", bare);
+  }
   const base = "/v1/sessions/" + encodeURIComponent(sessionId);
 
   const revisions = { vein: {}, force: {} };

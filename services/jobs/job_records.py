@@ -2,10 +2,12 @@
 
 Two kinds of job share this record: "reprocess" (a new results version) and "send" (a session's DICOM objects
 sent to a PACS). A job is a Redis hash <prefix>job:<id> {id, kind, state: queued|running|done|failed, done,
-total, session, version, error, owner, created, options, batch, attempts} plus an entry {"kind", "job",
-"session", "options"} on the stream <prefix>jobs, written in one MULTI so a worker never sees an entry without
-its hash; a job's progress and outcome are written by `update_job` only. A batch is a hash <prefix>batch:<id>
-{jobs: json list, owner, created, sessions}. Both expire JOB_TTL_S after they were created.
+total, session, version, error, owner, created, options, batch, attempts}, written in one MULTI with the job's
+id appended to its owner's lane; the lanes are admitted round-robin onto the stream <prefix>jobs as entries
+{"kind", "job", "session", "options"} (services.jobs.job_lanes: fair queueing across keys), so a worker never
+sees an entry without its hash; a job's progress and outcome are written by `update_job` only. A batch is a
+hash <prefix>batch:<id> {jobs: json list, owner, created, sessions}. Both expire JOB_TTL_S after they were
+created.
 
 Per-key quota: every job is also a member of its owner's set <prefix>owner:<fingerprint>:jobs, written in the
 same MULTI. With max_per_owner, enqueue_jobs first counts the owner's open jobs (queued or running): members
@@ -27,7 +29,7 @@ from typing import Any, Protocol
 
 import redis
 
-from services.jobs import queue
+from services.jobs import job_lanes, queue
 
 JOB_TTL_S = queue.JOB_TTL_S
 
@@ -69,8 +71,9 @@ def _job_fields(job_id: str, sid: str, owner: str, encoded: str, now: float, bat
 
 
 def queue_full(r: redis.Redis, prefix: str, adding: int, max_depth: int) -> bool:
-    """Return True when `adding` more jobs would take the job stream beyond max_depth entries."""
-    return int(r.xlen(queue.jobs_stream(prefix))) + adding > max_depth
+    """Return True when `adding` more jobs would take the jobs queued or running (on the job stream or waiting in
+    the keys' lanes) beyond max_depth."""
+    return job_lanes.depth(r, prefix) + adding > max_depth
 
 
 class QueueFullError(RuntimeError):
@@ -116,9 +119,9 @@ def _write_jobs(
     ids: list[str],
     now: float,
     max_per_owner: int | None,
-) -> list[Any]:
-    """Return the replies of the MULTI writing the jobs (batch hash first, then hash, expiry and entry per job,
-    then the owner's set), after the owner's quota check on its WATCHed set (redis.WatchError: try again)."""
+) -> None:
+    """Write the jobs in one MULTI (the batch hash, each job's hash and expiry, the jobs appended to the owner's
+    lane, the owner's set) after the owner's quota check on its WATCHed set (redis.WatchError: try again)."""
     owned = queue.owner_jobs_key(owner, prefix)
     finished: list[str] = []
     if owner and max_per_owner is not None:
@@ -140,13 +143,13 @@ def _write_jobs(
     for job_id, sid in zip(ids, sessions, strict=True):
         pipe.hset(queue.job_key(job_id, prefix), mapping=_job_fields(job_id, sid, owner, encoded, now, batch, kind))
         pipe.expire(queue.job_key(job_id, prefix), JOB_TTL_S)
-        pipe.xadd(queue.jobs_stream(prefix), queue.job_entry(job_id, sid, encoded, kind))
+    job_lanes.append(pipe, prefix, owner, ids)  # admitted onto the jobs stream round-robin across owners
     if owner:
         if finished:
             pipe.srem(owned, *finished)
         pipe.sadd(owned, *ids)
         pipe.expire(owned, JOB_TTL_S)
-    return list(pipe.execute())
+    pipe.execute()
 
 
 def enqueue_jobs(
@@ -160,11 +163,13 @@ def enqueue_jobs(
     kind: str = "reprocess",
     max_depth: int | None = None,
     max_per_owner: int | None = None,
+    in_flight: int = job_lanes.DEFAULT_IN_FLIGHT,
 ) -> list[str]:
-    """Return the ids of the jobs written: one job hash per session and its stream entry (one MULTI).
+    """Return the ids of the jobs written: one job hash per session, appended to the owner's lane (one MULTI).
 
     Each job is then recorded durably in the ledger (the 202's promise: the reconciler re-enqueues a recorded job
-    Redis lost).
+    Redis lost), and the lanes are admitted onto the jobs stream up to `in_flight` entries (job_lanes.admit,
+    round-robin over the owners: another key's flood does not hold these jobs up).
 
     With max_depth, QueueFullError (nothing queued) when the jobs would take the stream beyond it; with
     max_per_owner, OwnerQuotaError (nothing queued) when they would give `owner` more open jobs than that. If the
@@ -177,7 +182,7 @@ def enqueue_jobs(
     with r.pipeline(transaction=True) as pipe:
         while True:
             try:
-                replies = _write_jobs(pipe, prefix, owner, sessions, options, batch, kind, ids, now, max_per_owner)
+                _write_jobs(pipe, prefix, owner, sessions, options, batch, kind, ids, now, max_per_owner)
                 break
             except redis.WatchError:  # another request of this owner changed its set meanwhile: count again
                 continue
@@ -193,12 +198,9 @@ def enqueue_jobs(
                 keys = ("kind", "session", "owner", "created", "options", "batch")
                 ledger.record(job_id, {k: fields[k] for k in keys})
         except OSError:
-            start = 2 if batch else 0  # the batch's HSET and EXPIRE, then HSET, EXPIRE, XADD per job
-            entries = replies[start : start + 3 * len(ids)][2::3]  # the XADD replies: the entry ids
             with contextlib.suppress(redis.RedisError, OSError):
+                job_lanes.withdraw(r, prefix, owner, ids)  # out of the lane (and the stream, if admitted meanwhile)
                 undo = r.pipeline(transaction=True)
-                if entries:
-                    undo.xdel(queue.jobs_stream(prefix), *entries)
                 undo.delete(*(queue.job_key(job_id, prefix) for job_id in ids))
                 if owner:
                     undo.srem(queue.owner_jobs_key(owner, prefix), *ids)
@@ -207,6 +209,8 @@ def enqueue_jobs(
                 with contextlib.suppress(OSError):
                     ledger.discard(job_id)
             raise
+    with contextlib.suppress(redis.RedisError, OSError):  # else a worker admits them before its next read
+        job_lanes.admit(r, prefix, in_flight)
     return ids
 
 

@@ -207,6 +207,8 @@ def recent_lags(r: redis.Redis, session_id: str, prefix: str = DEFAULT_PREFIX) -
 # <prefix>events:<id>          stream of progress events of a session (MAXLEN ~ 1000)
 # <prefix>metrics              hash of counters (Prometheus totals)
 # <prefix>job:<id>             a job's record, <prefix>batch:<id> a batch's (services.jobs.job_records owns both)
+# <prefix>lane:<owner>         list of an owner's job ids waiting to go on <prefix>jobs; <prefix>lanes the ring of
+#                              owners with waiting jobs, admitted round-robin (services.jobs.job_lanes)
 # <prefix>lease:<id>:<v>       the registration lease of (session, results version): "<consumer>:<token>"
 # <prefix>fence:<id>:<v>       the fencing token counter of that lease (INCR on every acquisition)
 # <prefix>kick:<id>:<v>        flag: work arrived while another worker held the lease
@@ -258,6 +260,23 @@ def job_key(job_id: str, prefix: str = DEFAULT_PREFIX) -> str:
 def owner_jobs_key(owner: str, prefix: str = DEFAULT_PREFIX) -> str:
     """Return the name of the set of an owner's (a key fingerprint's) jobs not known to be finished."""
     return f"{prefix}owner:{owner}:jobs"
+
+
+def job_lane_key(owner: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of an owner's lane: the list of its job ids waiting to go on the jobs stream
+    (services.jobs.job_lanes; owner "" is the lane of jobs no key asked for, e.g. auto-sends)."""
+    return f"{prefix}lane:{owner or '-'}"
+
+
+def job_lanes_key(prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the ring of owners whose lanes hold waiting jobs, served round-robin."""
+    return f"{prefix}lanes"
+
+
+def owner_quota_key(owner: str, what: str, window: int, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the counter of what an owner (a key fingerprint) used of quota `what` ("sessions",
+    "frames") in fixed window number `window` (services.jobs.quotas)."""
+    return f"{prefix}owner:{owner}:quota:{what}:{int(window)}"
 
 
 JOB_KINDS = ("reprocess", "send")  # a new results version; a session's DICOM objects sent to a PACS

@@ -25,12 +25,13 @@ READY_TIMEOUT_S = 30.0
 
 @dataclass
 class LiveAPI:
-    """A running API process: its URL, process, data directory and log file."""
+    """A running API process: its URL, process, data directory, log file and Redis key prefix."""
 
     base_url: str
     proc: subprocess.Popen[bytes]
     data_dir: Path
     log_path: Path
+    prefix: str = "vm:"
 
     def log_lines(self) -> list[str]:
         """Return every line the process wrote to stderr/stdout so far."""
@@ -46,7 +47,7 @@ def live_api(tmp_path: Path, keys: dict[str, list[str]], **settings: str) -> Ite
     env = service_env(data_dir, keys, clean=True, redis_prefix=prefix, token_secret=uuid.uuid4().hex, **settings)
     log_path = tmp_path / f"api-{port}.log"
     proc = start_process(api_command("127.0.0.1", port, log_level="info"), env, log_path)
-    api = LiveAPI(f"http://127.0.0.1:{port}", proc, data_dir, log_path)
+    api = LiveAPI(f"http://127.0.0.1:{port}", proc, data_dir, log_path, prefix)
     try:
         try:
             wait_until_ready(f"{api.base_url}/healthz", READY_TIMEOUT_S, [proc])

@@ -325,11 +325,11 @@ def test_viewer_tools_in_chromium(service: Service) -> None:
             # the banner also tells of a reprocess running and of a failed processing
             ResultsStore(service.data_dir).create_version(sid, {"method": "best"}, make_current=False)
             assert "reprocess_running" in [w["code"] for w in client.session(sid)["warnings"]]
-            page.reload()
+            page.goto(f"{service.base_url}{created['viewer_url']}")  # the link again: the page's URL has no token
             page.wait_for_function("() => document.querySelector('#banner').textContent.includes('reprocess')")
             assert not page.is_hidden("#banner") and "5 of 30 frames" in page.inner_text("#banner")
             store.set_status(sid, "failed")
-            page.reload()
+            page.goto(f"{service.base_url}{created['viewer_url']}")
             page.wait_for_function("() => document.querySelector('#banner').textContent.includes('failed')")
             assert "Processing failed" in page.inner_text("#banner")
             page.screenshot(path=str(ARTIFACTS / "viewer_tools_banner.png"))
@@ -359,5 +359,42 @@ def test_strokes_are_drawn_apart_and_frames_in_the_air_are_not_marked_lost(servi
             status = page.inner_text("#status")
             assert "20 placed" in status and "5 off the skin" in status and "rejected" not in status, status
             page.screenshot(path=str(ARTIFACTS / "viewer_tools_strokes.png"))
+        finally:
+            browser.close()
+
+
+def test_the_token_leaves_the_address_bar_and_tiles_still_load(service: Service) -> None:
+    """The viewer link's ?token= is gone from the URL and the history once the page has read it, and the page
+    still loads its tiles, DZI geometry and event stream with it (kept in memory), before and after a layer change."""
+    from playwright.sync_api import sync_playwright
+
+    _client, created = done_session(service, install_fixture)
+    token = created["viewer_token"]
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1100, "height": 800})
+            answers: list[tuple[int, str]] = []
+            page.on("response", lambda r: answers.append((r.status, r.url)))
+            page.goto(f"{service.base_url}{created['viewer_url']}")
+            _wait_idle(page)
+            assert token not in page.url and "token" not in page.url, page.url
+            assert page.url == f"{service.base_url}/viewer/{created['id']}"
+            assert token not in page.evaluate("() => window.location.href + JSON.stringify(window.history.state)")
+
+            def loaded(kind: str) -> list[str]:
+                return [url for status, url in answers if status == 200 and kind in url]
+
+            assert loaded("/mosaic_files/") and loaded("/mosaic.json") and loaded("/events"), answers
+            assert not [a for a in answers if a[0] >= 400], answers
+            # tiles asked for after the URL lost the token still carry it (from memory) and load
+            before = len(loaded("layer=force"))
+            page.check('input[name="layer"][value="force"]')
+            _wait_idle(page)
+            assert len(loaded("layer=force")) > before and not [a for a in answers if a[0] >= 400], answers
+            assert page.evaluate("() => window.veinmosaicViewer.currentItem().getFullyLoaded()")
+            assert "token" not in page.url
+            page.go_back()  # the entry was replaced, not pushed: no entry behind it holds the token
+            assert page.url == "about:blank", page.url
         finally:
             browser.close()

@@ -160,3 +160,35 @@ def test_a_reprocess_job_runs_once_while_another_worker_holds_it(backend: Backen
     assert r.xlen(queue.jobs_stream(p)) == 0 and r.zcard(queue.delayed_key(p)) == 0
     assert store.jobs.is_finished(job)
     assert not list((store.jobs.root / "running").iterdir())  # the finished job's lock file is gone
+
+
+def test_another_keys_job_is_served_while_one_key_has_many_queued(backend: Backend) -> None:
+    """Fair queueing (services.jobs.job_lanes): key A queues 30 jobs, then key B one; the worker loop serves B's
+    job after at most jobs_in_flight + 1 of A's while A still has most of its jobs queued (first come, first
+    served would run B's job 31st)."""
+    r, p = backend.r, backend.prefix
+    queue.ensure_groups(r, p)
+    flood = jobs.enqueue_jobs(r, p, "a" * 64, [f"{i:032x}" for i in range(30)], {"destination": "x"}, kind="send",
+                              in_flight=2)  # fmt: skip
+    (theirs,) = jobs.enqueue_jobs(r, p, "b" * 64, ["b" * 32], {"destination": "x"}, kind="send", in_flight=2)
+    assert r.xlen(queue.jobs_stream(p)) == 2  # the stream holds jobs_in_flight; the rest wait in their lanes
+    worker = _worker(backend, jobs_in_flight=2)
+    served: list[str] = []
+
+    def dispatch(stream: str, entry_id: str, fields: dict[str, str]) -> None:
+        served.append(fields["job"])  # as if the job ran: the loop acks and deletes its entry
+
+    worker.dispatcher.dispatch = dispatch  # type: ignore[method-assign]
+    for _ in range(40):
+        worker.step()
+        if theirs in served:
+            break
+    assert theirs in served, served
+    assert served.index(theirs) <= 3, served  # behind at most jobs_in_flight + 1 of A's 30
+    assert served[: served.index(theirs)] == flood[: served.index(theirs)]  # A's own jobs keep their order
+    assert len(flood) - len(served) + 1 >= 26  # A still had most of its jobs queued
+    for _ in range(60):  # and A's jobs all run afterwards, each once
+        worker.step()
+        if len(served) == 31:
+            break
+    assert sorted(served) == sorted([*flood, theirs])

@@ -1,7 +1,8 @@
 """The worker loop over the job streams (prepare frames, register sessions, reprocess and send jobs).
 
 Reads <prefix>frames, <prefix>register and (when it holds no session) <prefix>jobs with XREADGROUP (group
-"workers", consumer host:pid; services.jobs.consumer); acknowledges and deletes an entry once its results are
+"workers", consumer host:pid; services.jobs.consumer), after admitting the keys' waiting jobs onto <prefix>jobs
+round-robin (services.jobs.job_lanes); acknowledges and deletes an entry once its results are
 stored. Every loop it moves due delayed jobs back onto their streams and serves the sessions whose registration
 lease it holds; every claim_every_s it XAUTOCLAIMs entries idle longer than claim_idle_ms (a crashed worker's).
 An entry that failed max_deliveries times (delivery count from XPENDING plus the "attempt" field carried across
@@ -25,7 +26,7 @@ from pathlib import Path
 
 import redis
 
-from services.jobs import consumer, delayed, queue, worker_load
+from services.jobs import consumer, delayed, job_lanes, queue, worker_load
 from workers.config import Context
 from workers.faults import Backoff, describe, failure_frames, failure_reason, is_transient
 from workers.jobs.dead_letter import dead_letter
@@ -126,6 +127,8 @@ class Worker:
         if ctx.stop.is_set():
             return
         streams = [self.frames, self.kicks] if self.register.held else [self.frames, self.kicks, self.jobs]
+        if not self.register.held:  # the keys' waiting jobs onto the job stream, round-robin (fair queueing)
+            job_lanes.admit(ctx.r, ctx.prefix, cfg.jobs_in_flight)
         block = cfg.held_block_ms if self.register.held else cfg.block_ms
         for stream, entry_id, fields in consumer.read_new(ctx.r, cfg.consumer, streams, block):
             self.handle(stream, entry_id, fields, delivered=1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import threading
 import time
 from pathlib import Path
@@ -12,6 +13,7 @@ from typing import Any
 
 import httpx
 import pytest
+import redis
 from api_helpers import INGEST, KEYS, auth, calibration_doc
 from fastapi.testclient import TestClient
 from live_server import live_api
@@ -217,3 +219,76 @@ def test_200_streams_on_one_token_are_capped_while_readyz_answers(tmp_path: Path
         assert statuses.count(200) == cap and statuses.count(429) == 200 - cap, sorted(set(statuses))
         assert max(latencies) < 1.0, latencies
         assert http.get(url.replace("/events", ""), timeout=5).status_code == 200  # the link still works
+
+
+# ----- shared Redis connections (api/event_hub.py) ------------------------------------------------------------------
+
+
+def _api_clients(probe: Any, db: int) -> int:
+    """Return how many connections the Redis server has open on database `db` (the API's; the probe's one too)."""
+    return sum(1 for c in probe.client_list() if int(c.get("db", -1)) == db)
+
+
+async def _streams_share_connections(
+    base: str, urls: list[str], probe: Any, db: int, publish_to: Any
+) -> tuple[int, int, list[list[str]]]:
+    """Open the streams one after another (each up to its snapshot); return the server's connections before and
+    with all open, and the events each stream got once a progress then a done event were published."""
+    limits = httpx.Limits(max_connections=len(urls) + 10, max_keepalive_connections=0)
+    async with httpx.AsyncClient(base_url=base, timeout=30, limits=limits, headers=INGEST) as http:
+        before = _api_clients(probe, db)
+        got: list[list[str]] = [[] for _ in urls]
+        opened = [asyncio.Event() for _ in urls]
+
+        async def one(i: int) -> None:
+            async with http.stream("GET", urls[i]) as resp:
+                assert resp.status_code == 200
+                async for line in resp.aiter_lines():
+                    if line.startswith("event: "):
+                        got[i].append(line.removeprefix("event: "))
+                        opened[i].set()
+                        if got[i][-1] == "done":
+                            return
+
+        tasks = []
+        for i in range(len(urls)):
+            tasks.append(asyncio.create_task(one(i)))
+            await asyncio.wait_for(opened[i].wait(), 10)
+        await asyncio.sleep(0.6)  # the reader's next XREAD takes in the last streams (api.event_hub.BLOCK_MS)
+        during = _api_clients(probe, db)
+        publish_to("progress")
+        await asyncio.sleep(0.3)
+        publish_to("done")
+        await asyncio.wait_for(asyncio.gather(*tasks), 20)
+    return before, during, got
+
+
+@pytest.mark.slow
+def test_open_streams_share_redis_connections_and_all_get_the_events(tmp_path: Path) -> None:
+    """30 event streams open on 3 sessions of one API process add a handful of Redis connections (CLIENT LIST),
+    not one each, and every stream still gets its session's progress and done events."""
+    from services.jobs.redis_backend import read_embedded_url
+
+    n_streams, n_sessions = 30, 3
+    with live_api(tmp_path, KEYS, log_level="WARNING", events_max_per_principal="64") as api:
+        http = httpx.Client(base_url=api.base_url, timeout=10)
+        sids = [
+            http.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()["id"]
+            for _ in range(n_sessions)
+        ]
+        url = os.environ.get("REDIS_URL") or read_embedded_url(api.data_dir)
+        assert url
+        probe = redis.Redis.from_url(url)
+        db = int(probe.connection_pool.connection_kwargs.get("db", 0))
+
+        def publish_to(kind: str) -> None:
+            for sid in sids:
+                probe.xadd(queue.events_stream(sid, api.prefix), {"type": kind, "data": json.dumps({"processed": 1})})
+
+        urls = [f"/v1/sessions/{sids[i % n_sessions]}/events" for i in range(n_streams)]
+        try:
+            before, during, got = asyncio.run(_streams_share_connections(api.base_url, urls, probe, db, publish_to))
+        finally:
+            probe.close()
+    assert during - before <= 8, (before, during)  # one reader and a small pool, not 30 connections
+    assert got == [["snapshot", "progress", "done"]] * n_streams, got

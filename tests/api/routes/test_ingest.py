@@ -132,6 +132,43 @@ def test_backpressure_503_nothing_stored(make_client: Callable[..., TestClient])
     assert upload(client, sid, 1, frame_bytes(1)).status_code == 200
 
 
+def test_a_key_over_its_frame_quota_gets_429_and_other_keys_are_unaffected(
+    make_client: Callable[..., TestClient],
+) -> None:
+    """quota_frames_per_key new frames per key and window (over all its sessions); the next new frame is 429
+    quota_exceeded with Retry-After, nothing stored or queued; re-sends of accepted frames stay 200, refused
+    uploads (409) take no unit, and another key uploads on."""
+    client = make_client(quota_frames_per_key=3, quota_window_s=3600)
+    other = {"Authorization": "Bearer ingest-key-b-0123456789abcdef"}
+    one, two = (client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()["id"]
+                for _ in range(2))  # fmt: skip
+    theirs = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=other).json()["id"]
+    assert [upload(client, one, seq, frame_bytes(seq)).status_code for seq in (0, 1)] == [202, 202]
+    assert upload(client, one, 0, frame_bytes(0)).status_code == 200  # a re-send is no new frame
+    far = upload(client, two, 0, frame_bytes(5), t_s=0.0)
+    assert far.status_code == 202
+    refused = upload(client, two, 1, frame_bytes(6))  # the key's fourth new frame, in another session
+    assert refused.status_code == 429, refused.text
+    assert 1 <= int(refused.headers["Retry-After"]) <= 3600
+    error = refused.json()["error"]
+    assert error["code"] == "quota_exceeded" and "3 frames per 3600 s" in error["message"]
+    assert client.app.state.store.get_frame(two, 1) is None  # type: ignore[attr-defined]
+    assert len(_jobs(client)) == 3
+    assert upload(client, one, 1, frame_bytes(1)).status_code == 200  # re-sends still answered
+    assert [upload(client, theirs, s, frame_bytes(s), headers=other).status_code for s in range(3)] == [202] * 3
+
+
+def test_a_refused_frame_gives_its_quota_unit_back(make_client: Callable[..., TestClient]) -> None:
+    client = make_client(quota_frames_per_key=2, max_session_span_s=10.0)
+    sid = client.post("/v1/sessions", json={"calibration": calibration_doc()}, headers=INGEST).json()["id"]
+    assert upload(client, sid, 0, frame_bytes(0), t_s=0.0).status_code == 202
+    for _ in range(3):  # refused by the store after the quota was counted: 409, the unit comes back
+        late = upload(client, sid, 1, frame_bytes(1), t_s=1000.0)
+        assert late.status_code == 409 and late.json()["error"]["code"] == "implausible_timestamp"
+    assert upload(client, sid, 1, frame_bytes(1), t_s=1.0).status_code == 202
+    assert upload(client, sid, 2, frame_bytes(2), t_s=2.0).status_code == 429
+
+
 @pytest.mark.parametrize(
     "body",
     [

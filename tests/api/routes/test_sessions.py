@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import time
 from collections.abc import Callable
 
 import pytest
@@ -160,3 +161,41 @@ def test_request_id_and_logs_hold_no_patient_data(client: TestClient) -> None:
     assert any(d.get("status") == 415 for d in lines)
     text = buf.getvalue()
     assert "Jane" not in text and token not in text and "camera_matrix" not in text
+
+
+def test_a_key_over_its_session_quota_gets_429_and_other_keys_are_unaffected(
+    make_client: Callable[..., TestClient],
+) -> None:
+    """quota_sessions_per_key sessions per key and window; the next is 429 quota_exceeded with Retry-After (the
+    window's end), nothing created; another key creates its own; a refused or failed create takes no unit."""
+    client = make_client(quota_sessions_per_key=2, quota_window_s=3600)
+    other = {"Authorization": "Bearer ingest-key-b-0123456789abcdef"}
+    body = {"calibration": calibration_doc(), "label": "Jane Doe 1970"}
+    bad = client.post("/v1/sessions", json={"calibration": calibration_doc(image_size=[0, 0])}, headers=INGEST)
+    assert bad.status_code == 422  # refused before the quota: it takes none
+    assert [client.post("/v1/sessions", json=body, headers=INGEST).status_code for _ in range(2)] == [201, 201]
+    sessions_dir = client.app.state.settings.data_dir / "sessions"  # type: ignore[attr-defined]
+    stored = sorted(p.name for p in sessions_dir.iterdir())
+    refused = client.post("/v1/sessions", json=body, headers=INGEST)
+    assert refused.status_code == 429, refused.text
+    assert 1 <= int(refused.headers["Retry-After"]) <= 3600
+    error = _error(refused)
+    assert error["code"] == "quota_exceeded" and "2 sessions per 3600 s" in error["message"]
+    assert "Jane" not in refused.text and "ingest-key" not in refused.text
+    assert sorted(p.name for p in sessions_dir.iterdir()) == stored  # nothing created
+    assert client.post("/v1/sessions", json=body, headers=other).status_code == 201  # its own quota
+    assert client.post("/v1/sessions", json=body, headers=INGEST).status_code == 429
+
+
+def test_the_session_quota_is_off_at_0_and_follows_the_window(make_client: Callable[..., TestClient]) -> None:
+    unlimited = make_client(quota_sessions_per_key=0)
+    body = {"calibration": calibration_doc()}
+    assert {unlimited.post("/v1/sessions", json=body, headers=INGEST).status_code for _ in range(5)} == {201}
+    client = make_client(quota_sessions_per_key=1, quota_window_s=1)
+    assert client.post("/v1/sessions", json=body, headers=INGEST).status_code == 201
+    refused = client.post("/v1/sessions", json=body, headers=INGEST)
+    if refused.status_code == 201:  # the first landed at the very end of a 1 s window: the next window's unit
+        refused = client.post("/v1/sessions", json=body, headers=INGEST)
+    assert refused.status_code == 429 and refused.headers["Retry-After"] == "1"
+    time.sleep(1.05)  # the next window
+    assert client.post("/v1/sessions", json=body, headers=INGEST).status_code == 201

@@ -4,6 +4,7 @@ volume without the secret cannot re-chain an edited log; unkeyed records of an o
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -94,3 +95,71 @@ def test_key_actors_are_keyed_ids_of_the_fingerprint(tmp_path: Path) -> None:
 def test_a_short_audit_key_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="32 bytes"):
         AuditLog(tmp_path / "audit.jsonl", b"short")
+
+
+# ----- rotation: the chain runs on across files ---------------------------------------------------------------------
+
+
+def _record(i: int) -> dict:
+    return {"ts": float(i), "actor": "key:0123456789abcdef", "action": "frame.upload", "status": 202, "seq": i}
+
+
+def test_the_log_rotates_at_max_bytes_and_the_chain_continues_across_files(tmp_path: Path) -> None:
+    path = tmp_path / "audit" / "audit.jsonl"
+    log = AuditLog(path, KEY, max_bytes=1000)
+    written = [log.append(_record(i)) for i in range(20)]
+    files = log.files()
+    names = [p.name for p in files]
+    assert len(files) >= 4 and names[-1] == "audit.jsonl", names
+    assert names[:-1] == [f"audit-{n:06d}.jsonl" for n in range(1, len(files))]
+    chained = [rec for p in files for rec in _records(p)]
+    assert chained == written  # every record once, in order, over the files
+    for before, after in itertools.pairwise(files):
+        assert 0 < before.stat().st_size <= 1000
+        assert _records(after)[0]["prev"] == _records(before)[-1]["hash"]  # the first chains to the last before
+    result = log.verify()
+    assert result.ok and result.records == 20 and result.files == len(files) and result.last_hash == written[-1]["hash"]
+    assert [r["seq"] for r in log.query(limit=12)] == list(range(19, 7, -1))  # newest first, across files
+    assert [r["seq"] for r in AuditLog(path, KEY).query(action="frame.upload", limit=100)] == list(range(19, -1, -1))
+    assert AuditLog(path, KEY).verify().to_dict() == result.to_dict()  # the next process checks the same chain
+
+
+def test_a_new_writer_continues_the_chain_of_the_rotated_files(tmp_path: Path) -> None:
+    path = tmp_path / "audit.jsonl"
+    first, second = AuditLog(path, KEY, max_bytes=700), AuditLog(path, KEY, max_bytes=700)  # two processes
+    for i in range(12):
+        (first if i % 3 else second).append(_record(i))  # each rotates under the other in turn
+    assert len(first.files()) >= 3 and first.verify().ok and first.verify().records == 12
+    last = first.files()[-1]
+    last.unlink()  # the current file is gone (rotated, not yet written): a new one continues from the rotated
+    third = AuditLog(path, KEY, max_bytes=700)
+    rec = third.append(_record(99))
+    assert rec["prev"] != GENESIS and third.verify().ok
+
+
+def test_a_missing_or_altered_rotated_file_breaks_the_chain_where_it_no_longer_follows(tmp_path: Path) -> None:
+    path = tmp_path / "audit.jsonl"
+    log = AuditLog(path, KEY, max_bytes=700)
+    for i in range(12):
+        log.append(_record(i))
+    files = log.files()
+    assert len(files) >= 4
+    middle = files[1].read_bytes()
+    files[1].unlink()  # a whole file taken out of the chain
+    gone = log.verify()
+    assert not gone.ok and gone.first_bad_file == files[2].name and gone.first_bad_line == 1
+    assert "prev does not match" in (gone.reason or "")
+    files[1].write_bytes(middle)
+    records = _records(files[1])
+    records[0]["status"] = 200  # an edit in a rotated file, re-chained without the key
+    _write(files[1], records)
+    altered = log.verify()
+    assert not altered.ok and altered.first_bad_file == files[1].name and altered.first_bad_line == 1
+    assert "hash does not match" in (altered.reason or "")
+
+
+def test_without_max_bytes_the_log_is_one_file(tmp_path: Path) -> None:
+    log = AuditLog(tmp_path / "audit.jsonl", KEY)
+    for i in range(50):
+        log.append(_record(i))
+    assert log.files() == [tmp_path / "audit.jsonl"] and log.verify().files == 1
