@@ -16,10 +16,11 @@ scans, the tissue-* cells), and where
 the error lies (evaluation.GlobalError): the path's scale % (+ too large) and turn deg about frame 0, and the RMSE
 left after that similarity (the path's shape), and `air placed`: frames placed that the reference has no row for
 (taken in the air: none should be).
-Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe: a patient as on the shared scans (a hand's tilt,
-a tissue law of that shape with x/y anisotropy), not an imaging look. Cell drag: that patient (linear law) with
-the skin dragged by friction under the sliding window (simulation/skin_drag.py: stick-slip, 0.1-0.25 mm per N at
-the window's centre, fading to the rim), the reference at the skin's rest position.
+Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe, tissue-saturating: a patient as on the shared
+scans (a hand's tilt, a tissue law of that shape with anisotropy: along the frame's x or y, or for saturating fixed
+in the tissue at any angle while the probe yaws +-15 deg), not an imaging look. Cell drag: that patient (linear
+law) with the skin dragged by friction under the sliding window (simulation/skin_drag.py: stick-slip, 0.1-0.25 mm
+per N at the window's centre, fading to the rim), the reference at the skin's rest position.
 
 --texture PHOTO: the simulated cells' veins are a photograph's dark vessels instead of the procedural network
 (vein_texture.make_photo_world), e.g. a fundus photograph as issue 14's hidden "real retinal vessel texture"

@@ -124,6 +124,9 @@ class Tolerances:
     # logarithmic toe, F_e = 12 N (0.08-0.10).
     law_power_gauge_ratio: float = 0.65
     law_toe_gauge_ratio: float = 0.25
+    # ... and a saturating law, strain (1 - exp(-F / 6 N)) at 10 N, fitted by the saturating shape: measured worst
+    # over 20 seeds 0.075 (0.016-0.039 on the test's 3 seeds).
+    law_saturating_gauge_ratio: float = 0.15
     # The fraction of 300 least-squares fits whose truth lies within the reported 68 % half-width (Laplace,
     # from the posterior's curvature): measured 0.64-0.68 for c, s and the gauge (binomial sd 0.027); the band
     # catches a half-width 1.5x too wide (0.87 expected) or too narrow (0.50).

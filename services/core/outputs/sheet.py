@@ -208,7 +208,10 @@ def _tissue_lines(tissue: Mapping[str, Any] | None) -> list[str]:
         lines.append(f"kappa not fitted (calibration {prior:.3g} N/mm)")
     anisotropy, sigma = _number(tissue, "anisotropy"), _number(tissue, "anisotropy_sigma")
     if anisotropy is not None:
-        lines.append(f"anisotropy {anisotropy:+.3f}" + (f" ± {sigma:.3f}" if sigma is not None else ""))
+        lines.append(f"anisotropy {anisotropy:.3f}" + (f" ± {sigma:.3f}" if sigma is not None else ""))
+        angle, axis = _number(tissue, "anisotropy_angle_deg"), tissue.get("anisotropy_axis")
+        if angle is not None and axis in ("probe", "tissue"):
+            lines.append(f"  axis {angle:+.0f}° " + ("in the probe" if axis == "probe" else "fixed in the tissue"))
     residual, nominal = _number(tissue, "affine_residual_rms"), _number(tissue, "affine_residual_rms_nominal")
     if residual is not None:
         edges = _number(tissue, "edges")

@@ -7,9 +7,11 @@ placed frame's similarity scale obeys |a_k| q(F_k) = g. Frames seen at different
 and g; dividing the path by g puts it in true millimetres instead of frame 0's slightly mis-rectified ones.
 
 The law is spec §2's linear one, eps = c F, unless the scales show the tissue stiffening under compression; then
-eps(F) = c F / (1 + s F): c the zero-load compliance, F_s = 1 / s the load at which the strain is half the linear
-law's. g extrapolates the law to no load, so a linear fit to a stiffening tissue's scales misplaces the whole path's
-scale (README, "Compliance self-calibration"). Two steps: the law's shape s from the scales alone (their scatter
+one of two shapes, whichever explains the scales better: stiffening, eps(F) = c F / (1 + s F) (c the zero-load
+compliance, F_s = 1 / s the load at which the strain is half the linear law's), or saturating, eps(F) =
+(c / s) (1 - exp(-s F)) (the strain levels off at c / s; half the linear law's at F_s = 1.594 / s). g
+extrapolates the law to no load, so a linear fit to a stiffening tissue's scales misplaces the whole path's scale
+(README, "Compliance self-calibration"). Two steps: the law's shape and s from the scales alone (their scatter
 about the linear fit is the noise; adopted only when it beats the linear law both by BIC's ln n and past
 chi-square's 1 % point), then its level by MAP, with the calibration's prior on the secant compliance
 eps(F_ref) / F_ref at the frames' mean load F_ref (the calibration fits stretch against load at loads like the
@@ -38,6 +40,13 @@ LOG_SCALE_FLOOR = 0.01
 # (half the linear law's strain at 30 N, breast tissue's stiffening over a probe's loads); F_s is never below 5 N.
 STIFFENING_PRIOR_PER_N = 1.0 / 30.0
 STIFFENING_MAX_PER_N = 0.2
+# The two curved shapes, each with its rate s in units where 1 / F_s (the half-strain load's inverse) is s / scale:
+# the prior and the bound above are on 1 / F_s, so both shapes are held alike.
+SATURATING_HALF_STRAIN = 1.5936  # s F at which (1 - exp(-s F)) / (s F) = 1/2
+SHAPES = {"stiffening": 1.0, "saturating": SATURATING_HALF_STRAIN}
+# The two shapes agree over a scan's loads and part below them, where the level is extrapolated: saturating is
+# chosen only when it explains the scales better by this much chi-square (95 % for one degree of freedom).
+SATURATING_MIN_GAIN_CHI2 = 4.0
 # BIC's ln n alone admits a chance curvature on a 40-frame scan 2.7 % of the time (s is bounded at 0, so under the
 # linear law its chi2 is 0 half the time, else chi-square with one degree of freedom, which exceeds ln 40 = 3.7 at
 # 5.5 %): short_veins_21 adopted s = 0.0031 N^-1 at chi2 4.8, its path 0.20 % too large (0.096 mm) against 0.10 %
@@ -54,10 +63,11 @@ _TIGHT = {"xatol": 1e-12}  # the profiled level to ~1e-10 of itself, so those de
 
 @dataclass(frozen=True)
 class ComplianceFit:
-    """The fitted strain law eps(F) = c F / (1 + s F) (spec §2's c F when s = 0) and the path's gauge.
+    """The fitted strain law (spec §2's c F when s = 0; else of the shape named) and the path's gauge.
 
     compliance_per_n: c, the zero-load compliance (1/N); gauge: mosaic units per true mm; residual_rms: RMS of the
-    frames' log-scales about the fit; n_frames: frames used; stiffening_per_n: s (1/N, 0 = linear law);
+    frames' log-scales about the fit; n_frames: frames used; stiffening_per_n: s (1/N, 0 = linear law), the rate
+    of `shape` ("stiffening": c F / (1 + s F); "saturating": (c / s) (1 - exp(-s F)));
     reference_load_n: F_ref, the frames' mean load (N), where the prior holds the secant compliance;
     compliance_sd_per_n, stiffening_sd_per_n: 68 % half-widths (1/N); gauge_sd: that of log g (relative);
     stiffening_chi2: the chi-square the stiffening term gains over the linear law (adopted above
@@ -74,26 +84,28 @@ class ComplianceFit:
     stiffening_sd_per_n: float = 0.0
     gauge_sd: float = 0.0
     stiffening_chi2: float = 0.0
+    shape: str = "stiffening"
+    shape_residual_rms: tuple[tuple[str, float], ...] = ()  # each curved shape's log-scale RMS at its best rate
 
     @property
     def law(self) -> str:
-        """Return "stiffening" when the fit adopted the stiffening term, else "linear"."""
-        return "stiffening" if self.stiffening_per_n > 0 else "linear"
+        """Return the shape ("stiffening" or "saturating") when the fit adopted a curved law, else "linear"."""
+        return self.shape if self.stiffening_per_n > 0 else "linear"
 
     @property
     def half_strain_load_n(self) -> float:
-        """Return F_s = 1 / s in N, the load at which the strain is half the linear law's (inf when linear)."""
-        return 1.0 / self.stiffening_per_n if self.stiffening_per_n > 0 else math.inf
+        """Return F_s in N, the load at which the strain is half the linear law's (inf when linear)."""
+        return SHAPES[self.shape] / self.stiffening_per_n if self.stiffening_per_n > 0 else math.inf
 
     @property
     def secant_compliance_per_n(self) -> float:
         """Return eps(F_ref) / F_ref in 1/N, the compliance the calibration's prior holds at the reference load."""
-        return self.compliance_per_n / (1.0 + self.stiffening_per_n * self.reference_load_n)
+        return self.compliance_per_n / _zero_load_slope(self.stiffening_per_n, self.reference_load_n, self.shape)
 
     def strain(self, loads_n: np.ndarray | float) -> np.ndarray:
         """Return the fitted strain (dimensionless) at loads in N (spec §2's c F when linear)."""
         f = np.maximum(np.asarray(loads_n, float), 0.0)
-        return self.compliance_per_n * f / (1.0 + self.stiffening_per_n * f)
+        return self.secant_compliance_per_n * _shape(f, self.stiffening_per_n, self.reference_load_n, self.shape)
 
     def expected_scales(self, loads_n: np.ndarray, c_nominal: float) -> np.ndarray:
         """Return the pose scales |a_k| (dimensionless) this law and gauge predict for frames at loads F_k (N)
@@ -113,7 +125,7 @@ class ComplianceFit:
             return float(v) if math.isfinite(v) else None
 
         def half_load(rate: float) -> float | None:
-            return finite(1.0 / rate) if rate > 0 else None
+            return finite(SHAPES[self.shape] / rate) if rate > 0 else None
 
         return {
             "compliance_law": self.law,
@@ -127,12 +139,23 @@ class ComplianceFit:
             "half_strain_load_low_n": half_load(s + sd) if s > 0 else None,
             "half_strain_load_high_n": half_load(s - sd) if s > 0 else None,
             "gauge_sd": finite(self.gauge_sd),
+            "compliance_shape_residual_rms": dict(self.shape_residual_rms) or None,
         }
 
 
-def _shape(loads: np.ndarray, s: float, reference_n: float) -> np.ndarray:
-    """Return F (1 + s F_ref) / (1 + s F) in N: the strain of secant compliance 1 at F_ref (spec §2's F when s = 0)."""
+def _shape(loads: np.ndarray, s: float, reference_n: float, shape: str = "stiffening") -> np.ndarray:
+    """Return the strain (N) of secant compliance 1 at F_ref (spec §2's F when s = 0): F (1 + s F_ref) / (1 + s F)
+    stiffening, F_ref (1 - exp(-s F)) / (1 - exp(-s F_ref)) saturating."""
+    if shape == "saturating" and s * reference_n > 1e-9:
+        return reference_n * np.expm1(-s * loads) / math.expm1(-s * reference_n)
     return loads * (1.0 + s * reference_n) / (1.0 + s * loads)
+
+
+def _zero_load_slope(s: float, reference_n: float, shape: str) -> float:
+    """Return d_shape/dF at F = 0: the zero-load compliance over the secant at F_ref (1 when linear)."""
+    if shape == "saturating" and s * reference_n > 1e-9:
+        return s * reference_n / -math.expm1(-s * reference_n)
+    return 1.0 + s * reference_n
 
 
 def _second_derivative(f: Any, x: float, h: float) -> float:
@@ -171,8 +194,10 @@ def fit_compliance(
     reference = float(np.mean(loads))
     bounds = (0.5 * c_nominal, 1.5 * c_nominal)
 
+    shape = "stiffening"
+
     def terms(k: float, s: float) -> np.ndarray:
-        return y - np.log(np.clip(1 - k * _shape(loads, s, reference), 1e-3, None))
+        return y - np.log(np.clip(1 - k * _shape(loads, s, reference, shape), 1e-3, None))
 
     def spread(k: float, s: float) -> float:
         return float(np.var(terms(k, s)))
@@ -181,24 +206,36 @@ def fit_compliance(
         return float(minimize_scalar(lambda k: spread(k, s), bounds=bounds, method="bounded", options=_TIGHT).x)
 
     s, s_sd, chi2 = 0.0, 0.0, 0.0
+    shape_rms: dict[str, float] = {}
     if stiffening:
         noise_var = max(spread(least_squares(0.0), 0.0), SHAPE_NOISE_FLOOR**2)  # the scatter about the linear law
-        prior_curvature = 0.0 if stiffening_prior_per_n is None else stiffening_prior_per_n**-2
 
         def data_cost(rate: float) -> float:  # n/2 x the variance of the log-scales, profiled over the level
             return n * spread(least_squares(rate), rate) / 2.0
 
         def shape_cost(rate: float) -> float:  # -log posterior of the shape
-            return data_cost(rate) / noise_var + 0.5 * prior_curvature * rate**2
+            prior = 0.0 if stiffening_prior_per_n is None else 0.5 * (rate / (unit * stiffening_prior_per_n)) ** 2
+            return data_cost(rate) / noise_var + prior
 
-        found = minimize_scalar(shape_cost, bounds=(0.0, STIFFENING_MAX_PER_N), method="bounded")
-        chi2 = max(0.0, 2.0 * (shape_cost(0.0) - float(found.fun)))
+        best: tuple[float, str, float] | None = None  # (cost, shape, rate): the curved shape that explains best
+        for shape, unit in SHAPES.items():
+            found = minimize_scalar(shape_cost, bounds=(0.0, unit * STIFFENING_MAX_PER_N), method="bounded")
+            shape_rms[shape] = math.sqrt(spread(least_squares(float(found.x)), float(found.x)))
+            margin = SATURATING_MIN_GAIN_CHI2 / 2.0 if shape == "saturating" else 0.0
+            if best is None or float(found.fun) < best[0] - margin:
+                best = (float(found.fun), shape, float(found.x))
+        assert best is not None
+        shape, unit = best[1], SHAPES[best[1]]
+        chi2 = max(0.0, 2.0 * (shape_cost(0.0) - best[0]))
         if chi2 > max(math.log(n), STIFFENING_MIN_CHI2):
-            s = float(found.x)
-            h = max(_DIFF_STEP * STIFFENING_MAX_PER_N, 1e-3 * s)
+            s = best[2]
+            h = max(_DIFF_STEP * unit * STIFFENING_MAX_PER_N, 1e-3 * s)
             fitted_var = max(spread(least_squares(s), s), SHAPE_NOISE_FLOOR**2)  # the scatter about the law
+            prior_curvature = 0.0 if stiffening_prior_per_n is None else (unit * stiffening_prior_per_n) ** -2
             curvature = _second_derivative(data_cost, max(s, h), h) / fitted_var + prior_curvature
             s_sd = 1.0 / math.sqrt(curvature) if curvature > 0 else math.inf
+        else:
+            shape = "stiffening"  # the linear law: s = 0, where both shapes are the same
 
     k = least_squares(s)
     if prior_rel is not None:
@@ -221,15 +258,17 @@ def fit_compliance(
     # (the least-squares level at each s), and the mean log-scale's own scatter
     dlogg_dk = (np.mean(terms(k * (1 + _DIFF_STEP), s)) - log_g) / (k * _DIFF_STEP)
     gauge_var = (dlogg_dk * k_sd) ** 2 + float(np.var(t)) / n
-    grow = 1.0 + s * reference
-    c0 = k * grow  # the zero-load compliance of eps = c F / (1 + s F) with secant k at F_ref
+    grow = _zero_load_slope(s, reference, shape)
+    c0 = k * grow  # the zero-load compliance of the law with secant k at F_ref
     c0_var = (grow * k_sd) ** 2
     if s > 0 and math.isfinite(s_sd):
         ds = max(_DIFF_STEP * STIFFENING_MAX_PER_N, 1e-3 * s)
         s_lo, s_hi = max(s - ds, 0.0), s + ds
         k_lo, k_hi = least_squares(s_lo), least_squares(s_hi)
         dlogg_ds = (np.mean(terms(k_hi, s_hi)) - np.mean(terms(k_lo, s_lo))) / (s_hi - s_lo)
-        dc0_ds = (k_hi * (1 + s_hi * reference) - k_lo * (1 + s_lo * reference)) / (s_hi - s_lo)
+        dc0_ds = (k_hi * _zero_load_slope(s_hi, reference, shape) - k_lo * _zero_load_slope(s_lo, reference, shape)) / (
+            s_hi - s_lo
+        )
         gauge_var += (dlogg_ds * s_sd) ** 2
         c0_var += (dc0_ds * s_sd) ** 2
     return ComplianceFit(
@@ -243,4 +282,6 @@ def fit_compliance(
         stiffening_sd_per_n=s_sd,
         gauge_sd=math.sqrt(gauge_var),
         stiffening_chi2=chi2,
+        shape=shape,
+        shape_residual_rms=tuple(shape_rms.items()),
     )

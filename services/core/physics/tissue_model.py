@@ -17,6 +17,7 @@ edge the pose graph then uses, so the path and the mosaic are in undeformed mill
 
 from __future__ import annotations
 
+import cmath
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -61,33 +62,57 @@ class HookeFit:
     log_sigma: float = math.inf
 
 
+ANISOTROPY_AXES = ("probe", "tissue")  # the anisotropy's axis turns with the probe, or is fixed in the tissue
+TISSUE_AXIS_MARGIN = 1.0  # the tissue axis (one parameter more) is chosen when its objective is lower by this
+# An axis fixed in the tissue is told from one in the probe only as the probe yaws: below this range of the frames'
+# yaws (deg) it is not fitted. The probe's axis is its x or y (one parameter, a real): at any angle, it absorbed the
+# shear a dragged skin's affine part leaves along the motion (simulated short scan with drag: |a| 0.26 at -46 deg,
+# path 0.68 mm against 0.36), which load and drag alike scale with.
+TISSUE_AXIS_MIN_YAW_DEG = 10.0
+
+
 @dataclass(frozen=True)
 class ViewModel:
     """How a frame's view departs from the undeformed surface: the probe's tilt and the tissue's anisotropy.
 
-    kappa_n_per_mm: the effective kappa of spec §2's tilt formula; anisotropy: the tissue stretching
-    (1 + anisotropy) times the nominal compliance along the frame's x axis and (1 - anisotropy) along y, which
-    the radial rectification (isotropic, spec §2) leaves as diag(1 + e, 1 - e), e = anisotropy c F_Z.
+    kappa_n_per_mm: the effective kappa of spec §2's tilt formula; anisotropy: complex a = |a| e^(2i phi), the
+    tissue straining (1 + |a|) times as much along the axis at angle phi and (1 - |a|) across it (real: along the
+    frame's x, or y when negative, for an axis in the probe), which the radial
+    rectification (isotropic, spec §2) leaves as I + e [[Re w, Im w], [Im w, -Re w]], e = c F_Z (the strain at
+    the load F_Z with the calibration's compliance c; the fitted law's strain was tried and was worse); w = a
+    in the frame's axes when anisotropy_axis is "probe", a e^(-2i yaw) when "tissue" (a in the mosaic's axes,
+    fixed in the tissue: in the frame it turns against the probe's yaw).
     """
 
     kappa_n_per_mm: float
-    anisotropy: float = 0.0
+    anisotropy: complex = 0j
     compliance_per_n: float = 0.0
     separation_mm: tuple[float, float] = (53.0, 53.0)
+    anisotropy_axis: str = "probe"
 
-    def views(self, forces_n: np.ndarray) -> np.ndarray:
-        """Return D (..., 2, 2) for sensor forces (..., 4) N: observed (rectified) mm = D undeformed mm."""
+    def views(self, forces_n: np.ndarray, yaw_rad: np.ndarray | float = 0.0) -> np.ndarray:
+        """Return D (..., 2, 2) for sensor forces (..., 4) N at probe yaws (rad, the frame's turn in the mosaic;
+        only the tissue axis reads them): observed (rectified) mm = D undeformed mm."""
         d = foreshortening(forces_n, self.kappa_n_per_mm, self.separation_mm)
-        e = self.anisotropy * self.compliance_per_n * np.sum(np.asarray(forces_n, np.float64), axis=-1)
+        e = self.compliance_per_n * np.sum(np.asarray(forces_n, np.float64), axis=-1)
+        w = self.frame_anisotropy(yaw_rad) * e
         tissue = np.zeros(d.shape)
-        tissue[..., 0, 0] = 1.0 + e
-        tissue[..., 1, 1] = 1.0 - e
+        tissue[..., 0, 0] = 1.0 + w.real
+        tissue[..., 1, 1] = 1.0 - w.real
+        tissue[..., 0, 1] = tissue[..., 1, 0] = w.imag
         return d @ tissue
+
+    def frame_anisotropy(self, yaw_rad: np.ndarray | float = 0.0) -> np.ndarray:
+        """Return the complex anisotropy in the frame's axes at probe yaws (rad)."""
+        if self.anisotropy_axis == "tissue":
+            return self.anisotropy * np.exp(-2j * np.asarray(yaw_rad, np.float64))
+        return np.full(np.shape(yaw_rad), self.anisotropy, complex)
 
 
 @dataclass(frozen=True)
 class ViewFit:
-    """The fitted view model with 1-sigma uncertainties (log kappa, anisotropy), edges used, residual RMS."""
+    """The fitted view model with 1-sigma uncertainties (log kappa, anisotropy), edges used, residual RMS, and the
+    residual RMS with the anisotropy's axis in the probe and fixed in the tissue (None where not fitted)."""
 
     model: ViewModel
     log_kappa_sigma: float
@@ -95,28 +120,35 @@ class ViewFit:
     n_edges: int
     residual_rms: float
     residual_rms_nominal: float  # the same residual with the calibration's kappa and no anisotropy
+    residual_rms_by_axis: tuple[tuple[str, float], ...] = ()
 
     @property
     def kappa_n_per_mm(self) -> float:
         """Return the fitted effective kappa (N/mm)."""
         return self.model.kappa_n_per_mm
 
-    def to_dict(self) -> dict[str, float | int | None]:
-        """Return the fit's numbers (kappa N/mm with its 68 % range, anisotropy, residuals); the upper bound None
-        where the range is open (a scan without tilt leaves kappa free). SessionReconstruction.learned_model makes
-        the whole "tissue" document strict JSON."""
+    def to_dict(self) -> dict[str, float | int | str | None]:
+        """Return the fit's numbers (kappa N/mm with its 68 % range, anisotropy with its axis, residuals); the upper
+        bound None where the range is open (a scan without tilt leaves kappa free). SessionReconstruction.
+        learned_model makes the whole "tissue" document strict JSON."""
         k = self.model.kappa_n_per_mm
+        a = self.model.anisotropy
+        by_axis = dict(self.residual_rms_by_axis)
         return {
             "kappa_n_per_mm": k,
             "kappa_low_n_per_mm": k * math.exp(-self.log_kappa_sigma) if self.log_kappa_sigma <= MAX_LOG_SIGMA else 0.0,
             "kappa_high_n_per_mm": k * math.exp(self.log_kappa_sigma)
             if self.log_kappa_sigma <= MAX_LOG_SIGMA
             else None,
-            "anisotropy": self.model.anisotropy,
+            "anisotropy": abs(a),
             "anisotropy_sigma": self.anisotropy_sigma,
+            "anisotropy_angle_deg": math.degrees(cmath.phase(a)) / 2.0 if a != 0 else 0.0,
+            "anisotropy_axis": self.model.anisotropy_axis,
             "edges": self.n_edges,
             "affine_residual_rms": self.residual_rms,
             "affine_residual_rms_nominal": self.residual_rms_nominal,
+            "affine_residual_rms_probe_axis": by_axis.get("probe"),
+            "affine_residual_rms_tissue_axis": by_axis.get("tissue"),
         }
 
 
@@ -217,14 +249,18 @@ def fit_view_model(
     kappa_prior_n_per_mm: float,
     compliance_per_n: float,
     reference: HookeFit | None = None,
+    yaw_rad: Mapping[int, float] | None = None,
 ) -> ViewFit | None:
-    """Return the MAP view model (kappa, anisotropy) that makes every match's corrected affine a similarity.
+    """Return the MAP view model (kappa, anisotropy and its axis) that makes every corrected affine a similarity.
 
     Each edge's non-similarity residual counts with its sigma (evidence, with AFFINE_FLOOR added) under a
     Cauchy loss; log kappa has a Gaussian prior of PRIOR_LOG_SIGMA about the calibration's kappa, or, with a
     reference (kappa fitted to an IMU's tilts), of its own sigma (at least REFERENCE_LOG_SIGMA_FLOOR) about it;
-    the anisotropy one of ANISOTROPY_PRIOR about 0. A coarse scan over log kappa, then a joint search; sigmas
-    from the curvature of the objective. None with fewer than MIN_AFFINE_EDGES edges.
+    each part of the complex anisotropy one of ANISOTROPY_PRIOR about 0. The anisotropy's axis in the probe (its x
+    or y), and, where the frames' yaws (rad) span TISSUE_AXIS_MIN_YAW_DEG, also fixed in the tissue at any angle:
+    each fitted (a coarse scan over log kappa, then a joint search), the tissue axis kept when its objective is
+    lower by TISSUE_AXIS_MARGIN. Sigmas from the objective's
+    curvature. None with fewer than MIN_AFFINE_EDGES edges.
     """
     usable = [e for e in evidence if e.i in forces_n and e.j in forces_n]
     if len(usable) < MIN_AFFINE_EDGES:
@@ -236,35 +272,61 @@ def fit_view_model(
     prior = math.log(reference.hooke_n_per_mm if reference is not None else kappa_prior_n_per_mm)
     prior_sigma = max(reference.log_sigma, REFERENCE_LOG_SIGMA_FLOOR) if reference is not None else PRIOR_LOG_SIGMA
     sep = (float(separation_mm[0]), float(separation_mm[1]))
+    yaws = (
+        np.array([yaw_rad.get(e.i, np.nan) for e in usable] + [yaw_rad.get(e.j, np.nan) for e in usable])
+        if (yaw_rad is not None)
+        else np.full(2 * len(usable), np.nan)
+    )
+    turns = np.exp(1j * yaws)  # the yaws' range about their circular mean (the probe may face any way)
+    spread_deg = (
+        float(np.degrees(np.ptp(np.angle(turns * np.conj(np.mean(turns)))))) if np.all(np.isfinite(yaws)) else 0.0
+    )
+    with_yaw = spread_deg >= TISSUE_AXIS_MIN_YAW_DEG
+    yaw_i, yaw_j = (yaws[: len(usable)], yaws[len(usable) :]) if with_yaw else (np.zeros(len(usable)),) * 2
 
-    def model(x: np.ndarray) -> ViewModel:
-        return ViewModel(math.exp(x[0]), float(x[1]), compliance_per_n, sep)
+    def model(x: np.ndarray, axis: str) -> ViewModel:
+        return ViewModel(math.exp(x[0]), complex(x[1], x[2] if axis == "tissue" else 0.0), compliance_per_n, sep, axis)
 
-    def residuals(x: np.ndarray) -> np.ndarray:
-        m = model(x)
-        c = corrected_affine(affines, m.views(f_i), m.views(f_j))
+    def residuals(x: np.ndarray, axis: str) -> np.ndarray:
+        m = model(x, axis)
+        c = corrected_affine(affines, m.views(f_i, yaw_i), m.views(f_j, yaw_j))
         return np.linalg.norm(_non_similarity(c), axis=1) / sigma
 
-    def objective(x: np.ndarray) -> float:
-        r = residuals(x)
+    def objective(x: np.ndarray, axis: str) -> float:
+        r = residuals(x, axis)
         data = float(np.sum(np.log1p((r / CAUCHY_SCALE) ** 2))) * CAUCHY_SCALE**2 / 2.0
-        return data + 0.5 * ((x[0] - prior) / prior_sigma) ** 2 + 0.5 * (x[1] / ANISOTROPY_PRIOR) ** 2
+        return data + 0.5 * ((x[0] - prior) / prior_sigma) ** 2 + 0.5 * (x[1] ** 2 + x[2] ** 2) / ANISOTROPY_PRIOR**2
 
     lo, hi = (math.log(b) for b in KAPPA_BOUNDS_N_PER_MM)
     grid = np.linspace(lo, hi, 41)  # the objective can have a shoulder: a coarse scan, then a joint search
-    start = np.array([grid[int(np.argmin([objective(np.array([g, 0.0])) for g in grid]))], 0.0])
-    x = minimize(objective, start, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-3}).x
-    x = np.array([np.clip(x[0], lo, hi), x[1]])
-    sigmas = []
-    for k, h in enumerate((0.01, 0.01)):
-        step = np.eye(2)[k] * h
-        curvature = (objective(x + step) - 2.0 * objective(x) + objective(x - step)) / h**2
-        sigmas.append(1.0 / math.sqrt(curvature) if curvature > 0 else math.inf)
+    start = np.array([grid[int(np.argmin([objective(np.array([g, 0.0, 0.0]), "probe") for g in grid]))], 0.0, 0.0])
+    fits: dict[str, tuple[np.ndarray, float]] = {}
+    for axis in ANISOTROPY_AXES[: 2 if with_yaw else 1]:
+        n = 3 if axis == "tissue" else 2  # the probe's axis: x or y (a real)
+
+        def free(v: np.ndarray, axis: str = axis) -> float:
+            return objective(np.concatenate([v, np.zeros(3 - len(v))]), axis)
+
+        v = minimize(free, start[:n], method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-3}).x
+        x = np.concatenate([[np.clip(v[0], lo, hi)], v[1:], np.zeros(3 - n)])
+        fits[axis] = (x, objective(x, axis))
+    axis = "tissue" if "tissue" in fits and fits["tissue"][1] < fits["probe"][1] - TISSUE_AXIS_MARGIN else "probe"
+    x = fits[axis][0]
+
+    def curvature_sigma(direction: np.ndarray, h: float = 0.01) -> float:
+        c0 = objective(x, axis)
+        curvature = (objective(x + h * direction, axis) - 2.0 * c0 + objective(x - h * direction, axis)) / h**2
+        return 1.0 / math.sqrt(curvature) if curvature > 0 else math.inf
+
+    a = complex(x[1], x[2])
+    along = np.array([0.0, a.real, a.imag]) / abs(a) if abs(a) > 1e-9 else np.array([0.0, 1.0, 0.0])
+    rms = {name: float(np.sqrt(np.mean((residuals(fx, name) * sigma) ** 2))) for name, (fx, _) in fits.items()}
     return ViewFit(
-        model=model(x),
-        log_kappa_sigma=sigmas[0],
-        anisotropy_sigma=sigmas[1],
+        model=model(x, axis),
+        log_kappa_sigma=curvature_sigma(np.array([1.0, 0.0, 0.0])),
+        anisotropy_sigma=curvature_sigma(along),
         n_edges=len(usable),
-        residual_rms=float(np.sqrt(np.mean((residuals(x) * sigma) ** 2))),
-        residual_rms_nominal=float(np.sqrt(np.mean((residuals(np.array([prior, 0.0])) * sigma) ** 2))),
+        residual_rms=rms[axis],
+        residual_rms_nominal=float(np.sqrt(np.mean((residuals(np.array([prior, 0.0, 0.0]), "probe") * sigma) ** 2))),
+        residual_rms_by_axis=tuple(rms.items()),
     )

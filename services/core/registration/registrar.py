@@ -8,6 +8,7 @@ pose graph; loop closures trigger a robust global re-optimisation).
 
 from __future__ import annotations
 
+import cmath
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
@@ -394,7 +395,10 @@ class Registrar:
             return np.eye(2)
         cached = self._views.get(index)
         if cached is None:
-            cached = self.view_fit.model.views(self.forces[index])
+            pose = self.poses.get(index)
+            if pose is None or pose.a == 0:  # not placed yet: its yaw (the tissue axis's turn) is not known
+                return self.view_fit.model.views(self.forces[index], 0.0)
+            cached = self.view_fit.model.views(self.forces[index], cmath.phase(pose.a))
             self._views[index] = cached
         return cached
 
@@ -479,6 +483,7 @@ class Registrar:
             self.kappa_prior_n_per_mm,
             self.compliance_per_n,
             reference=self.kappa_reference,
+            yaw_rad={i: cmath.phase(p.a) for i, p in self.poses.items() if p.a != 0},
         )
         if fit is not None:
             self.view_fit = fit

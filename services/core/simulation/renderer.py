@@ -24,18 +24,24 @@ VIGNETTE_FALLOFF = 0.12  # illumination drops by this fraction at the window's e
 FULL_SCALE_DN = 255.0  # noise is given in 8-bit grey levels (DN) whatever the output bit depth
 
 
-TISSUE_LAWS = ("linear", "stiffening", "power", "toe")
+TISSUE_LAWS = ("linear", "stiffening", "power", "toe", "saturating")
+ANISOTROPY_AXES = ("probe", "tissue")
 
 
 @dataclass(frozen=True)
 class TissueLaw:
     """The simulated tissue's true response: strain of local load F (N) and its x/y anisotropy.
 
-    linear: c F (spec §2's shape); stiffening: c F / (1 + F / half_n) (strain saturates as tissue stiffens);
-    power: c F0 (F / F0)^exponent with F0 = 10 N (the same strain at 10 N, flatter above); toe: Fung's exponential
-    stress-strain law, strain logarithmic in load, c F0 ln(1 + F / toe_n) / ln(1 + F0 / toe_n) (a soft toe region
-    below toe_n, the same strain at F0 = 10 N). The strain is (1 + anisotropy) times it along the frame's x axis
-    and (1 - anisotropy) along y.
+    linear: c F (spec §2's shape); the others have the secant compliance c at the anchor load F0 (the scan's
+    typical load: the calibration's E is a secant measured at the loads a normal press uses, spec §2 Calibration):
+    stiffening: c F (1 + F0 / half_n) / (1 + F / half_n) (strain saturates as tissue stiffens); power:
+    c F0 (F / F0)^exponent (flatter above F0); toe: Fung's exponential stress-strain law, strain logarithmic in
+    load, c F0 ln(1 + F / toe_n) / ln(1 + F0 / toe_n) (a soft toe region below toe_n); saturating:
+    c F0 (1 - exp(-F / sat_n)) / (1 - exp(-F0 / sat_n)) (the strain levels off above sat_n).
+
+    Anisotropy: the strain is (1 + anisotropy) times it along an axis and (1 - anisotropy) across it. The axis is
+    at anisotropy_angle_deg from the frame's x axis when anisotropy_axis is "probe" (it turns with the probe), or
+    from the world's x axis when "tissue" (fixed in the tissue: in the frame it turns against the probe's yaw).
     """
 
     kind: str = "linear"
@@ -44,20 +50,34 @@ class TissueLaw:
     exponent: float = 0.8
     anisotropy: float = 0.0
     toe_n: float = 15.0
+    sat_n: float = 6.0
+    anisotropy_axis: str = "probe"
+    anisotropy_angle_deg: float = 0.0
+    anchor_n: float = 10.0
 
     def strain(self, load_n: np.ndarray) -> np.ndarray:
         """Return the isotropic strain (dimensionless) at local loads (N)."""
         f = np.maximum(np.asarray(load_n, np.float64), 0.0)
+        f0, c = self.anchor_n, self.compliance_per_n
         if self.kind == "stiffening":
-            return self.compliance_per_n * f / (1.0 + f / self.half_n)
+            return c * f * (1.0 + f0 / self.half_n) / (1.0 + f / self.half_n)
         if self.kind == "power":
-            return self.compliance_per_n * 10.0 * (f / 10.0) ** self.exponent
+            return c * f0 * (f / f0) ** self.exponent
         if self.kind == "toe":
-            return self.compliance_per_n * 10.0 * np.log1p(f / self.toe_n) / np.log1p(10.0 / self.toe_n)
-        return self.compliance_per_n * f
+            return c * f0 * np.log1p(f / self.toe_n) / np.log1p(f0 / self.toe_n)
+        if self.kind == "saturating":
+            return c * f0 * -np.expm1(-f / self.sat_n) / -np.expm1(-f0 / self.sat_n)
+        return c * f
+
+    def anisotropy_tensor(self, yaw_deg: float) -> np.ndarray:
+        """Return (2, 2) I + anisotropy Q in the frame's axes at a probe yaw (deg): the strain's relative stretch,
+        Q the traceless symmetric tensor of the axis (cos 2a, sin 2a; sin 2a, -cos 2a)."""
+        angle = self.anisotropy_angle_deg - (yaw_deg if self.anisotropy_axis == "tissue" else 0.0)
+        c, s = np.cos(np.radians(2.0 * angle)), np.sin(np.radians(2.0 * angle))
+        return np.eye(2) + self.anisotropy * np.array([[c, s], [s, -c]])
 
     def to_dict(self) -> dict[str, float | str]:
-        """Return the law's truth (truth.json)."""
+        """Return the law's truth (truth.json; TissueLaw(**d) of it is the law again)."""
         return {
             "kind": self.kind,
             "compliance_per_n": self.compliance_per_n,
@@ -65,6 +85,10 @@ class TissueLaw:
             "exponent": self.exponent,
             "anisotropy": self.anisotropy,
             "toe_n": self.toe_n,
+            "sat_n": self.sat_n,
+            "anisotropy_axis": self.anisotropy_axis,
+            "anisotropy_angle_deg": self.anisotropy_angle_deg,
+            "anchor_n": self.anchor_n,
         }
 
 
@@ -146,22 +170,28 @@ def frame_geometry(calib: Calibration) -> FrameGeometry:
 
 
 def true_undeformed_mm(
-    geometry: FrameGeometry, state: LoadState, true_calib: Calibration, law: TissueLaw | None = None
+    geometry: FrameGeometry,
+    state: LoadState,
+    true_calib: Calibration,
+    law: TissueLaw | None = None,
+    yaw_deg: float = 0.0,
 ) -> np.ndarray:
     """Return the undeformed position (H, W, 2) mm about the frame centre of every raw pixel.
 
-    The tilted view is undone first (view_stretch), then p = p' (1 - s(F(p')) (1 + 0.05 (|p'| / 25 mm)^2)) per
-    axis, s the tissue law's strain ((1 +- anisotropy) along x, y) and F(p') = max(0, F_Z + kappa Z(p')) from
-    spec §2 with the TRUE constants; the radial term is deliberately not in spec §2. Without a law: linear,
-    s = c F with c = nu / (E A) of true_calib.
+    The tilted view is undone first (view_stretch), then p = (I - s(F(p')) (1 + 0.05 (|p'| / 25 mm)^2) T) p',
+    s the tissue law's strain, T its anisotropy in the frame's axes at the probe's yaw (deg; TissueLaw.
+    anisotropy_tensor) and F(p') = max(0, F_Z + kappa Z(p')) from spec §2 with the TRUE constants; the radial term
+    is deliberately not in spec §2. Without a law: linear, s = c F with c = nu / (E A) of true_calib.
     """
     law = law or TissueLaw("linear", true_calib.compliance_per_n)
     surface = view_stretch(geometry.observed_mm, state)
     load = local_load_n(geometry.observed_mm, state, true_calib)
     extra = 1.0 + UNMODELLED_RADIAL * geometry.radius_sq_mm2 / UNMODELLED_RADIUS_MM**2
     strain = law.strain(load) * extra
-    factor = 1.0 - strain[..., None] * np.array([1.0 + law.anisotropy, 1.0 - law.anisotropy])
-    return surface * factor
+    if law.anisotropy == 0.0:
+        return surface * (1.0 - strain)[..., None]
+    stretched = surface @ law.anisotropy_tensor(yaw_deg).T
+    return surface - strain[..., None] * stretched
 
 
 def world_maps(
@@ -188,7 +218,7 @@ def render_scene(
 
     drag: the scan's skin drag and this frame's drag at the centre (2,) mm in its axes (skin_drag), or None.
     """
-    undeformed = true_undeformed_mm(geometry, state, true_calib, law)
+    undeformed = true_undeformed_mm(geometry, state, true_calib, law, yaw_deg)
     if drag is not None:
         undeformed = dragged_rest_mm(undeformed, *drag)
     map_x, map_y = world_maps(undeformed, world, centre_mm, yaw_deg)

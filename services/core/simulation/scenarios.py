@@ -62,6 +62,8 @@ HAND_TILT_DEG = MappingProxyType(
         "strokes": 10.0,
     }
 )  # as the shared scans' README
+# a hand that turns the probe by up to this much (deg) either way over tissue whose anisotropy is fixed in it
+TISSUE_AXIS_YAW_DEG = 15.0
 FORCE_RATE_HZ = 100.0
 FORCE_NOISE_N = 0.03
 FORCE_OFFSET_N = 0.1  # per-sensor constant offset, uniform in [-0.1, 0.1] N
@@ -106,7 +108,8 @@ def draw_hand_kappa(rng: np.random.Generator) -> float:
 def draw_tissue_law(rng: np.random.Generator, kind: str, compliance_per_n: float) -> TissueLaw:
     """Return the true tissue law of a kind in TISSUE_LAWS: linear is spec §2's isotropic law; the others
     stiffen (half strain at 25-60 N, a power 0.7-0.9, or a logarithmic toe of 8-20 N) and stretch 3-8 % more along
-    one axis than the other."""
+    one axis than the other, the frame's x or y; saturating levels off above 4-10 N (TissueLaw) and its axis, at
+    any angle, is fixed in the tissue (in the frame it turns against the probe's yaw)."""
     if kind not in TISSUE_LAWS:
         raise ValueError(f"unknown tissue law {kind!r}; expected one of {', '.join(TISSUE_LAWS)}")
     if kind == "linear":
@@ -114,7 +117,10 @@ def draw_tissue_law(rng: np.random.Generator, kind: str, compliance_per_n: float
     anisotropy = float(rng.uniform(0.03, 0.08) * rng.choice([-1.0, 1.0]))
     half_n, exponent = float(rng.uniform(25.0, 60.0)), float(rng.uniform(0.7, 0.9))
     toe_n = float(rng.uniform(8.0, 20.0)) if kind == "toe" else TissueLaw.toe_n  # drawn last: the others unchanged
-    return TissueLaw(kind, compliance_per_n, half_n, exponent, anisotropy, toe_n)
+    if kind != "saturating":
+        return TissueLaw(kind, compliance_per_n, half_n, exponent, anisotropy, toe_n)
+    sat_n, angle = float(rng.uniform(4.0, 10.0)), float(rng.uniform(-90.0, 90.0))
+    return TissueLaw(kind, compliance_per_n, half_n, exponent, anisotropy, toe_n, sat_n, "tissue", angle)
 
 
 def _stream_times(rng: np.random.Generator, t_first: float, t_last: float, rate_hz: float) -> np.ndarray:
@@ -175,7 +181,8 @@ def simulate(
     on (scenario, seed), never on the imaging. truth: young_modulus_kpa, hooke_n_per_mm (the true constants),
     poses [[x_mm, y_mm, yaw_deg], ...] in frame 0's coordinates, fz_n and tilt_x_deg / tilt_y_deg per frame,
     blurred frame indices, blur_px per frame (0 = sharp), gains per frame, path_length_mm, force_offsets_n,
-    imaging (the variant as a dict), scenario, seed, tissue (the law, TissueLaw.to_dict).
+    imaging (the variant as a dict), scenario, seed, tissue (the law, TissueLaw.to_dict), anisotropy_angle_frame0_deg
+    (the law's anisotropy axis in frame 0's axes, for an axis fixed in the tissue).
     tissue: None for the phantom the project's bands were measured on (spec §2's linear law, the calibration's
     kappa +-10 %, tilts under 0.3 deg); a law in TISSUE_LAWS for a patient as on the shared scans: a hand's
     effective kappa (draw_hand_kappa), tilts up to HAND_TILT_DEG (a tilted view: 1/cos along the tilt) and the
@@ -207,6 +214,8 @@ def simulate(
         spec = spec and dataclasses.replace(spec, max_tilt_deg=HAND_TILT_DEG[scenario])
     true_calib = calib.with_overrides(young_modulus_kpa=e_true, hooke_n_per_mm=kappa_true)
     law = draw_tissue_law(rng_const, tissue or "linear", true_calib.compliance_per_n)
+    if law.anisotropy_axis == "tissue" and spec is not None:  # the probe yaws: the tissue's axis turns in its frames
+        spec = dataclasses.replace(spec, yaw_amplitude_deg=max(spec.yaw_amplitude_deg, TISSUE_AXIS_YAW_DEG))
     sep = calib.sensor_separation_mm
 
     in_air: np.ndarray | None = None
@@ -230,6 +239,8 @@ def simulate(
 
     geometry = frame_geometry(calib)
     fz, tx, ty = motion.load_at(motion.frame_t_s)
+    if law.kind != "linear":  # the calibration's E is the secant compliance at the scan's typical load
+        law = dataclasses.replace(law, anchor_n=float(np.mean(fz if in_air is None else fz[~in_air])))
     blurred_flags = rng_img.random(n) < look.blur_fraction
     blurred_flags[0] = False
     if in_air is not None:
@@ -289,6 +300,8 @@ def simulate(
         "path_length_mm": path_length_mm(xy),
         "force_offsets_n": [float(v) for v in offsets],
         "tissue": law.to_dict(),
+        # the anisotropy's axis in frame 0's axes (the path's and the mosaic's) when it is fixed in the tissue
+        "anisotropy_angle_frame0_deg": law.anisotropy_angle_deg - float(motion.yaw_deg[0]),
         "texture": "procedural" if texture is None else "photograph",
     }
     if skin_drag is not None:

@@ -61,6 +61,8 @@ TISSUE = {
     "kappa_high_n_per_mm": 0.1644,
     "anisotropy": 0.0193,
     "anisotropy_sigma": 0.0057,
+    "anisotropy_angle_deg": 31.6,
+    "anisotropy_axis": "tissue",
     "edges": 150,
     "affine_residual_rms": 0.00069,
     "affine_residual_rms_nominal": 0.00173,
@@ -260,6 +262,7 @@ def test_identification_is_shown_when_given() -> None:
     assert report is not None and f"RMSE {report.rmse_mm:.3f} mm" in text
     assert "yaw RMS error 0.05°" in text and "0.70° (x)" in text
     assert "effective kappa 0.159 N/mm" in text and "68 % range 0.154 to 0.164 N/mm" in text
+    assert "anisotropy 0.019 ± 0.006" in text and "axis +32° fixed in the tissue" in text
     assert "skin drag 0.038 mm/N along the strokes" in text and "median 0.27 mm at the centre, width 20 mm" in text
     assert "lost: 3 (few inliers 3)" in text and "rejected: 1 (blur 1)" in text
     assert "WARNING: 4 of 60 frames" in text

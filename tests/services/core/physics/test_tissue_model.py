@@ -30,9 +30,13 @@ SEP = (53.0, 53.0)
 COMPLIANCE = 0.5 / (16.1e3 * 0.0048)  # the spec's default nu / (E A), 1/N
 
 
-def _scan(truth: ViewModel, noise: float, n: int = 60, seed: int = 3) -> tuple[list[AffineEvidence], dict]:
-    """Return affine evidence of a chain with skips (frame j -> frame i) under `truth`, and the forces."""
+def _scan(
+    truth: ViewModel, noise: float, n: int = 60, seed: int = 3, yaws: np.ndarray | None = None
+) -> tuple[list[AffineEvidence], dict]:
+    """Return affine evidence of a chain with skips (frame j -> frame i) under `truth`, and the forces; with
+    yaws (rad, each frame's turn in the mosaic) the frames' relative turns are theirs."""
     rng = np.random.default_rng(seed)
+    yaws = np.zeros(n) if yaws is None else yaws
     fz = rng.uniform(3.0, 20.0, n)
     diff = rng.normal(0.0, 2.5, (n, 2))  # F2 - F1, F4 - F3
     forces = {k: np.array([fz[k] / 4 - diff[k, 0] / 2, fz[k] / 4 + diff[k, 0] / 2, fz[k] / 4 - diff[k, 1] / 2,
@@ -40,9 +44,9 @@ def _scan(truth: ViewModel, noise: float, n: int = 60, seed: int = 3) -> tuple[l
     evidence = []
     for j in range(1, n):
         for i in (j - 1, max(j - 2, 0)):
-            yaw = rng.normal(0.0, 0.05)
+            yaw = rng.normal(0.0, 0.05) + yaws[j] - yaws[i]
             s = Similarity(complex(math.cos(yaw), math.sin(yaw)), complex(*rng.normal(0.0, 4.0, 2))).matrix()
-            d_i, d_j = truth.views(forces[i]), truth.views(forces[j])
+            d_i, d_j = truth.views(forces[i], yaws[i]), truth.views(forces[j], yaws[j])
             linear = d_i @ s[:, :2] @ np.linalg.inv(d_j) + rng.normal(0.0, noise, (2, 2))
             evidence.append(AffineEvidence(i, j, np.hstack([linear, d_i @ s[:, 2:]]), sigma=max(noise, 1e-4)))
     return evidence, forces
@@ -68,6 +72,44 @@ def test_fit_is_exact_without_noise() -> None:
     assert fit is not None
     assert fit.kappa_n_per_mm == pytest.approx(0.2, rel=5e-3)
     assert fit.model.anisotropy == pytest.approx(0.05, abs=5e-3)
+
+
+@pytest.mark.parametrize("axis", ["probe", "tissue"])
+def test_the_anisotropys_axis_is_told_from_the_probes_yaw(axis: str) -> None:
+    # the probe turns by up to +-0.4 rad (23 deg) along the scan: an axis fixed in the tissue turns against it in
+    # the frames, one in the probe does not; the fit tells the two apart and finds the axis's angle
+    yaws = 0.4 * np.sin(np.linspace(0.0, 3.0 * math.pi, 60))
+    # |a| 0.1 along 0.6 rad (34 deg) in the tissue; along the probe's x in the probe (its axis there is x or y)
+    a = 0.1 * complex(math.cos(2 * 0.6), math.sin(2 * 0.6)) if axis == "tissue" else 0.1 + 0j
+    evidence, forces = _scan(ViewModel(0.2, a, COMPLIANCE, SEP, axis), noise=3e-4, yaws=yaws)
+    fit = fit_view_model(evidence, forces, SEP, 18.0, COMPLIANCE, yaw_rad=dict(enumerate(yaws)))
+    assert fit is not None and fit.model.anisotropy_axis == axis
+    assert abs(fit.model.anisotropy - a) < 0.03  # within a few of its sigmas (the header's noise)
+    doc = fit.to_dict()
+    assert doc["anisotropy_angle_deg"] == pytest.approx(math.degrees(0.6) if axis == "tissue" else 0.0, abs=5.0)
+    assert doc["affine_residual_rms_probe_axis"] is not None and doc["affine_residual_rms_tissue_axis"] is not None
+    chosen, other = (doc[f"affine_residual_rms_{k}_axis"] for k in (axis, "tissue" if axis == "probe" else "probe"))
+    assert chosen < other  # the residuals that chose it are reported
+
+
+def test_without_yaw_the_axis_stays_in_the_probe() -> None:
+    # the probe yaws 5 deg at most: an axis in the tissue is not told from one in the probe, and is not fitted
+    yaws = np.radians(2.5) * np.sin(np.linspace(0.0, 3.0 * math.pi, 60))
+    a = complex(-0.08, 0.0)  # along the frame's y
+    evidence, forces = _scan(ViewModel(0.2, a, COMPLIANCE, SEP), noise=3e-4, yaws=yaws)
+    fit = fit_view_model(evidence, forces, SEP, 18.0, COMPLIANCE, yaw_rad=dict(enumerate(yaws)))
+    assert fit is not None and fit.model.anisotropy_axis == "probe"
+    assert abs(fit.model.anisotropy - a) < 0.03
+    assert fit.to_dict()["affine_residual_rms_tissue_axis"] is None
+
+
+def test_the_probes_axis_takes_no_shear() -> None:
+    # a constant 45-degree shear the evidence shows (what a dragged skin's affine part leaves along a stroke) is not
+    # an anisotropy in the probe: its axis is x or y, so the shear stays in the residual
+    a = complex(0.0, 0.08)
+    evidence, forces = _scan(ViewModel(0.2, a, COMPLIANCE, SEP), noise=3e-4)
+    fit = fit_view_model(evidence, forces, SEP, 18.0, COMPLIANCE)
+    assert fit is not None and fit.model.anisotropy.imag == 0.0 and abs(fit.model.anisotropy.real) < 0.03
 
 
 def test_no_tilt_evidence_keeps_a_stiff_probe() -> None:

@@ -16,6 +16,7 @@ from services.core.simulation.renderer import (
     UNMODELLED_RADIAL,
     FrameGeometry,
     Imaging,
+    TissueLaw,
     apply_imaging,
     frame_geometry,
     motion_blur_kernel,
@@ -76,6 +77,36 @@ def test_true_deformation_matches_its_formula() -> None:
     np.testing.assert_allclose(p, obs * factor[..., None], rtol=1e-12)  # the same closed form: rounding only
     # pressing stretches the skin: every point appears farther out than it is
     assert np.all(np.linalg.norm(p, axis=-1) <= np.linalg.norm(obs, axis=-1) + 1e-12)
+
+
+def test_an_anisotropy_fixed_in_the_tissue_turns_against_the_probe() -> None:
+    # 5 % anisotropy along the world's x axis: with the probe yawed 90 deg it lies along the frame's y axis (as an
+    # axis in the probe at 90 deg); an axis in the probe stays where it is in the frame whatever the yaw
+    g = geometry()
+    state = LoadState(10.0, 0.0, 0.0)
+    c = CALIB.compliance_per_n
+    tissue = TissueLaw("linear", c, anisotropy=0.05, anisotropy_axis="tissue")
+    probe = TissueLaw("linear", c, anisotropy=0.05, anisotropy_axis="probe")
+    turned = TissueLaw("linear", c, anisotropy=0.05, anisotropy_axis="probe", anisotropy_angle_deg=90.0)
+    at = lambda law, yaw: true_undeformed_mm(g, state, CALIB, law, yaw)  # noqa: E731
+    np.testing.assert_allclose(at(tissue, 90.0), at(turned, 0.0), atol=1e-12)
+    np.testing.assert_allclose(at(tissue, 0.0), at(probe, 0.0), atol=1e-12)
+    np.testing.assert_allclose(at(probe, 90.0), at(probe, 0.0), atol=1e-12)
+    assert np.abs(at(tissue, 90.0) - at(tissue, 0.0)).max() > 0.02  # mm: the turn shows (0.05 x 4 % x 20 mm)
+    # along the axis the skin strains (1 + 0.05) / (1 - 0.05) times as much as across it: the isotropic law's
+    # strain there, times 1.05 and 0.95
+    iso = true_undeformed_mm(g, state, CALIB, TissueLaw("linear", c))
+    strain_iso = g.observed_mm - iso
+    np.testing.assert_allclose(g.observed_mm - at(probe, 0.0), strain_iso * [1.05, 0.95], atol=1e-12)
+
+
+def test_every_curved_law_has_the_calibrations_secant_at_its_anchor() -> None:
+    # the calibration's E is the secant compliance at the loads a normal press uses (spec §2): each law's strain at
+    # the anchor load is c times it; below it the curved laws strain more than the linear one, above it less
+    for kind in ("stiffening", "power", "toe", "saturating"):
+        law = TissueLaw(kind, 0.006, anchor_n=7.0)
+        assert float(law.strain(7.0)) == pytest.approx(0.042, rel=1e-12), kind
+        assert float(law.strain(3.0)) > 0.018 and float(law.strain(12.0)) < 0.072, kind
 
 
 def test_tilt_raises_the_load_toward_the_sensor_that_reads_more() -> None:

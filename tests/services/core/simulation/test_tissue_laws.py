@@ -1,11 +1,13 @@
 """A patient as on the shared scans (a hand's tilt, tissue laws of several shapes): what `best` learns and keeps.
 
 One tolerance table, each band measured on `short` seed 1 (40 frames, tilts up to 7 deg, true kappa 0.108 N/mm)
-with its margin: tilt RMS 0.19-0.28 deg per axis (target 1 deg; 0.63-0.91 when the view model's evidence was
-the affine on the similarity's inliers, which understates the stretch); kappa fitted 0.106-0.111 (within 3 %;
-17-21 % high before); path RMSE 0.295 (linear: the 5 % compliance prior holds the simulator's 4-10 % off E
-back), 0.062 (stiffening), 0.696 mm (power law: over these 40 frames' 3-12 N its curvature is at the noise, so
-the fit keeps the linear law, whose extrapolation to no load misses a power law's strain) and 0.580 (toe).
+with its margin: tilt RMS 0.19-0.29 deg per axis (target 1 deg; 0.63-0.91 when the view model's evidence was
+the affine on the similarity's inliers, which understates the stretch); kappa fitted within 1.5 % (17-21 % high
+before); path RMSE 0.335 (linear), 0.343 (stiffening), 0.379 (toe), 0.490 (saturating, its anisotropy fixed in
+the tissue and the probe yawing +-15 deg) and 0.532 mm (power law: over these 40 frames' 3-12 N its curvature is
+at the noise, so the fit keeps the linear law). Every law's secant compliance at the scan's mean load is the
+simulator's true one, 4-10 % off the calibration's; the 5 % prior holds the level back, so the path is 0.6-1.1 %
+too large on this seed: the level, not the shape, is what these bands measure.
 """
 
 from __future__ import annotations
@@ -25,9 +27,10 @@ from tests.sim_cache import simulated
 
 TOL = {  # law: (max path RMSE mm, max tilt RMS deg per axis, max |log(kappa / true kappa)|)
     "linear": (0.40, 0.5, 0.10),
-    "stiffening": (0.12, 0.5, 0.10),
-    "power": (0.85, 0.5, 0.10),
-    "toe": (0.75, 0.5, 0.10),
+    "stiffening": (0.42, 0.5, 0.10),
+    "power": (0.65, 0.5, 0.10),
+    "toe": (0.46, 0.5, 0.10),
+    "saturating": (0.60, 0.5, 0.10),
 }
 
 
@@ -49,6 +52,9 @@ def test_best_learns_the_tilt_of_a_hand_on_each_tissue_law(law: str) -> None:
     kappa = recon.learned["kappa_n_per_mm"]
     assert abs(math.log(kappa / truth["hooke_n_per_mm"])) <= max_kappa, kappa
     assert recon.learned["kappa_low_n_per_mm"] < kappa < recon.learned["kappa_high_n_per_mm"]
+    # the anisotropy's axis as the scan shows it: fixed in the tissue only where the simulated tissue has it so
+    # (the probe yaws by up to 15 deg there: its frames turn against the axis)
+    assert recon.learned["anisotropy_axis"] == truth["tissue"]["anisotropy_axis"]
 
 
 def test_without_the_view_model_tilts_are_the_calibrations_hundredths() -> None:
@@ -61,9 +67,8 @@ def test_without_the_view_model_tilts_are_the_calibrations_hundredths() -> None:
 
 def test_best_fits_a_stiffening_law_to_a_tissue_of_another_shape() -> None:
     # Fung's toe law (strain logarithmic in load, not the fit's hyperbola) on short seed 7, whose scales show the
-    # curvature over 3-12 N. Measured RMSE 0.206 mm (0.352 with a linear law: stiffening=false) and strain
-    # 13 / 6 / 2 % off the truth at 2 / 5 / 10 N (the linear law: 28 / 18 / 4 %); tilts are not asserted here
-    # (0.65 / 0.49 deg; this seed's kappa is fitted 17 % high, the view model's matter, tested above on seed 1)
+    # curvature over 3-12 N. Measured RMSE 0.135 mm; tilts are not asserted here (0.45 / 0.25 deg; this seed's
+    # kappa is fitted 11 % high, the view model's matter, tested above on seed 1)
     scan = simulated("short", 7, tissue="toe")
     recon = reconstruct(scan, method_options("best"))
     report = evaluate_path(recon.estimate_mm, recon.registered, scan.reference_mm)
