@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -81,6 +82,7 @@ class SessionReconstruction:
     clock: ClockOffset | None = None  # the force logger's clock against the camera's, estimated at the finish
     gauge: float = 1.0
     finished: bool = False
+    finish_seconds: dict[str, float] = field(default_factory=dict)  # finish()'s parts, timed (s)
     recent: dict[int, FrameLayers] = field(default_factory=dict)  # paste planes of the newest frames (live)
     stale: dict[int, None] = field(default_factory=dict)  # moved frames not re-pasted yet, oldest first (live)
     heartbeat: Callable[[], None] = field(default=lambda: None, repr=False)  # called between long steps
@@ -192,9 +194,14 @@ class SessionReconstruction:
         return fit.of(index) if fit is not None else 0j
 
     def finish(self) -> set[tuple[int, int]]:
-        """Return the canvas tiles changed by running the final refinement and compliance self-calibration."""
+        """Return the canvas tiles changed by running the final refinement and compliance self-calibration.
+
+        The seconds each part took are kept in `finish_seconds` (refine, calibrate, restitch).
+        """
+        started = time.perf_counter()
         if self.options.refine:
             self.registrar.refine(final=True)
+        refined = time.perf_counter()
         self.clock = self._estimate_clock()
         if self.options.self_calibrate:
             self.compliance = self._fit_compliance()
@@ -206,7 +213,14 @@ class SessionReconstruction:
         self.finished = True
         if self.registrar.dragged():
             self.recent = {}  # the newest frames' planes were built with their drag in: rebuilt, undragged
-        return self._restitch() if self.live else set()
+        calibrated = time.perf_counter()
+        touched = self._restitch() if self.live else set()
+        self.finish_seconds = {
+            "refine": round(refined - started, 3),
+            "calibrate": round(calibrated - refined, 3),
+            "restitch": round(time.perf_counter() - calibrated, 3),
+        }
+        return touched
 
     def _estimate_clock(self) -> ClockOffset | None:
         """Return the force clock's offset fitted to the placed frames' stretches (physics.force_clock), or None."""

@@ -46,9 +46,12 @@ class Completion:
             if held.version == LIVE_VERSION and session_status != "failed":
                 self.ctx.store.set_status(held.sid, "done")
 
-        self.flusher.flush(held, final=True, before_event=mark_done)
+        flushed = self.flusher.flush(held, final=True, before_event=mark_done)
         timings = {"finish_s": round(finished - started, 2), "final_flush_s": round(time.monotonic() - finished, 2)}
-        log.info("session done", extra={"session": held.sid, "frames": len(held.recon.results), **timings})
+        parts = {**held.recon.finish_seconds, **{f"flush_{k}": v for k, v in flushed.items()}}
+        log.info(
+            "session done", extra={"session": held.sid, "frames": len(held.recon.results), **timings, "parts_s": parts}
+        )
 
     def finish_empty(self, lease: Lease, sv: SessionVersion, session_status: str, rejected: list[int]) -> None:
         """A finished session with no usable frame (none, or all poison): rows rejected, no mosaic, status done."""
