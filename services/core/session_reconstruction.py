@@ -51,8 +51,14 @@ RECENT_LAYERS = 12
 # While a live scan goes on, a refined frame is re-pasted only when some point of its window moved by this many
 # mosaic pixels or more since it was pasted: smaller moves are invisible, and re-pasting every frame a local pass
 # nudged by 0.4 px (the registrar's MOVED_MM) cost a third of a long examination's registration time. The final
-# mosaic is unaffected: finish() pastes every frame afresh at its final pose.
+# mosaic is unaffected: finish() re-pastes every frame that is not within FINISH_MOVED_PX of its final place.
 LIVE_REPASTE_PX = 2.0
+# At the finish a frame is pasted afresh when some point of it lies this many mosaic pixels or more from where it is
+# pasted (its pose, view or drag changed): the finished mosaic is within a grey level of a whole restitch at its
+# final poses (tests/services/core/test_session_reconstruction.py). Only the tiles such frames cover, at their old
+# and new places, are made again; the final pass, the drag and the gauge usually move every frame of a `best` session.
+FINISH_MOVED_PX = 0.25
+NO_DRAG: tuple[complex, float] = (0j, 0.0)  # a frame's planes undo no drag: (drag mm, profile width mm)
 # Frames a refinement moved are re-pasted a few per registered frame (oldest first), not all at once: a global
 # pass moves most of a long examination's frames, whose re-paste at once held one frame for seconds. The new frame
 # and the moved frames whose planes are kept (the newest) are pasted at once; settle() lets a caught-up worker
@@ -78,6 +84,7 @@ class SessionReconstruction:
     results: dict[int, FrameResult] = field(default_factory=dict)
     frames: dict[int, KeptFrame] = field(default_factory=dict)  # compact: row data, and pixels if pasteable
     pasted: dict[int, np.ndarray] = field(default_factory=dict)  # frame -> the 2x3 affine it is pasted with
+    pasted_drag: dict[int, tuple[complex, float]] = field(default_factory=dict)  # the drag its planes undid (NO_DRAG)
     compliance: ComplianceFit | None = None
     clock: ClockOffset | None = None  # the force logger's clock against the camera's, estimated at the finish
     gauge: float = 1.0
@@ -123,7 +130,7 @@ class SessionReconstruction:
         touched: set[tuple[int, int]] = set()
         if self.live:
             if kept.pasteable:  # the planes straight from the prepared frame: the kept image is the same, losslessly
-                self._remember(pf.index, self._build_layers(pf.image, pf.mask, kept))
+                self._remember(pf.index, self._build_layers(pf.image, pf.mask, kept, self._drag_state(pf.index)))
             now = tuple(i for i in result.moved if i > pf.index - REPAINT_AT_ONCE)
             self.stale.update((i, None) for i in result.moved if i <= pf.index - REPAINT_AT_ONCE)
             touched |= self._sync_canvas((pf.index, *now))
@@ -214,7 +221,7 @@ class SessionReconstruction:
         if self.registrar.dragged():
             self.recent = {}  # the newest frames' planes were built with their drag in: rebuilt, undragged
         calibrated = time.perf_counter()
-        touched = self._restitch() if self.live else set()
+        touched = self._restitch_moved() if self.live else set()
         self.finish_seconds = {
             "refine": round(refined - started, 3),
             "calibrate": round(calibrated - refined, 3),
@@ -249,9 +256,11 @@ class SessionReconstruction:
         loads = np.array([self.frames[i].load.fz_n for i in placed])
         return fit_compliance(scales, loads, self.calibration.compliance_per_n, stiffening=self.options.stiffening)
 
-    def _build_layers(self, image: np.ndarray, mask: np.ndarray, kept: KeptFrame) -> FrameLayers:
-        """Return a frame's paste planes: its intensity, blend weight and load, its skin drag undone (once learned)."""
-        image, mask = self._undragged(image, mask, kept.index)
+    def _build_layers(
+        self, image: np.ndarray, mask: np.ndarray, kept: KeptFrame, drag: tuple[complex, float]
+    ) -> FrameLayers:
+        """Return a frame's paste planes: its intensity, blend weight and load, with `drag` undone (_drag_state)."""
+        image, mask = self._undragged(image, mask, drag)
         return FrameLayers.of(
             intensity=image.astype(np.float32) / 255.0,
             weight=blend_weight(mask),
@@ -260,15 +269,19 @@ class SessionReconstruction:
             px_per_mm=self.calibration.px_per_mm,
         )
 
-    def _undragged(self, image: np.ndarray, mask: np.ndarray, index: int) -> tuple[np.ndarray, np.ndarray]:
-        """Return a rectified frame and its window mask resampled with the frame's drag undone (physics.drag), so
-        the mosaic shows the skin at rest as the path does; as they are without a learned drag."""
+    def _drag_state(self, index: int) -> tuple[complex, float]:
+        """Return what a frame's planes undo now: its learned drag (mm) and the profile's width (mm), or NO_DRAG."""
         drag, fit = self._drag(index), self.registrar.drag_fit
-        if fit is None or drag == 0:
+        return NO_DRAG if fit is None or drag == 0 else (drag, fit.width_mm)
+
+    def _undragged(
+        self, image: np.ndarray, mask: np.ndarray, drag: tuple[complex, float]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Return a rectified frame and its window mask resampled with a drag (mm, width mm) undone (physics.drag),
+        so the mosaic shows the skin at rest as the path does; as they are for NO_DRAG."""
+        if drag == NO_DRAG:
             return image, mask
-        maps = undrag_maps(
-            image.shape[:2], self.calibration.principal_point, self.calibration.px_per_mm, drag, fit.width_mm
-        )
+        maps = undrag_maps(image.shape[:2], self.calibration.principal_point, self.calibration.px_per_mm, *drag)
         return (
             cv2.remap(image, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
             cv2.remap(mask, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
@@ -278,7 +291,7 @@ class SessionReconstruction:
         """Return a frame's paste planes: remembered for the newest frames, else rebuilt from what was kept."""
         layers = self.recent.get(index)
         if layers is None:
-            layers = self._build_layers(*self._pixels(index), self.frames[index])
+            layers = self._build_layers(*self._pixels(index), self.frames[index], self._drag_state(index))
             self._remember(index, layers)
         return layers
 
@@ -328,7 +341,7 @@ class SessionReconstruction:
                 continue
             self.heartbeat()
             layers = self._layers(i)
-            if old is not None:
+            if old is not None:  # live, no drag is learned: the remembered or rebuilt planes are the pasted ones
                 touched.update(self.canvas.paste(layers, old, sign=-1.0))
                 del self.pasted[i]
             if pose is not None:
@@ -358,24 +371,97 @@ class SessionReconstruction:
         old = set(self.canvas.tiles)
         self.canvas = SparseCanvas(self.calibration.px_per_mm)
         self.pasted = {}
+        self.pasted_drag = {}
         self.stale = {}
-        poses = {i: pose for i in sorted(self.frames) if (pose := self._stitch_pose(i)) is not None}
-        touched: set[tuple[int, int]] = set()
-        for i, layers in zip(poses, self._layers_ahead(list(poses)), strict=True):  # pasted in order: same sums
-            self.heartbeat()
-            touched.update(self.canvas.paste(layers, poses[i]))
-            self.pasted[i] = poses[i]
-        return old | touched
+        return old | self._paste_in_order(self._final_places())
 
-    def _layers_ahead(self, indices: list[int]) -> Iterator[FrameLayers]:
-        """Yield the paste planes of `indices` in order, built up to RESTITCH_AHEAD ahead on two threads (decoding
-        and OpenCV free the GIL); the remembered planes are read, never changed, from the threads."""
+    def _restitch_moved(self) -> set[tuple[int, int]]:
+        """Paste afresh the frames not within FINISH_MOVED_PX of their final places, and nothing else: the tiles
+        they cover (pasted and final) are emptied and made again from every frame over them, in index order, as a
+        whole restitch makes them (a frame that did not move stays where it is pasted). Return the tiles changed."""
+        self.stale = {}
+        final = self._final_places()
+        moved = [i for i in sorted(set(final) | set(self.pasted)) if self._moved(self._pasted_place(i), final.get(i))]
+        tiles: set[tuple[int, int]] = set()
+        for i in moved:
+            for place in (self._pasted_place(i), final.get(i)):
+                if place is not None:
+                    tiles.update(self._footprint(place[0]))
+            self.pasted.pop(i, None)
+            self.pasted_drag.pop(i, None)
+        if not tiles:
+            return set()
+        places = {i: place for i in self.pasted if (place := self._pasted_place(i)) is not None}
+        places.update((i, final[i]) for i in moved if i in final)
+        over = {i: places[i] for i in sorted(places) if not tiles.isdisjoint(self._footprint(places[i][0]))}
+        emptied = {key for key in tiles if self.canvas.tiles.pop(key, None) is not None}
+        return emptied | self._paste_in_order(over, only=tiles)
+
+    def _final_places(self) -> dict[int, tuple[np.ndarray, tuple[complex, float]]]:
+        """Return, in index order, each pasteable frame's stitch affine and the drag its planes undo, as now."""
+        return {
+            i: (pose, self._drag_state(i)) for i in sorted(self.frames) if (pose := self._stitch_pose(i)) is not None
+        }
+
+    def _pasted_place(self, index: int) -> tuple[np.ndarray, tuple[complex, float]] | None:
+        """Return the stitch affine a frame is pasted with and the drag its planes undid, or None (not pasted)."""
+        pose = self.pasted.get(index)
+        return None if pose is None else (pose, self.pasted_drag.get(index, NO_DRAG))
+
+    def _moved(
+        self, old: tuple[np.ndarray, tuple[complex, float]] | None, new: tuple[np.ndarray, tuple[complex, float]] | None
+    ) -> bool:
+        """Return True when a frame pasted at `old` (affine, drag; None: not pasted) must be pasted again for `new`:
+        pasted or not, or some point of it would move by FINISH_MOVED_PX mosaic pixels or more."""
+        if old is None or new is None:
+            return old is not new
+        calib = self.calibration
+        before, after = (self.canvas.pixels_to_canvas(p[0], calib.principal_point, calib.px_per_mm) for p in (old, new))
+        w, h = calib.image_size
+        corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float)  # an affine moves most at a corner
+        moved_px = float(np.max(np.hypot(*((after - before) @ corners.T))))
+        (d0, w0), (d1, w1) = old[1], new[1]
+        # the undone drag shifts a pixel by D phi (phi <= 1, physics.drag): by |D1 - D0| at most on the same profile
+        drag_mm = abs(d1 - d0) if w0 == w1 or 0 in (d0, d1) else abs(d0) + abs(d1)
+        moved_px += drag_mm * calib.px_per_mm * float(np.linalg.norm(after[:, :2], 2))
+        return moved_px >= FINISH_MOVED_PX
+
+    def _footprint(self, pose: np.ndarray) -> list[tuple[int, int]]:
+        """Return the canvas tiles a frame pasted with the stitch affine `pose` may cover."""
+        calib = self.calibration
+        w, h = calib.image_size
+        return self.canvas.footprint_tiles(
+            self.canvas.pixels_to_canvas(pose, calib.principal_point, calib.px_per_mm), (h, w)
+        )
+
+    def _paste_in_order(
+        self, places: dict[int, tuple[np.ndarray, tuple[complex, float]]], only: set[tuple[int, int]] | None = None
+    ) -> set[tuple[int, int]]:
+        """Paste frames at their places (index order: the same sums a whole restitch makes), within `only` (None:
+        anywhere); return the tiles touched."""
+        touched: set[tuple[int, int]] = set()
+        for i, layers in zip(places, self._layers_ahead(places), strict=True):
+            self.heartbeat()
+            pose, drag = places[i]
+            touched.update(self.canvas.paste(layers, pose, only=only))
+            self.pasted[i] = pose
+            if drag == NO_DRAG:
+                self.pasted_drag.pop(i, None)
+            else:
+                self.pasted_drag[i] = drag
+        return touched
+
+    def _layers_ahead(self, places: dict[int, tuple[np.ndarray, tuple[complex, float]]]) -> Iterator[FrameLayers]:
+        """Yield the paste planes of the frames of `places` (with the drag each undoes) in order, built up to
+        RESTITCH_AHEAD ahead on two threads (decoding and OpenCV free the GIL); the remembered planes (built with
+        the drag now learned) are read, never changed, from the threads."""
 
         def build(i: int) -> FrameLayers:
-            layers = self.recent.get(i)
-            return layers if layers is not None else self._build_layers(*self._pixels(i), self.frames[i])
+            drag = places[i][1]
+            layers = self.recent.get(i) if drag == self._drag_state(i) else None
+            return layers if layers is not None else self._build_layers(*self._pixels(i), self.frames[i], drag)
 
-        return in_order_ahead(build, indices, ahead=RESTITCH_AHEAD)
+        return in_order_ahead(build, list(places), ahead=RESTITCH_AHEAD)
 
     def learned_model(self) -> dict[str, Any]:
         """Return what the scan taught about the tissue and the probe (mosaic.json and report.json "tissue").

@@ -114,9 +114,15 @@ class SparseCanvas:
 
         pose: frame mm (about its centre) -> mosaic mm, a similarity or a 2x3 affine.
         """
+        return self.pixels_to_canvas(pose, layers.centre_px, layers.px_per_mm)
+
+    def pixels_to_canvas(
+        self, pose: Similarity | np.ndarray, centre_px: tuple[float, float], frame_px_per_mm: float
+    ) -> np.ndarray:
+        """Return the 2x3 affine from the pixels of a frame (centre and scale given) to canvas pixels."""
         m = pose.matrix() if isinstance(pose, Similarity) else np.asarray(pose, np.float64)
-        k = self.px_per_mm / layers.px_per_mm
-        cx, cy = layers.centre_px
+        k = self.px_per_mm / frame_px_per_mm
+        cx, cy = centre_px
         # canvas = px_per_mm * (L (u - c) / frame px_per_mm + t)
         linear = m[:, :2] * k
         offset = m[:, 2] * self.px_per_mm - linear @ np.array([cx, cy])
@@ -130,13 +136,25 @@ class SparseCanvas:
         c1, r1 = np.floor(corners.max(axis=0) / TILE_PX).astype(int)
         return [(c, r) for r in range(r0, r1 + 1) for c in range(c0, c1 + 1)]
 
-    def paste(self, layers: FrameLayers, pose: Similarity | np.ndarray, sign: float = 1.0) -> list[tuple[int, int]]:
+    def paste(
+        self,
+        layers: FrameLayers,
+        pose: Similarity | np.ndarray,
+        sign: float = 1.0,
+        only: set[tuple[int, int]] | None = None,
+    ) -> list[tuple[int, int]]:
         """Return the tile keys touched by adding (sign=+1) or removing (sign=-1) a frame at a pose.
 
         The frame is warped once, into its bounding box on the canvas, and each tile adds its part: warping
-        whole tiles one by one cost 2.5x the pixels (a frame spans up to 4 x 3 tiles) and 2x the time.
+        whole tiles one by one cost 2.5x the pixels (a frame spans up to 4 x 3 tiles) and 2x the time. only: the
+        tiles it may touch (None: all); a tile's part is the same whichever others are pasted.
         """
         affine = self.frame_to_canvas(pose, layers)
+        keys = self.footprint_tiles(affine, layers.shape)
+        if only is not None:
+            keys = [key for key in keys if key in only]
+            if not keys:
+                return []
         h, w = layers.shape
         corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float) @ affine.T
         x0, y0 = np.floor(corners.min(axis=0)).astype(int)
@@ -147,7 +165,7 @@ class SparseCanvas:
             layers.planes, shift, (int(x1 - x0), int(y1 - y0)), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
         )
         touched = []
-        for key in self.footprint_tiles(affine, layers.shape):
+        for key in keys:
             tx, ty = key[0] * TILE_PX, key[1] * TILE_PX
             ax, ay = max(x0, tx), max(y0, ty)
             bx, by = min(x1, tx + TILE_PX), min(y1, ty + TILE_PX)
