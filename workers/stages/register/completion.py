@@ -1,7 +1,8 @@
 """Completion: a finished session's last frame is registered, so the version is finalised and the session done.
 
-complete: the reconstruction's final refinement and compliance fit, then the final flush (every tile durably,
-the whole images and raw layers). finish_empty: a finished session with no usable frame (none, or all poison)
+complete: the reconstruction's final refinement and compliance fit, then the final flush (the tiles that changed,
+then every tile made durable at once, the whole images and raw layers; every tile written again when the session
+was taken over mid-way). finish_empty: a finished session with no usable frame (none, or all poison)
 gets its rows (all rejected) and an empty mosaic. Either way the live session's status becomes done.
 """
 
@@ -39,7 +40,9 @@ class Completion:
         self.leases.renew_if_due(held, force=True)
         self.leases.check_fence(held)
         started = time.monotonic()
-        held.pending.touched |= held.recon.finish()
+        held.pending.touched |= held.recon.finish()  # the tiles of the frames the finish moved
+        if held.replayed:  # the previous holder's tiles may be lost with its machine: all written again
+            held.pending.touched |= set(held.recon.canvas.tiles)
         finished = time.monotonic()
 
         def mark_done() -> None:  # after every file is written, before the final event: no client sees it early

@@ -7,7 +7,7 @@ a third of the time; behind_flush_every_s while the live session is behind, its 
 waited more than behind_lag_s since its upload); the whole images (mosaic.png, force.png, coverage.png) at most
 every image_every_s and only once the session has caught up with its uploads (a session that is behind spends
 the CPU on placing frames), and the tiles of levels where one tile holds the whole canvas with them. The final
-flush writes everything.
+flush writes the tiles that changed and whatever was deferred, then makes every tile of the version durable.
 """
 
 from __future__ import annotations
