@@ -11,7 +11,7 @@ import dataclasses
 import itertools
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,7 +22,7 @@ from services.core.contact import ContactDetector
 from services.core.inputs.calibration import Calibration
 from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
-from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, blend_weight
+from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, Warped, blend_weight
 from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit, fit_compliance
 from services.core.physics.drag import undrag_maps
@@ -64,7 +64,7 @@ NO_DRAG: tuple[complex, float] = (0j, 0.0)  # a frame's planes undo no drag: (dr
 # and the moved frames whose planes are kept (the newest) are pasted at once; settle() lets a caught-up worker
 # repaint more.
 REPAINT_PER_FRAME = 4
-RESTITCH_AHEAD = 4  # a whole restitch builds this many frames' planes (~5 MB each) ahead of the paste
+RESTITCH_AHEAD = 4  # a restitch builds and warps this many frames (~5 + 10 MB each) ahead of adding them
 REPAINT_AT_ONCE = 12  # moved frames this recent are re-pasted at once (their planes are usually kept)
 
 
@@ -438,30 +438,32 @@ class SessionReconstruction:
         self, places: dict[int, tuple[np.ndarray, tuple[complex, float]]], only: set[tuple[int, int]] | None = None
     ) -> set[tuple[int, int]]:
         """Paste frames at their places (index order: the same sums a whole restitch makes), within `only` (None:
-        anywhere); return the tiles touched."""
-        touched: set[tuple[int, int]] = set()
-        for i, layers in zip(places, self._layers_ahead(places), strict=True):
-            self.heartbeat()
+        anywhere); return the tiles touched.
+
+        Each frame's planes are built and warped up to RESTITCH_AHEAD frames ahead on two threads (decoding and
+        OpenCV free the GIL), and added to the tiles here in order; the remembered planes (built with the drag now
+        learned) are read, never changed, from the threads.
+        """
+
+        def warp(i: int) -> Warped | None:
             pose, drag = places[i]
-            touched.update(self.canvas.paste(layers, pose, only=only))
+            layers = self.recent.get(i) if drag == self._drag_state(i) else None
+            if layers is None:
+                layers = self._build_layers(*self._pixels(i), self.frames[i], drag)
+            return self.canvas.warp(layers, pose, only)
+
+        touched: set[tuple[int, int]] = set()
+        for i, warped in zip(places, in_order_ahead(warp, list(places), ahead=RESTITCH_AHEAD), strict=True):
+            self.heartbeat()
+            if warped is not None:
+                touched.update(self.canvas.add(warped))
+            pose, drag = places[i]
             self.pasted[i] = pose
             if drag == NO_DRAG:
                 self.pasted_drag.pop(i, None)
             else:
                 self.pasted_drag[i] = drag
         return touched
-
-    def _layers_ahead(self, places: dict[int, tuple[np.ndarray, tuple[complex, float]]]) -> Iterator[FrameLayers]:
-        """Yield the paste planes of the frames of `places` (with the drag each undoes) in order, built up to
-        RESTITCH_AHEAD ahead on two threads (decoding and OpenCV free the GIL); the remembered planes (built with
-        the drag now learned) are read, never changed, from the threads."""
-
-        def build(i: int) -> FrameLayers:
-            drag = places[i][1]
-            layers = self.recent.get(i) if drag == self._drag_state(i) else None
-            return layers if layers is not None else self._build_layers(*self._pixels(i), self.frames[i], drag)
-
-        return in_order_ahead(build, list(places), ahead=RESTITCH_AHEAD)
 
     def learned_model(self) -> dict[str, Any]:
         """Return what the scan taught about the tissue and the probe (mosaic.json and report.json "tissue").
