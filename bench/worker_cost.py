@@ -1,14 +1,20 @@
-"""CPU per frame of a live worker's parts (issue 15): where a frame's processing time goes, and what threads cost.
+"""CPU per frame of a live worker's steps (issues 15, 32): where a frame's processing time goes, and what threads cost.
 
     .venv/bin/python bench/worker_cost.py [--frames 150] [--copies 1,2] [--threads 1,2] [--repo PATH ...]
 
-Each measurement runs in a child process, as a worker does in-process: a simulated raster scan's frames prepared
-(rectify, vein map, features), added to a live SessionReconstruction (registration, refinement, canvas paste),
-and every --flush-every frames a flush's tile work (pyramid update, the changed tiles' vein and force PNGs), the
-whole mosaic rendered every 20 frames (2 s of scan). It prints CPU milliseconds per frame by part (the process's
-CPU time: all its threads). A configuration is a number of copies run at once (like that many busy workers on
-the machine), the BLAS/OpenCV threads of each, and the source tree measured (--repo: e.g. a `git worktree` of an
-older commit, to compare code in the same run). The first configuration is the baseline of the ratio column.
+Each measurement runs in a child process doing in order what the service's workers do with each frame of a simulated
+raster scan, on a temporary data dir: the upload decoded (the stored PNG read, its header checked, decoded:
+SessionStore.load_frame), the frame prepared (rectify, vein map, features), its prepared file written (npz, written
+once with fsync: ResultsStore.write_prepared) and read back by the register stage (read_prepared), the frame added to
+a live SessionReconstruction (registration, refinement, canvas paste); every --flush-every frames a flush's work
+(workers/stages/register/flush.py): the path rows and path.json, the pyramid update, the changed tiles' vein and
+force PNGs (those of levels where one tile holds the whole canvas only with the images), their writes (no fsync, as
+live), mosaic.json (read back, rebuilt with the extent and the learned model, written) and state.json; the whole
+mosaic rendered and its images written every 20 frames (2 s of scan). It prints CPU milliseconds per frame by step
+(the process's CPU time: all its threads), then the same in wall time (a step's disk waits are in it). A
+configuration is a number of copies run at once (like that many busy workers on the machine), the BLAS/OpenCV
+threads of each, and the source tree measured (--repo: e.g. `git archive <commit> | tar -x -C /tmp/old`, to compare
+code in the same run). The first configuration is the baseline of the ratio column.
 """
 
 from __future__ import annotations
@@ -18,22 +24,32 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
+import uuid
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-PARTS = ("prepare", "register", "pyramid", "vein_tiles", "force_tiles", "images")
+PARTS = (
+    "decode", "prepare", "prepared_write", "prepared_read", "register", "path", "pyramid", "vein_tiles",
+    "force_tiles", "tile_writes", "documents", "images",
+)  # fmt: skip
+WORK = ("prepare", "register")  # the algorithm; the other steps are the service's overhead
 
 
 def measure(frames: int, flush_every: int, seed: int) -> dict[str, float]:
-    """Return CPU ms per frame of each part of a live worker's work on a simulated raster (this process)."""
+    """Return CPU ms per frame of each step of a live worker's work on a simulated raster (this process)."""
     import cv2
 
     from services.core.methods import method_options
     from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
+    from services.core.outputs.documents import canvas_extent_mm, empty_revisions, image_meta, mosaic_json
     from services.core.pipeline import frame_forces, prepare_scan_frame, window_radius_mm, window_setup
     from services.core.session_reconstruction import SessionReconstruction
     from services.core.simulation.scenarios import simulate
+    from services.store.results_store import ResultsStore
+    from services.store.storage import SessionStore
+    from services.store.version_state import VersionState
 
     cv2.setNumThreads(int(os.environ.get("BENCH_CV_THREADS", "1")))
     scan = simulate("raster", seed)
@@ -41,37 +57,87 @@ def measure(frames: int, flush_every: int, seed: int) -> dict[str, float]:
     calib = scan.calibration
     forces = frame_forces(scan)
     mask, flat = window_setup(scan, options)
-    recon = SessionReconstruction(calib, options, window_radius_mm(mask, calib), live=True)
-    pyramid = TilePyramid(DziGeometry.for_mosaic(calib.px_per_mm, 200.0))
-    spent = dict.fromkeys(PARTS, 0.0)
-    touched: set[tuple[int, int]] = set()
     n = min(frames, len(scan))
+    spent = dict.fromkeys(PARTS, 0.0)
+    waited = dict.fromkeys(PARTS, 0.0)  # wall time
     clock = time.process_time
-    for i in range(n):
-        t0 = clock()
-        pf = prepare_scan_frame(scan, i, forces[i], mask, flat, options)
-        t1 = clock()
-        touched |= recon.add(pf)[1]
-        spent["prepare"] += t1 - t0
-        spent["register"] += clock() - t1
-        if i % flush_every == flush_every - 1:
-            t0 = clock()
-            changed = pyramid.update(recon.canvas, touched)
-            touched = set()
-            t1 = clock()
-            for key in changed:
-                pyramid.render_png(*key, "vein")
-            t2 = clock()
-            for key in changed:
-                pyramid.render_png(*key, "force")
-            spent["pyramid"] += t1 - t0
-            spent["vein_tiles"] += t2 - t1
-            spent["force_tiles"] += clock() - t2
-        if i % 20 == 19:
-            t0 = clock()
-            recon.canvas.render()
-            spent["images"] += clock() - t0
-    return {part: 1000.0 * s / n for part, s in spent.items()}
+    with tempfile.TemporaryDirectory(prefix="vm-cost-", ignore_cleanup_errors=True) as tmp:
+        store, results = SessionStore(Path(tmp)), ResultsStore(Path(tmp))
+        sid = store.create_session(uuid.uuid4().hex * 2, "bench", calib).id
+        results.ensure_version(sid, 1, {"method": options.name})
+        for i in range(n):  # the uploads, as the API stores them (not measured: the API's work)
+            store.put_frame(sid, i, float(scan.frame_t_s[i]), cv2.imencode(".png", scan.frame(i))[1].tobytes(), "png")
+        recon = SessionReconstruction(calib, options, window_radius_mm(mask, calib), live=True)
+        geometry = DziGeometry.for_mosaic(calib.px_per_mm, 200.0)
+        pyramid = TilePyramid(geometry)
+        touched: set[tuple[int, int]] = set()
+        deferred: set[tuple[int, int, int]] = set()
+        revisions = empty_revisions()
+        t = (clock(), time.monotonic())
+
+        def lap(part: str) -> None:
+            nonlocal t
+            now = (clock(), time.monotonic())
+            spent[part] += now[0] - t[0]
+            waited[part] += now[1] - t[1]
+            t = now
+
+        for i in range(n):
+            t = (clock(), time.monotonic())
+            raw = store.load_frame(sid, i, expected_size=calib.image_size)
+            lap("decode")
+            # prepare_scan_frame reads the scan's own copy of the frame: the decoded upload is the same pixels
+            assert raw.shape == scan.frame(i).shape
+            pf = prepare_scan_frame(scan, i, forces[i], mask, flat, options)
+            lap("prepare")
+            results.write_prepared(sid, 1, pf)
+            lap("prepared_write")
+            pf = results.read_prepared(sid, 1, i)
+            lap("prepared_read")
+            touched |= recon.add(pf)[1]
+            lap("register")
+            if i % flush_every == flush_every - 1:
+                rows = recon.path_rows()
+                results.write_path(sid, 1, rows)
+                lap("path")
+                deferred |= pyramid.update(recon.canvas, touched)
+                touched = set()
+                with_images = i % 20 >= 20 - flush_every  # the flush that writes the whole images (below)
+                changed = {k for k in deferred if with_images or geometry.tiles_at(k[0]) != (1, 1)}
+                deferred -= changed  # levels where one tile holds the whole canvas wait for the images (flush.py)
+                lap("pyramid")
+                pngs = {(key, layer): pyramid.render_png(*key, layer) for key in changed for layer in ("vein",)}
+                lap("vein_tiles")
+                pngs.update({(key, layer): pyramid.render_png(*key, layer) for key in changed for layer in ("force",)})
+                lap("force_tiles")
+                for ((level, col, row), layer), png in pngs.items():
+                    if png is not None:
+                        results.write_tile(sid, 1, layer, level, col, row, png, durable=False)
+                    revisions.setdefault(layer, {})[f"{level}/{col}_{row}"] = i
+                lap("tile_writes")
+                doc = results.read_mosaic_meta(sid, 1) or {}
+                doc = mosaic_json(
+                    image_meta(doc, calib.px_per_mm),
+                    version=int(doc.get("version", 0)) + 1,
+                    results_version=1,
+                    revisions=revisions,
+                    geometry=geometry,
+                    extent_mm=canvas_extent_mm(recon.canvas),
+                    rows=rows,
+                    status="receiving",
+                    method=options.name,
+                    tissue=recon.learned_model(),
+                )
+                results.write_mosaic_meta(sid, 1, doc)
+                results.write_state(sid, 1, VersionState(i + 1, 1, False))
+                lap("documents")
+            if i % 20 == 19:
+                results.write_mosaic_images(sid, 1, recon.canvas.render(), raw_layers=False)
+                lap("images")
+    return {
+        **{part: 1000.0 * s / n for part, s in spent.items()},
+        **{f"{p}_wall": 1000.0 * s / n for p, s in waited.items()},
+    }
 
 
 def run_config(args: argparse.Namespace, copies: int, threads: int, repo: Path) -> list[dict[str, float]]:
@@ -118,17 +184,26 @@ def main() -> int:
     ]
     print(f"raster, {args.frames} frames, a flush every {args.flush_every} frames; CPU ms per frame (mean of copies)")
     print()
-    print("| tree | copies | threads | " + " | ".join(PARTS) + " | total | vs first |")
-    print("|---|---:|---:|" + "---:|" * (len(PARTS) + 2))
+    print("| tree | copies | threads | " + " | ".join(PARTS) + " | overhead | total | vs first |")
+    print("|---|---:|---:|" + "---:|" * (len(PARTS) + 3))
     base = None
+    walls = []
     for repo, copies, threads in configs:
         print(f"running {repo.name}: {copies} copies x {threads} threads ...", file=sys.stderr)
         rows = run_config(args, copies, threads, repo)
         mean = {part: sum(r[part] for r in rows) / len(rows) for part in PARTS}
         total = sum(mean.values())
+        overhead = total - sum(mean[part] for part in WORK)
         base = total if base is None else base
         cells = " | ".join(f"{mean[part]:.1f}" for part in PARTS)
-        print(f"| {repo.name} | {copies} | {threads} | {cells} | {total:.1f} | {total / base:.2f}x |", flush=True)
+        row = f"| {repo.name} | {copies} | {threads} | {cells} | {overhead:.1f} | {total:.1f} | {total / base:.2f}x |"
+        print(row, flush=True)
+        wall = {part: sum(r[f"{part}_wall"] for r in rows) / len(rows) for part in PARTS}
+        walls.append(f"| {repo.name} | {copies} | {threads} | " + " | ".join(f"{wall[p]:.1f}" for p in PARTS) + " |")
+    print("\nwall ms per frame (mean of copies): a step's waits (fsync, other processes) are in it\n")
+    print("| tree | copies | threads | " + " | ".join(PARTS) + " |")
+    print("|---|---:|---:|" + "---:|" * len(PARTS))
+    print("\n".join(walls))
     return 0
 
 

@@ -132,5 +132,10 @@ class Tolerances:
     # catches a half-width 1.5x too wide (0.87 expected) or too narrow (0.50).
     law_coverage_68: tuple[float, float] = (0.55, 0.8)
 
+    # A live session's mosaic after its finish against a whole restitch at the final poses (issue 32's decision: live
+    # is a reprocess within a tolerance): frames within FINISH_MOVED_PX (0.25 px) of their final place are not
+    # pasted again, which moves a vein edge's grey by a fraction of a level; one level at every pixel is the promise.
+    finish_restitch_grey: float = 1.0
+
 
 TOL = Tolerances()

@@ -10,7 +10,8 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from collections.abc import Callable, Iterator, Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -21,7 +22,7 @@ from services.core.contact import ContactDetector
 from services.core.inputs.calibration import Calibration
 from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
-from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, blend_weight
+from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, Warped, blend_weight
 from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit, fit_compliance
 from services.core.physics.drag import undrag_maps
@@ -50,14 +51,20 @@ RECENT_LAYERS = 12
 # While a live scan goes on, a refined frame is re-pasted only when some point of its window moved by this many
 # mosaic pixels or more since it was pasted: smaller moves are invisible, and re-pasting every frame a local pass
 # nudged by 0.4 px (the registrar's MOVED_MM) cost a third of a long examination's registration time. The final
-# mosaic is unaffected: finish() pastes every frame afresh at its final pose.
+# mosaic is unaffected: finish() re-pastes every frame that is not within FINISH_MOVED_PX of its final place.
 LIVE_REPASTE_PX = 2.0
+# At the finish a frame is pasted afresh when some point of it lies this many mosaic pixels or more from where it is
+# pasted (its pose, view or drag changed): the finished mosaic is within a grey level of a whole restitch at its
+# final poses (tests/services/core/test_session_reconstruction.py). Only the tiles such frames cover, at their old
+# and new places, are made again; the final pass, the drag and the gauge usually move every frame of a `best` session.
+FINISH_MOVED_PX = 0.25
+NO_DRAG: tuple[complex, float] = (0j, 0.0)  # a frame's planes undo no drag: (drag mm, profile width mm)
 # Frames a refinement moved are re-pasted a few per registered frame (oldest first), not all at once: a global
 # pass moves most of a long examination's frames, whose re-paste at once held one frame for seconds. The new frame
 # and the moved frames whose planes are kept (the newest) are pasted at once; settle() lets a caught-up worker
 # repaint more.
 REPAINT_PER_FRAME = 4
-RESTITCH_AHEAD = 4  # a whole restitch builds this many frames' planes (~5 MB each) ahead of the paste
+RESTITCH_AHEAD = 4  # a restitch builds and warps this many frames (~5 + 10 MB each) ahead of adding them
 REPAINT_AT_ONCE = 12  # moved frames this recent are re-pasted at once (their planes are usually kept)
 
 
@@ -77,10 +84,12 @@ class SessionReconstruction:
     results: dict[int, FrameResult] = field(default_factory=dict)
     frames: dict[int, KeptFrame] = field(default_factory=dict)  # compact: row data, and pixels if pasteable
     pasted: dict[int, np.ndarray] = field(default_factory=dict)  # frame -> the 2x3 affine it is pasted with
+    pasted_drag: dict[int, tuple[complex, float]] = field(default_factory=dict)  # the drag its planes undid (NO_DRAG)
     compliance: ComplianceFit | None = None
     clock: ClockOffset | None = None  # the force logger's clock against the camera's, estimated at the finish
     gauge: float = 1.0
     finished: bool = False
+    finish_seconds: dict[str, float] = field(default_factory=dict)  # finish()'s parts, timed (s)
     recent: dict[int, FrameLayers] = field(default_factory=dict)  # paste planes of the newest frames (live)
     stale: dict[int, None] = field(default_factory=dict)  # moved frames not re-pasted yet, oldest first (live)
     heartbeat: Callable[[], None] = field(default=lambda: None, repr=False)  # called between long steps
@@ -121,7 +130,7 @@ class SessionReconstruction:
         touched: set[tuple[int, int]] = set()
         if self.live:
             if kept.pasteable:  # the planes straight from the prepared frame: the kept image is the same, losslessly
-                self._remember(pf.index, self._build_layers(pf.image, pf.mask, kept))
+                self._remember(pf.index, self._build_layers(pf.image, pf.mask, kept, self._drag_state(pf.index)))
             now = tuple(i for i in result.moved if i > pf.index - REPAINT_AT_ONCE)
             self.stale.update((i, None) for i in result.moved if i <= pf.index - REPAINT_AT_ONCE)
             touched |= self._sync_canvas((pf.index, *now))
@@ -192,9 +201,14 @@ class SessionReconstruction:
         return fit.of(index) if fit is not None else 0j
 
     def finish(self) -> set[tuple[int, int]]:
-        """Return the canvas tiles changed by running the final refinement and compliance self-calibration."""
+        """Return the canvas tiles changed by running the final refinement and compliance self-calibration.
+
+        The seconds each part took are kept in `finish_seconds` (refine, calibrate, restitch).
+        """
+        started = time.perf_counter()
         if self.options.refine:
             self.registrar.refine(final=True)
+        refined = time.perf_counter()
         self.clock = self._estimate_clock()
         if self.options.self_calibrate:
             self.compliance = self._fit_compliance()
@@ -206,7 +220,14 @@ class SessionReconstruction:
         self.finished = True
         if self.registrar.dragged():
             self.recent = {}  # the newest frames' planes were built with their drag in: rebuilt, undragged
-        return self._restitch() if self.live else set()
+        calibrated = time.perf_counter()
+        touched = self._restitch_moved() if self.live else set()
+        self.finish_seconds = {
+            "refine": round(refined - started, 3),
+            "calibrate": round(calibrated - refined, 3),
+            "restitch": round(time.perf_counter() - calibrated, 3),
+        }
+        return touched
 
     def _estimate_clock(self) -> ClockOffset | None:
         """Return the force clock's offset fitted to the placed frames' stretches (physics.force_clock), or None."""
@@ -235,9 +256,11 @@ class SessionReconstruction:
         loads = np.array([self.frames[i].load.fz_n for i in placed])
         return fit_compliance(scales, loads, self.calibration.compliance_per_n, stiffening=self.options.stiffening)
 
-    def _build_layers(self, image: np.ndarray, mask: np.ndarray, kept: KeptFrame) -> FrameLayers:
-        """Return a frame's paste planes: its intensity, blend weight and load, its skin drag undone (once learned)."""
-        image, mask = self._undragged(image, mask, kept.index)
+    def _build_layers(
+        self, image: np.ndarray, mask: np.ndarray, kept: KeptFrame, drag: tuple[complex, float]
+    ) -> FrameLayers:
+        """Return a frame's paste planes: its intensity, blend weight and load, with `drag` undone (_drag_state)."""
+        image, mask = self._undragged(image, mask, drag)
         return FrameLayers.of(
             intensity=image.astype(np.float32) / 255.0,
             weight=blend_weight(mask),
@@ -246,15 +269,19 @@ class SessionReconstruction:
             px_per_mm=self.calibration.px_per_mm,
         )
 
-    def _undragged(self, image: np.ndarray, mask: np.ndarray, index: int) -> tuple[np.ndarray, np.ndarray]:
-        """Return a rectified frame and its window mask resampled with the frame's drag undone (physics.drag), so
-        the mosaic shows the skin at rest as the path does; as they are without a learned drag."""
+    def _drag_state(self, index: int) -> tuple[complex, float]:
+        """Return what a frame's planes undo now: its learned drag (mm) and the profile's width (mm), or NO_DRAG."""
         drag, fit = self._drag(index), self.registrar.drag_fit
-        if fit is None or drag == 0:
+        return NO_DRAG if fit is None or drag == 0 else (drag, fit.width_mm)
+
+    def _undragged(
+        self, image: np.ndarray, mask: np.ndarray, drag: tuple[complex, float]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Return a rectified frame and its window mask resampled with a drag (mm, width mm) undone (physics.drag),
+        so the mosaic shows the skin at rest as the path does; as they are for NO_DRAG."""
+        if drag == NO_DRAG:
             return image, mask
-        maps = undrag_maps(
-            image.shape[:2], self.calibration.principal_point, self.calibration.px_per_mm, drag, fit.width_mm
-        )
+        maps = undrag_maps(image.shape[:2], self.calibration.principal_point, self.calibration.px_per_mm, *drag)
         return (
             cv2.remap(image, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
             cv2.remap(mask, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
@@ -264,7 +291,7 @@ class SessionReconstruction:
         """Return a frame's paste planes: remembered for the newest frames, else rebuilt from what was kept."""
         layers = self.recent.get(index)
         if layers is None:
-            layers = self._build_layers(*self._pixels(index), self.frames[index])
+            layers = self._build_layers(*self._pixels(index), self.frames[index], self._drag_state(index))
             self._remember(index, layers)
         return layers
 
@@ -314,7 +341,7 @@ class SessionReconstruction:
                 continue
             self.heartbeat()
             layers = self._layers(i)
-            if old is not None:
+            if old is not None:  # live, no drag is learned: the remembered or rebuilt planes are the pasted ones
                 touched.update(self.canvas.paste(layers, old, sign=-1.0))
                 del self.pasted[i]
             if pose is not None:
@@ -344,24 +371,99 @@ class SessionReconstruction:
         old = set(self.canvas.tiles)
         self.canvas = SparseCanvas(self.calibration.px_per_mm)
         self.pasted = {}
+        self.pasted_drag = {}
         self.stale = {}
-        poses = {i: pose for i in sorted(self.frames) if (pose := self._stitch_pose(i)) is not None}
+        return old | self._paste_in_order(self._final_places())
+
+    def _restitch_moved(self) -> set[tuple[int, int]]:
+        """Paste afresh the frames not within FINISH_MOVED_PX of their final places, and nothing else: the tiles
+        they cover (pasted and final) are emptied and made again from every frame over them, in index order, as a
+        whole restitch makes them (a frame that did not move stays where it is pasted). Return the tiles changed."""
+        self.stale = {}
+        final = self._final_places()
+        moved = [i for i in sorted(set(final) | set(self.pasted)) if self._moved(self._pasted_place(i), final.get(i))]
+        tiles: set[tuple[int, int]] = set()
+        for i in moved:
+            for place in (self._pasted_place(i), final.get(i)):
+                if place is not None:
+                    tiles.update(self._footprint(place[0]))
+            self.pasted.pop(i, None)
+            self.pasted_drag.pop(i, None)
+        if not tiles:
+            return set()
+        places = {i: place for i in self.pasted if (place := self._pasted_place(i)) is not None}
+        places.update((i, final[i]) for i in moved if i in final)
+        over = {i: places[i] for i in sorted(places) if not tiles.isdisjoint(self._footprint(places[i][0]))}
+        emptied = {key for key in tiles if self.canvas.tiles.pop(key, None) is not None}
+        return emptied | self._paste_in_order(over, only=tiles)
+
+    def _final_places(self) -> dict[int, tuple[np.ndarray, tuple[complex, float]]]:
+        """Return, in index order, each pasteable frame's stitch affine and the drag its planes undo, as now."""
+        return {
+            i: (pose, self._drag_state(i)) for i in sorted(self.frames) if (pose := self._stitch_pose(i)) is not None
+        }
+
+    def _pasted_place(self, index: int) -> tuple[np.ndarray, tuple[complex, float]] | None:
+        """Return the stitch affine a frame is pasted with and the drag its planes undid, or None (not pasted)."""
+        pose = self.pasted.get(index)
+        return None if pose is None else (pose, self.pasted_drag.get(index, NO_DRAG))
+
+    def _moved(
+        self, old: tuple[np.ndarray, tuple[complex, float]] | None, new: tuple[np.ndarray, tuple[complex, float]] | None
+    ) -> bool:
+        """Return True when a frame pasted at `old` (affine, drag; None: not pasted) must be pasted again for `new`:
+        pasted or not, or some point of it would move by FINISH_MOVED_PX mosaic pixels or more."""
+        if old is None or new is None:
+            return old is not new
+        calib = self.calibration
+        before, after = (self.canvas.pixels_to_canvas(p[0], calib.principal_point, calib.px_per_mm) for p in (old, new))
+        w, h = calib.image_size
+        corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float)  # an affine moves most at a corner
+        moved_px = float(np.max(np.hypot(*((after - before) @ corners.T))))
+        (d0, w0), (d1, w1) = old[1], new[1]
+        # the undone drag shifts a pixel by D phi (phi <= 1, physics.drag): by |D1 - D0| at most on the same profile
+        drag_mm = abs(d1 - d0) if w0 == w1 or 0 in (d0, d1) else abs(d0) + abs(d1)
+        moved_px += drag_mm * calib.px_per_mm * float(np.linalg.norm(after[:, :2], 2))
+        return moved_px >= FINISH_MOVED_PX
+
+    def _footprint(self, pose: np.ndarray) -> list[tuple[int, int]]:
+        """Return the canvas tiles a frame pasted with the stitch affine `pose` may cover."""
+        calib = self.calibration
+        w, h = calib.image_size
+        return self.canvas.footprint_tiles(
+            self.canvas.pixels_to_canvas(pose, calib.principal_point, calib.px_per_mm), (h, w)
+        )
+
+    def _paste_in_order(
+        self, places: dict[int, tuple[np.ndarray, tuple[complex, float]]], only: set[tuple[int, int]] | None = None
+    ) -> set[tuple[int, int]]:
+        """Paste frames at their places (index order: the same sums a whole restitch makes), within `only` (None:
+        anywhere); return the tiles touched.
+
+        Each frame's planes are built and warped up to RESTITCH_AHEAD frames ahead on two threads (decoding and
+        OpenCV free the GIL), and added to the tiles here in order; the remembered planes (built with the drag now
+        learned) are read, never changed, from the threads.
+        """
+
+        def warp(i: int) -> Warped | None:
+            pose, drag = places[i]
+            layers = self.recent.get(i) if drag == self._drag_state(i) else None
+            if layers is None:
+                layers = self._build_layers(*self._pixels(i), self.frames[i], drag)
+            return self.canvas.warp(layers, pose, only)
+
         touched: set[tuple[int, int]] = set()
-        for i, layers in zip(poses, self._layers_ahead(list(poses)), strict=True):  # pasted in order: same sums
+        for i, warped in zip(places, in_order_ahead(warp, list(places), ahead=RESTITCH_AHEAD), strict=True):
             self.heartbeat()
-            touched.update(self.canvas.paste(layers, poses[i]))
-            self.pasted[i] = poses[i]
-        return old | touched
-
-    def _layers_ahead(self, indices: list[int]) -> Iterator[FrameLayers]:
-        """Yield the paste planes of `indices` in order, built up to RESTITCH_AHEAD ahead on two threads (decoding
-        and OpenCV free the GIL); the remembered planes are read, never changed, from the threads."""
-
-        def build(i: int) -> FrameLayers:
-            layers = self.recent.get(i)
-            return layers if layers is not None else self._build_layers(*self._pixels(i), self.frames[i])
-
-        return in_order_ahead(build, indices, ahead=RESTITCH_AHEAD)
+            if warped is not None:
+                touched.update(self.canvas.add(warped))
+            pose, drag = places[i]
+            self.pasted[i] = pose
+            if drag == NO_DRAG:
+                self.pasted_drag.pop(i, None)
+            else:
+                self.pasted_drag[i] = drag
+        return touched
 
     def learned_model(self) -> dict[str, Any]:
         """Return what the scan taught about the tissue and the probe (mosaic.json and report.json "tissue").

@@ -8,16 +8,36 @@ and is then moved into place in one of three ways:
   (create once: concurrent writers never overwrite each other);
 - `replace_bytes`: rename without any fsync (live tiles, rewritten often and made again after a crash).
 After a crash at any point a target holds its old content (or does not exist) or all of the new bytes.
+`sync_filesystem` makes a batch written with `replace_bytes` durable at once (a version's tiles): one flush of the
+filesystem instead of two fsyncs a file.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import fcntl
 import os
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+
+_SYNCFS = getattr(ctypes.CDLL(None, use_errno=True), "syncfs", None)  # Linux; elsewhere sync(2)
+
+
+def sync_filesystem(path: Path) -> None:
+    """Make every file written so far on the filesystem holding `path` durable, renames and removals included:
+    one syncfs(2) (sync(2) where the C library has none) instead of a fsync per file and directory."""
+    if _SYNCFS is None:
+        os.sync()
+        return
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        if _SYNCFS(fd) != 0:
+            err = ctypes.get_errno()
+            raise OSError(err, os.strerror(err), str(path))
+    finally:
+        os.close(fd)
 
 
 def fsync_dir(path: Path) -> None:

@@ -40,7 +40,14 @@ from services.core.mosaic.layer_images import layers_from_bytes, mosaic_image_fi
 from services.core.outputs.documents import LAYERS
 from services.core.path_rows import PathRow, path_rows_json
 from services.core.registration.frame_prep import PreparedFrame
-from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, replace_bytes, write_once
+from services.store.durable import (
+    atomic_write_bytes,
+    directory_lock,
+    fsync_dir,
+    replace_bytes,
+    sync_filesystem,
+    write_once,
+)
 from services.store.file_formats import npz_bytes
 from services.store.prepared_file import prepared_from_bytes, prepared_pixels_from_bytes, prepared_to_bytes
 from services.store.version_state import VersionState
@@ -387,6 +394,11 @@ class ResultsStore:
             atomic_write_bytes(path, png)
         else:
             replace_bytes(path, png)
+
+    def sync(self, sid: str, v: int) -> None:
+        """Make every file of version v written so far durable (tiles written with durable=False): one sync of the
+        filesystem, which costs less than a fsync per tile (durable.sync_filesystem)."""
+        sync_filesystem(self.version_dir(sid, v))
 
     def delete_tile(self, sid: str, v: int, layer: str, level: int, col: int, row: int) -> None:
         """Remove a tile that no longer has data (the API then serves a blank tile)."""

@@ -19,9 +19,7 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import numpy as np
-
-from services.core.mosaic.canvas import FORCE_FULL_SCALE_N, TILE_PX, SparseCanvas
+from services.core.mosaic.canvas import FORCE_FULL_SCALE_N, SparseCanvas
 from services.core.mosaic.deepzoom import MIN_WEIGHT, DziGeometry
 from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit
@@ -64,21 +62,11 @@ def canvas_extent_mm(canvas: SparseCanvas, min_weight: float = MIN_WEIGHT) -> li
 
     The box of the covered pixels' edges (canvas pixel (0, 0) is frame 0's centre), as `render` crops them.
     """
-    lo = np.array([np.inf, np.inf])
-    hi = -lo
-    for (c, r), tile in canvas.tiles.items():
-        covered = tile[..., 1] > min_weight
-        if not covered.any():
-            continue
-        rows = np.flatnonzero(covered.any(axis=1))
-        cols = np.flatnonzero(covered.any(axis=0))
-        x0, y0 = c * TILE_PX, r * TILE_PX
-        lo = np.minimum(lo, (x0 + cols[0], y0 + rows[0]))
-        hi = np.maximum(hi, (x0 + cols[-1] + 1, y0 + rows[-1] + 1))
-    if not np.isfinite(lo).all():
+    box = canvas.covered_box(min_weight)
+    if box is None:
         return None
     k = canvas.px_per_mm
-    return [float(lo[0] / k), float(lo[1] / k), float(hi[0] / k), float(hi[1] / k)]
+    return [float(box[0] / k), float(box[1] / k), float(box[2] / k), float(box[3] / k)]
 
 
 def extent_view(extent_mm: Sequence[float] | None) -> dict[str, float] | None:

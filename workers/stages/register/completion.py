@@ -1,7 +1,8 @@
 """Completion: a finished session's last frame is registered, so the version is finalised and the session done.
 
-complete: the reconstruction's final refinement and compliance fit, then the final flush (every tile durably,
-the whole images and raw layers). finish_empty: a finished session with no usable frame (none, or all poison)
+complete: the reconstruction's final refinement and compliance fit, then the final flush (the tiles that changed,
+then every tile made durable at once, the whole images and raw layers; every tile written again when the session
+was taken over mid-way). finish_empty: a finished session with no usable frame (none, or all poison)
 gets its rows (all rejected) and an empty mosaic. Either way the live session's status becomes done.
 """
 
@@ -39,16 +40,21 @@ class Completion:
         self.leases.renew_if_due(held, force=True)
         self.leases.check_fence(held)
         started = time.monotonic()
-        held.pending.touched |= held.recon.finish()
+        held.pending.touched |= held.recon.finish()  # the tiles of the frames the finish moved
+        if held.replayed:  # the previous holder's tiles may be lost with its machine: all written again
+            held.pending.touched |= set(held.recon.canvas.tiles)
         finished = time.monotonic()
 
         def mark_done() -> None:  # after every file is written, before the final event: no client sees it early
             if held.version == LIVE_VERSION and session_status != "failed":
                 self.ctx.store.set_status(held.sid, "done")
 
-        self.flusher.flush(held, final=True, before_event=mark_done)
+        flushed = self.flusher.flush(held, final=True, before_event=mark_done)
         timings = {"finish_s": round(finished - started, 2), "final_flush_s": round(time.monotonic() - finished, 2)}
-        log.info("session done", extra={"session": held.sid, "frames": len(held.recon.results), **timings})
+        parts = {**held.recon.finish_seconds, **{f"flush_{k}": v for k, v in flushed.items()}}
+        log.info(
+            "session done", extra={"session": held.sid, "frames": len(held.recon.results), **timings, "parts_s": parts}
+        )
 
     def finish_empty(self, lease: Lease, sv: SessionVersion, session_status: str, rejected: list[int]) -> None:
         """A finished session with no usable frame (none, or all poison): rows rejected, no mosaic, status done."""

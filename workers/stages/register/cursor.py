@@ -49,6 +49,7 @@ class Cursor:
                 else:
                     self._add(held, pf, replay=True)
         held.cursor = cursor
+        held.replayed = cursor > 0
         held.clocks.progressed = time.monotonic()  # the replay was progress: not idle since the take-over
         held.pyramid.update(held.recon.canvas, set(held.recon.canvas.tiles))
         held.pending.touched.clear()

@@ -7,7 +7,7 @@ a third of the time; behind_flush_every_s while the live session is behind, its 
 waited more than behind_lag_s since its upload); the whole images (mosaic.png, force.png, coverage.png) at most
 every image_every_s and only once the session has caught up with its uploads (a session that is behind spends
 the CPU on placing frames), and the tiles of levels where one tile holds the whole canvas with them. The final
-flush writes everything.
+flush writes the tiles that changed and whatever was deferred, then makes every tile of the version durable.
 """
 
 from __future__ import annotations
@@ -42,6 +42,20 @@ def images_due(final: bool, written: bool, caught_up: bool, since_s: float, ever
     return final or not written or (caught_up and since_s >= every_s)
 
 
+class _Parts:
+    """Seconds spent in the named parts of one flush, each lap timed from the previous one."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._last = time.monotonic()
+
+    def lap(self, name: str) -> None:
+        """Record the time since the previous lap under `name`."""
+        now = time.monotonic()
+        self.seconds[name] = round(now - self._last, 3)
+        self._last = now
+
+
 class Flusher:
     """Decides when a held session is flushed and writes the flush through the publisher."""
 
@@ -61,8 +75,9 @@ class Flusher:
         final: bool,
         before_event: Callable[[], None] | None = None,
         caught_up: bool = True,
-    ) -> None:
-        """Write path, changed tiles, images when due, mosaic.json and state; count frames; publish an event.
+    ) -> dict[str, float]:
+        """Return the seconds each part took (path, tiles, images, documents, event), writing path, changed tiles,
+        images when due, mosaic.json and state, counting frames and publishing an event.
 
         caught_up: no registered frame is waiting (False mid-catch-up: the whole images wait for the next flush).
         before_event runs once everything is written and before the event goes out (the completion sets the
@@ -73,8 +88,10 @@ class Flusher:
         self.leases.renew_if_due(held, force=True)
         self.leases.check_fence(held)
         now = time.monotonic()
+        parts = _Parts()
         rows = self._rows(held)
         pub.write_path(sid, v, rows)
+        parts.lap("path")
         doc = ctx.results.read_mosaic_meta(sid, v) or {}
         version = int(doc.get("version", 0)) + 1
         revisions: dict[str, dict[str, int]] = doc.get("revisions") or empty_revisions()
@@ -88,11 +105,14 @@ class Flusher:
         pending.deferred = set() if with_images else whole
         # a flush after a global refinement re-renders much of the pyramid: keep the lease while it does
         renew = lambda: self.leases.renew_if_due(held)  # noqa: E731
+        parts.lap("pyramid")
         tiles_event = pub.write_tiles(sid, v, held.pyramid, changed, version, revisions, durable=final, heartbeat=renew)
+        parts.lap("tiles")
         image = image_meta(doc, held.calib.px_per_mm)
         if with_images:
             image = pub.write_images(sid, v, held.recon.canvas.render(), raw_layers=final)  # + coverage, layers
             held.clocks.images = now
+        parts.lap("images")
         finished = ctx.store.get_meta(sid).finished_at is not None
         status = "done" if final else ("processing" if finished else "receiving")
         doc = pub.write_mosaic_json(
@@ -111,11 +131,13 @@ class Flusher:
         )
         fence = held.lease.token
         pub.write_state(sid, v, VersionState(held.cursor, fence, final, lost=held.lost, rejected=held.rejected))
+        parts.lap("documents")
         self.record_counters(held, pending.seqs)
         lags = self.record_lags(held, pending.seqs)
         if before_event is not None:
             before_event()
         pub.results_event(sid, doc, tiles_event, rows, pending.seqs, pending.path_reset or final)
+        parts.lap("event")
         pending.seqs = []
         pending.path_reset = False
         pending.dirty = False
@@ -123,6 +145,7 @@ class Flusher:
         # three probes on two cores: 18.2 -> 24.1 frames/s placed with the behind rule (bench/probes.py)
         every = flush_every_s(caught_up, lags, cfg.flush_every_s, cfg.behind_flush_every_s, cfg.behind_lag_s)
         held.clocks.flush_interval = max(every, 2.0 * (held.clocks.flushed - now))
+        return parts.seconds
 
     def record_lags(self, held: HeldSession, seqs: list[int]) -> list[float]:
         """Return the lags (s) recorded: for each newly published frame, now minus its upload's commit time.

@@ -51,6 +51,7 @@ class HeldSession:
     lost: list[int] = field(default_factory=list)
     rejected: list[int] = field(default_factory=list)
     times: dict[int, float] = field(default_factory=dict)  # t_s of frames registered without a PreparedFrame
+    replayed: bool = False  # taken over mid-session: tiles another worker wrote may not have reached the disk
     pending: Pending = field(default_factory=Pending)
     clocks: Clocks = field(default_factory=Clocks)
 

@@ -1,0 +1,167 @@
+"""The finish of a live session (issue 32): from its last frame registered to done, by part, per source tree.
+
+    .venv/bin/python bench/finish.py [--scan raster] [--scan /work/scans/clinical_veins_24] [--frames N]
+                                     [--repo PATH ...]
+
+Each measurement runs in a child process as a live worker holds a session: every frame prepared and stored as its
+prepared file (services.store), added in order to a live SessionReconstruction whose pixels are read back from
+those files, with a live flush's tile work every 5 frames (pyramid, tiles written without fsync). Then it times
+what the completion does (workers/stages/register/completion.py): the reconstruction's finish (final refinement,
+self-calibration, the restitch), then the final flush's pyramid update, the tiles written durably through the
+publisher and the whole images with the raw layers. Wall seconds (the session waits for them) and the process's
+CPU seconds. A --scan is a simulated scenario's name (seed 1) or a scan folder. The first --repo (default: this
+tree) is the baseline of the ratio column; another tree is e.g. `git archive <commit> | tar -x -C /tmp/old`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+from types import SimpleNamespace
+
+REPO = Path(__file__).resolve().parents[1]
+PARTS = ("finish", "pyramid", "tiles", "images")
+
+
+class _Counters:
+    """Stands in for Redis where the publisher counts tile renders (the bench measures files, not Redis)."""
+
+    def hincrby(self, *_: object) -> None:
+        """Count nothing."""
+
+    def hincrbyfloat(self, *_: object) -> None:
+        """Count nothing."""
+
+
+def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | int]:
+    """Return the wall and CPU seconds of a live session's finish and final flush, by part (this process)."""
+    import cv2
+
+    from services.core.methods import method_options
+    from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
+    from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
+    from services.core.session_reconstruction import SessionReconstruction
+    from services.core.simulation.scenarios import simulate
+    from services.store.results_store import ResultsStore
+    from services.store.scan_folder import read_scan_folder
+    from workers.publisher import Publisher
+
+    cv2.setNumThreads(1)  # as a worker (worker_cv_threads)
+    scan = read_scan_folder(scan_name) if os.sep in scan_name else simulate(scan_name, 1)
+    options = method_options("best")
+    calib = scan.calibration
+    mask, flat = window_setup(scan, options)
+    with tempfile.TemporaryDirectory(prefix="vm-finish-", ignore_cleanup_errors=True) as tmp:
+        sid = uuid.uuid4().hex
+        (Path(tmp) / "sessions" / sid).mkdir(parents=True)
+        results = ResultsStore(Path(tmp))
+        publisher = Publisher(SimpleNamespace(results=results, r=_Counters(), prefix="bench:"))  # type: ignore[arg-type]
+        results.ensure_version(sid, 1, {"method": options.name})
+        seqs: dict[int, int] = {}  # a frame's file is named by its seq; the reconstruction's index is its place
+        for pf in prepared_frames(scan, frame_forces(scan), mask, flat, options):
+            if pf.index >= frames:
+                break
+            results.write_prepared(sid, 1, pf)
+            seqs[pf.index] = pf.seq
+        n = len(seqs)
+
+        def pixels(index: int) -> tuple[object, object]:
+            return results.read_prepared_pixels(sid, 1, seqs[index])
+
+        recon = SessionReconstruction(calib, options, window_radius_mm(mask, calib), live=True, pixels=pixels)
+        pyramid = TilePyramid(DziGeometry.for_mosaic(calib.px_per_mm, 200.0))
+        touched: set[tuple[int, int]] = set()
+        revisions: dict[str, dict[str, int]] = {}
+        started = time.monotonic()
+        for k, i in enumerate(sorted(seqs)):
+            pf = results.read_prepared(sid, 1, seqs[i])
+            assert pf is not None
+            for dropped in range(len(recon.results), i):  # seqs the camera dropped: missing, as live
+                recon.lose(dropped)
+            touched |= recon.add(pf)[1]
+            if k % flush_every == flush_every - 1:
+                changed = pyramid.update(recon.canvas, touched)
+                publisher.write_tiles(sid, 1, pyramid, changed, k, revisions, durable=False)
+                touched = set()
+        live_s = time.monotonic() - started
+        pasted = dict(getattr(recon, "pasted", {}))
+        out: dict[str, float | int] = {"frames": n, "live_s_per_frame": live_s / max(n, 1)}
+        wall, cpu = time.monotonic, time.process_time
+        t = (wall(), cpu())
+
+        def lap(part: str) -> None:
+            nonlocal t
+            now = (wall(), cpu())
+            out[part] = now[0] - t[0]
+            out[part + "_cpu"] = now[1] - t[1]
+            t = now
+
+        touched |= recon.finish()
+        lap("finish")
+        changed = pyramid.update(recon.canvas, touched)
+        lap("pyramid")
+        publisher.write_tiles(sid, 1, pyramid, changed, n, revisions, durable=True)
+        lap("tiles")
+        publisher.write_images(sid, 1, recon.canvas.render(), raw_layers=True)
+        lap("images")
+        out["tiles_written"] = len(changed)
+        out["pasted_again"] = sum(1 for i, a in recon.pasted.items() if i not in pasted or (a != pasted[i]).any())
+        out.update({f"finish_{k}": v for k, v in getattr(recon, "finish_seconds", {}).items()})
+    return out
+
+
+def run_child(args: argparse.Namespace, scan: str, repo: Path) -> dict[str, float | int]:
+    """Return one measurement made by a child process on source tree `repo`."""
+    env = {**os.environ, "PYTHONPATH": str(repo), "OPENBLAS_NUM_THREADS": "1"}
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--scan", scan, "--frames", str(args.frames)]
+    done = subprocess.run(cmd, env=env, cwd=repo, stdout=subprocess.PIPE, text=True, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"a measurement failed (exit {done.returncode})")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main() -> int:
+    """Print the table of a live session's finish and final flush by part, per scan and source tree."""
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scan", action="append", default=None, help="a simulated scenario or a scan folder")
+    p.add_argument("--frames", type=int, default=100000, help="the scan's first N frames")
+    p.add_argument("--repo", type=Path, action="append", default=None, help="source trees to measure")
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args()
+    scans = args.scan or ["raster"]
+    if args.child:
+        print(json.dumps(measure(scans[0], args.frames, flush_every=5)))
+        return 0
+    repos = args.repo or [REPO]
+    print("a live session's finish and final flush; wall s (CPU s); frames pasted again at the finish, tiles written\n")
+    head = ["scan", "tree", "frames", *PARTS, "done after the last frame", "vs first", "pasted again", "tiles"]
+    print("| " + " | ".join(head) + " |")
+    print("|---|---|" + "---:|" * (len(head) - 2))
+    for scan in scans:
+        base = None
+        for repo in repos:
+            print(f"running {Path(scan).name} on {repo} ...", file=sys.stderr)
+            got = run_child(args, scan, repo)
+            total = sum(float(got[part]) for part in PARTS)
+            base = total if base is None else base
+            cells = " | ".join(f"{got[part]:.2f} ({got[part + '_cpu']:.2f})" for part in PARTS)
+            split = ", ".join(f"{k[7:]} {v:.2f}" for k, v in got.items() if k.startswith("finish_") and k[7:] != "cpu")
+            print(
+                f"| {Path(scan).name} | {repo.name} | {got['frames']} | {cells} | {total:.2f} | {total / base:.2f}x "
+                f"| {got['pasted_again']} | {got['tiles_written']} |",
+                flush=True,
+            )
+            if split:
+                print(f"finish by part ({Path(scan).name}, {repo.name}): {split}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
