@@ -29,6 +29,7 @@ from services.core.physics.drag import undrag_maps
 from services.core.physics.force_clock import ClockOffset, estimate_clock_offset
 from services.core.physics.tissue_model import tilt_angles_rad
 from services.core.registration.atlas import Atlas
+from services.core.registration.edge_corrections import EdgeCorrections
 from services.core.registration.frame_prep import PreparedFrame, load_map_n
 from services.core.registration.kept_frame import KeptFrame, keep_frame
 from services.core.registration.outcome import (
@@ -50,7 +51,7 @@ from services.core.similarity import Similarity
 RECENT_LAYERS = 12
 # While a live scan goes on, a refined frame is re-pasted only when some point of its window moved by this many
 # mosaic pixels or more since it was pasted: smaller moves are invisible, and re-pasting every frame a local pass
-# nudged by 0.4 px (the registrar's MOVED_MM) cost a third of a long examination's registration time. The final
+# nudged by 0.4 px (refinement.MOVED_MM) cost a third of a long examination's registration time. The final
 # mosaic is unaffected: finish() re-pastes every frame that is not within FINISH_MOVED_PX of its final place.
 LIVE_REPASTE_PX = 2.0
 # At the finish a frame is pasted afresh when some point of it lies this many mosaic pixels or more from where it is
@@ -108,9 +109,11 @@ class SessionReconstruction:
             self.calibration.px_per_mm,
             self.window_radius_mm,
             centre_px=self.calibration.principal_point,
-            separation_mm=self.calibration.sensor_separation_mm,
-            kappa_prior_n_per_mm=self.calibration.hooke_n_per_mm,
-            compliance_per_n=self.calibration.compliance_per_n,
+            corrections=EdgeCorrections(
+                separation_mm=self.calibration.sensor_separation_mm,
+                kappa_prior_n_per_mm=self.calibration.hooke_n_per_mm,
+                compliance_per_n=self.calibration.compliance_per_n,
+            ),
         )
 
     @property
@@ -197,7 +200,7 @@ class SessionReconstruction:
     def _drag(self, index: int) -> complex:
         """Return a placed frame's learned drag (complex mm, its own axes; 0 until one is learned and kept: the
         drag is fitted by the final refinement only, so never while live)."""
-        fit = self.registrar.drag_fit
+        fit = self.registrar.corrections.drag_fit
         return fit.of(index) if fit is not None else 0j
 
     def finish(self) -> set[tuple[int, int]]:
@@ -218,7 +221,7 @@ class SessionReconstruction:
                 self.registrar.refine_scales(self._expected_scales(self.compliance), self.options.scale_prior)
             self.gauge = self.compliance.gauge if self.compliance is not None else 1.0
         self.finished = True
-        if self.registrar.dragged():
+        if self.registrar.corrections.dragged():
             self.recent = {}  # the newest frames' planes were built with their drag in: rebuilt, undragged
         calibrated = time.perf_counter()
         touched = self._restitch_moved() if self.live else set()
@@ -271,7 +274,7 @@ class SessionReconstruction:
 
     def _drag_state(self, index: int) -> tuple[complex, float]:
         """Return what a frame's planes undo now: its learned drag (mm) and the profile's width (mm), or NO_DRAG."""
-        drag, fit = self._drag(index), self.registrar.drag_fit
+        drag, fit = self._drag(index), self.registrar.corrections.drag_fit
         return NO_DRAG if fit is None or drag == 0 else (drag, fit.width_mm)
 
     def _undragged(
@@ -327,7 +330,8 @@ class SessionReconstruction:
         pose = self._output_pose(pose) if self.finished else pose
         pose = pose.rigid() if self.options.rigid_stitch else pose
         m = pose.matrix()
-        return np.hstack([m[:, :2] @ np.linalg.inv(self.registrar.view(index)), m[:, 2:]])
+        view = self.registrar.corrections.view(index, self.registrar.poses)
+        return np.hstack([m[:, :2] @ np.linalg.inv(view), m[:, 2:]])
 
     def _sync_canvas(self, indices: tuple[int, ...]) -> set[tuple[int, int]]:
         """Paste frames at their current poses, removing them first from where they were pasted."""
@@ -478,9 +482,9 @@ class SessionReconstruction:
             "kappa_prior_n_per_mm": calib.hooke_n_per_mm,
             "young_modulus_prior_kpa": calib.young_modulus_kpa,
         }
-        if self.registrar.view_fit is not None:
-            doc.update(self.registrar.view_fit.to_dict())
-            reference = self.registrar.kappa_reference
+        if self.registrar.corrections.view_fit is not None:
+            doc.update(self.registrar.corrections.view_fit.to_dict())
+            reference = self.registrar.corrections.kappa_reference
             doc["kappa_source"] = "imu+images" if reference is not None else "images"
             if reference is not None:  # kappa of the IMU's tilts against the force differences: the fit's prior
                 doc["kappa_imu_n_per_mm"] = reference.hooke_n_per_mm
@@ -488,8 +492,8 @@ class SessionReconstruction:
                 doc["kappa_imu_residual_n"] = reference.residual_rms_n
         if self.clock is not None:
             doc.update(self.clock.to_dict())
-        if self.registrar.drag_fit is not None:
-            doc.update(self.registrar.drag_fit.to_dict())
+        if self.registrar.corrections.drag_fit is not None:
+            doc.update(self.registrar.corrections.drag_fit.to_dict())
         if self.compliance is not None:
             doc["compliance_per_n"] = self.compliance.compliance_per_n
             doc["young_modulus_kpa"] = self.compliance.young_modulus_kpa(calib.poisson_ratio, calib.scanner_area_m2)
@@ -501,7 +505,7 @@ class SessionReconstruction:
 
     def _tilts_deg(self, kept: Sequence[KeptFrame]) -> np.ndarray:
         """Return (N, 2) frames' (tilt_x, tilt_y) in degrees: spec §2 with the fitted kappa, else the calibration's."""
-        fit = self.registrar.view_fit
+        fit = self.registrar.corrections.view_fit
         if not kept:
             return np.zeros((0, 2))
         if fit is None:

@@ -213,7 +213,7 @@ def merge_maps(
     """Move every frame of `source` onto `target` by one similarity and tie them with the join edge; refine.
 
     The join: frame pf matches placed frame `other` (match: pf mm -> other mm); one of the two is on target, the
-    other on source. Returns the frames the refinement moved (> the registrar's MOVED_MM).
+    other on source. Returns the frames the refinement moved (> refinement.MOVED_MM).
     """
     if pf_on_target:  # other's pose in target coordinates = P_t(pf) R^-1
         in_target = target.poses[pf.index].compose(match.relative.inverse())
@@ -227,9 +227,9 @@ def merge_maps(
     target.times.update(source.times)
     target.stretches.update(source.stretches)
     target.veins.update(source.veins)
-    target.forces.update(source.forces)
-    target.loads.update(source.loads)
-    target.imu_tilts.update(source.imu_tilts)
+    target.corrections.forces.update(source.corrections.forces)
+    target.corrections.loads.update(source.corrections.loads)
+    target.corrections.imu_tilts.update(source.corrections.imu_tilts)
     target.sharpness.extend(source.sharpness)
     target.edges.extend(source.edges)
     target.order = [target.order[0], *sorted(set(target.order[1:]) | set(source.order))]  # the origin stays first

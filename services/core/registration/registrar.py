@@ -8,23 +8,13 @@ pose graph; loop closures trigger a robust global re-optimisation).
 
 from __future__ import annotations
 
-import cmath
-from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from services.core.methods import MethodOptions
-from services.core.physics.drag import DragEvidence, DragFit, fit_drag, undragged_transforms
-from services.core.physics.tissue_model import (
-    AffineEvidence,
-    HookeFit,
-    ViewFit,
-    corrected_relative,
-    fit_kappa_to_tilts,
-    fit_view_model,
-)
 from services.core.registration.direct_alignment import AlignmentImage, DirectFit, align, alignment_image, correlation
+from services.core.registration.edge_corrections import EdgeCorrections, view_evidence
 from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
 from services.core.registration.matching import SimilarityFit, estimate_similarity, match_features
@@ -43,17 +33,9 @@ from services.core.registration.outcome import (
     feature_match,
 )
 from services.core.registration.pose_graph import Edge, optimise_poses, place_node
+from services.core.registration.refinement import VIEW_REFIT_GROWTH, is_global, local_pass, moved_frames, scale_pass
 from services.core.similarity import IDENTITY, Similarity
 
-LOCAL_REFINE_FROM = 400  # placed frames: below this every refinement is global
-GLOBAL_GROWTH = 1.25  # ... from it, a global pass when the placed frames grew by this factor since the last one
-LOCAL_RADIUS_WINDOWS = 3.0  # a local pass frees the frames within this many window radii of the newest frame
-LOCAL_RECENT = 60  # ... and the newest frames
-LOCAL_MAX = 240  # ... at most this many of the nearest (an examination's passes pile frames on the same area)
-# A global pass refits the view model only when the affine evidence grew by this factor since the last fit (and
-# always at the end): fitting it at every global pass of a short scan cost 15 % of a live registering worker's
-# time on a 336-frame raster; geometric refits cost a constant multiple of the last one
-VIEW_REFIT_GROWTH = 1.25
 # A match to an older frame that places the new frame farther than this from where the match to the latest frame
 # places it is a false loop closure. It was max_jump_mm / 5 = 3 mm, which also refused true ones once a hard scan's
 # chain had drifted 3 mm between passes: on simulated hard s1 / s2 no loop closed after frame 140, and the last
@@ -61,12 +43,9 @@ VIEW_REFIT_GROWTH = 1.25
 # and the simulated raster, revisit and short cells unchanged). False matches land tens of mm away, and the pose
 # graph's robust weights take the rest.
 LOOP_GATE_MM = 6.0
-MOVED_MM = 0.05  # a refined pose that moves a frame by less than this (0.4 px) does not re-render its tiles
 MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the placed frame's window
 DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
 DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - correlation)
-DIRECTION_GAP = 3  # frames: a placed neighbour farther in the sequence is across a gap, not the way the probe went
-STILL_MM = 0.3  # a frame whose neighbours are closer than this together has no direction of travel
 ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
 
 
@@ -83,9 +62,8 @@ class Registrar:
     px_per_mm: float
     window_radius_mm: float
     centre_px: tuple[float, float]  # the principal point (rectified pixels): direct alignment's centre
-    separation_mm: Sequence[float] = (53.0, 53.0)  # the force sensors' S_X, S_Y (spec §2)
-    kappa_prior_n_per_mm: float = 18.0  # the calibration's kappa: the prior of the fitted one
-    compliance_per_n: float = 0.0  # the calibration's nu / (E A): the tissue anisotropy's unit
+    # the probe's forces, the view model and skin drag learned from them and the edges, the edges corrected for both
+    corrections: EdgeCorrections = field(default_factory=EdgeCorrections)
     poses: dict[int, Similarity] = field(default_factory=dict)
     features: dict[int, Features] = field(default_factory=dict)
     times: dict[int, float] = field(default_factory=dict)
@@ -95,22 +73,10 @@ class Registrar:
     order: list[int] = field(default_factory=list)
     loops_since_refine: int = 0
     last_global_refine: int = 0  # placed frames at the last global refinement
-    last_view_evidence: int = 0  # edges with affine evidence at the last view fit
     run_start: int = 0  # the first frame of the current run (placed after a landing or a relocalisation)
     # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
-    forces: dict[int, np.ndarray] = field(default_factory=dict)  # every frame seen: sensor forces F1..F4 (N)
-    loads: dict[int, float] = field(default_factory=dict)  # placed frames: total load F_Z (N), the drag's prior
-    imu_tilts: dict[int, np.ndarray] = field(default_factory=dict)  # frames with an IMU: its tilts (deg) then
-    view_fit: ViewFit | None = None  # the probe's tilt and tissue anisotropy learned from the edges' affines
-    kappa_reference: HookeFit | None = None  # kappa fitted to the IMU's tilts (the view fit's prior), if any
-    drag_fit: DragFit | None = None  # the skin's friction drag learned from the edges' inlier pairs (at the end)
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
-    _views: dict[int, np.ndarray] = field(default_factory=dict)  # each frame's view D under the current fit
-    # each edge (by its frames) corrected under the current fit, with the edge it was corrected from
-    _undeformed: dict[tuple[int, int], tuple[Edge, Edge]] = field(default_factory=dict)
-    # each edge (by identity) undragged under the current drag fit, with the edge it was undragged from
-    _undragged: dict[int, tuple[Edge, Edge]] = field(default_factory=dict)
 
     @property
     def ransac_mm(self) -> float:
@@ -204,9 +170,7 @@ class Registrar:
 
     def add(self, pf: PreparedFrame) -> FrameResult:
         """Return the result of registering one prepared frame: its status, pose and which earlier frames moved."""
-        self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)  # its view, once the model is fitted
-        if pf.imu_tilt_deg is not None:
-            self.imu_tilts[pf.index] = np.asarray(pf.imu_tilt_deg, np.float64)
+        self.corrections.record(pf)
         blurred = self._is_blurred(pf)
         if not self.order:
             return self._accept(pf, IDENTITY, [], len(pf.features), blurred)
@@ -267,9 +231,7 @@ class Registrar:
         The frame is registered as any other (matched against `other` and the placed frames near it), with the
         relocalisation's match standing for the match to the latest frame; it starts a new run (no velocity).
         """
-        self.forces[pf.index] = np.asarray(pf.forces_n, np.float64)
-        if pf.imu_tilt_deg is not None:
-            self.imu_tilts[pf.index] = np.asarray(pf.imu_tilt_deg, np.float64)
+        self.corrections.record(pf)
         self.run_start = pf.index
         predicted = self.poses[other].compose(match.relative)
         return self._add_keyframes(pf, predicted, 0, self._is_blurred(pf), latest=other, found=match)
@@ -322,7 +284,7 @@ class Registrar:
             edges.extend(weak)
         if not edges:
             return self._fail(pf, blurred, self._why_not(pf))
-        pose = place_node(self.poses, self.undeformed(edges), pf.index)
+        pose = place_node(self.poses, self.corrections.undeformed(edges, self.poses), pf.index)
         total = sum(e.inliers for e in edges)
         result = self._accept(pf, pose, edges, total, blurred)
         if any(e.loop for e in edges):
@@ -389,200 +351,44 @@ class Registrar:
             pairs=match.pairs,
         )
 
-    def view(self, index: int) -> np.ndarray:
-        """Return a frame's view D (observed mm = D undeformed mm) under the fitted view model (I before a fit)."""
-        if self.view_fit is None or index not in self.forces:
-            return np.eye(2)
-        cached = self._views.get(index)
-        if cached is None:
-            pose = self.poses.get(index)
-            if pose is None or pose.a == 0:  # not placed yet: its yaw (the tissue axis's turn) is not known
-                return self.view_fit.model.views(self.forces[index], 0.0)
-            cached = self.view_fit.model.views(self.forces[index], cmath.phase(pose.a))
-            self._views[index] = cached
-        return cached
-
-    def undeformed(self, edges: list[Edge]) -> list[Edge]:
-        """Return the edges measuring relative poses between undeformed frames (tilt foreshortening removed).
-
-        Each edge is corrected once per view fit (cached by its frames until the next fit_tilt): a refinement
-        re-reads hundreds of edges whose correction has not changed.
-        """
-        if self.view_fit is None and not self.dragged():
-            return edges
-        out = []
-        for e in edges:
-            cached = self._undeformed.get((e.i, e.j))
-            if cached is None or cached[0] is not e:
-                u = self.undragged(e)
-                if self.view_fit is not None:
-                    u = u.with_relative(corrected_relative(u.relative, u.affine, self.view(e.i), self.view(e.j)))
-                cached = (e, u)
-                self._undeformed[(e.i, e.j)] = cached
-            out.append(cached[1])
-        return out
-
-    def undragged(self, e: Edge) -> Edge:
-        """Return an edge between undragged frames (physics.drag), itself without a kept drag fit or inlier pairs.
-
-        Made once per drag fit (the view fit and the pose graph both read it at the end: 30 000 edges over a
-        4-minute examination).
-        """
-        fit = self.drag_fit
-        if fit is None or not fit.kept or e.pairs is None:
-            return e
-        cached = self._undragged.get(id(e))
-        if cached is None or cached[0] is not e:
-            relative, (affine, view_affine) = undragged_transforms(
-                e.relative, (e.affine, e.view_affine), e.pairs, fit.of(e.i), fit.of(e.j), fit.width_mm
-            )
-            cached = (e, replace(e, relative=relative, affine=affine, view_affine=view_affine))
-            self._undragged[id(e)] = cached
-        return cached[1]
-
-    def fit_drag(self) -> DragFit | None:
-        """Return the skin's drag fitted to every edge's inlier pairs (physics.drag), also kept as drag_fit."""
-        evidence = [DragEvidence(e.i, e.j, e.pairs, e.relative.a) for e in self.edges if e.pairs is not None]
-        self.drag_fit = fit_drag(evidence, self.loads, self.directions())
-        self._undeformed = {}
-        self._undragged = {}
-        return self.drag_fit
-
-    def dragged(self) -> bool:
-        """Return whether a drag was learned and kept (physics.drag): the edges, path and mosaic undo it."""
-        return self.drag_fit is not None and self.drag_fit.kept
-
-    def directions(self) -> dict[int, complex]:
-        """Return each placed frame's unit direction of travel in its own axes (0 when still or alone in its run)."""
-        out: dict[int, complex] = {}
-        order = self.order
-        for k, i in enumerate(order):
-            before = order[k - 1] if k > 0 and i - order[k - 1] <= DIRECTION_GAP else i
-            after = order[k + 1] if k + 1 < len(order) and order[k + 1] - i <= DIRECTION_GAP else i
-            step = self.poses[after].t - self.poses[before].t
-            a = self.poses[i].a
-            out[i] = (step / abs(step)) * (abs(a) / a) if abs(step) > STILL_MM and a != 0 else 0j
-        return out
-
-    def _view_evidence(self) -> int:
-        """Return how many edges carry affine evidence for the view model."""
-        return sum(1 for e in self.edges if e.view_affine is not None)
-
-    def fit_tilt(self) -> ViewFit | None:
-        """Return the view model (kappa, anisotropy) refitted from every edge's affine, else the previous one.
-
-        The fit is services.core.physics.tissue_model's; None while no fit has succeeded yet.
-        """
-        undragged = (self.undragged(e) for e in self.edges if e.view_affine is not None)
-        evidence = [AffineEvidence(e.i, e.j, e.view_affine, e.affine_sigma) for e in undragged]
-        self.kappa_reference = self._kappa_from_imu()
-        fit = fit_view_model(
-            evidence,
-            self.forces,
-            self.separation_mm,
-            self.kappa_prior_n_per_mm,
-            self.compliance_per_n,
-            reference=self.kappa_reference,
-            yaw_rad={i: cmath.phase(p.a) for i, p in self.poses.items() if p.a != 0},
-        )
-        if fit is not None:
-            self.view_fit = fit
-            self.last_view_evidence = len(evidence)
-            self._views = {}
-            self._undeformed = {}
-        return self.view_fit
-
-    def _kappa_from_imu(self) -> HookeFit | None:
-        """Return kappa fitted to the IMU's tilts of the frames seen (spec §2 calibration), or None (no IMU, or
-        too little tilt: the images alone decide)."""
-        if not self.imu_tilts:
-            return None
-        frames = sorted(self.imu_tilts)
-        try:
-            return fit_kappa_to_tilts(
-                np.stack([self.imu_tilts[i] for i in frames]),
-                np.stack([self.forces[i] for i in frames]),
-                self.separation_mm,
-            )
-        except ValueError:
-            return None
-
     def refine(self, final: bool = False) -> tuple[int, ...]:
-        """Return the frames that moved (> MOVED_MM) when re-optimising the placed poses on the pose graph.
+        """Return the frames that moved (> refinement.MOVED_MM) when re-optimising the placed poses on the pose graph.
 
-        Global (every pose; the view model refitted once its evidence grew by VIEW_REFIT_GROWTH, and at the end)
-        while the scan is short, at the end (final), and
-        whenever the placed frames grew by GLOBAL_GROWTH since the last global pass; in between a local pass
-        around the newest frame (local_refine). So a minutes-long examination costs a bounded amount per loop
-        closure, plus global passes whose total is a constant multiple of the last one (issue 15).
+        Global (every pose; the drag refitted at the end, the view model once its evidence grew by
+        VIEW_REFIT_GROWTH and at the end) or local around the newest frame, as refinement.is_global decides.
         """
         self.loops_since_refine = 0
         if len(self.order) < 3 or not self.edges:
             return ()
         n = len(self.order)
-        if final or n < LOCAL_REFINE_FROM or n >= GLOBAL_GROWTH * self.last_global_refine:
-            self.last_global_refine = n
-            if final and self.options.fit_drag:
-                self.fit_drag()
-            if self.options.fit_tilt and (
-                final or self._view_evidence() >= VIEW_REFIT_GROWTH * self.last_view_evidence
-            ):
-                self.fit_tilt()
-            return self._optimise(self.poses, self.edges, {self.order[0]})
-        return self.local_refine()
+        if not is_global(n, self.last_global_refine, final):
+            return self._optimise(*local_pass(self.order, self.poses, self.edges, self.window_radius_mm))
+        self.last_global_refine = n
+        if final and self.options.fit_drag:
+            self.corrections.fit_drag(self.edges, self.order, self.poses)
+        if self.options.fit_tilt and (
+            final or view_evidence(self.edges) >= VIEW_REFIT_GROWTH * self.corrections.last_view_evidence
+        ):
+            self.corrections.fit_tilt(self.edges, self.poses)
+        return self._optimise(self.poses, self.edges, {self.order[0]})
 
     def refine_scales(self, targets: dict[int, float], sigma: float) -> tuple[int, ...]:
-        """Return the frames that moved when re-optimising every pose, each frame's scale |a| held to its target.
+        """Return the frames that moved when re-optimising every pose, each frame's scale |a| held to its target
+        with relative sigma `sigma`, frame 0 set to its own and held (refinement.scale_pass)."""
+        start, priors = scale_pass(self.order, self.poses, targets, sigma)
+        return self._optimise(start, self.edges, {self.order[0]}, priors)
 
-        Each target is held with relative sigma `sigma`.
-
-        Edges measure scale only relative to a neighbour, so along a chain with few loop closures (a hard scan's
-        rows) the scale wanders like a random walk; the tissue law fitted to the loads says what each frame's scale
-        is (SessionReconstruction._expected_scales), and holding every frame to it keeps the path's shape and the
-        gauge taken from the scales in step.
-
-        Frame 0, the path's origin, is set to its own target and held there (position and yaw unchanged). Held at
-        scale 1 while the others followed the law, its edges carried the gap between 1 and its law's scale into
-        every other frame's position (a simulated hard scan starting at 30 N: 0.18 mm from frame 1 on). Left free
-        with a prior like the others, its weakly tied yaw moved too and turned the whole path (0.26 deg on
-        simulated hard s1). docs/accuracy.md, "Frame 0 held to the law's scale".
-        """
-        first = self.order[0]
-        start = dict(self.poses)
-        if first in targets:  # the whole placement rescaled about frame 0 (at the origin), so the graph's weak
-            ratio = targets[first] / abs(self.poses[first].a)  # pulls toward the start agree with frame 0's scale
-            start = {i: Similarity(p.a * ratio, p.t * ratio) for i, p in self.poses.items()}
-        priors = {i: (t, sigma * t) for i, t in targets.items() if i != first}
-        solution = optimise_poses(start, self.undeformed(self.edges), {first}, scale_priors=priors)
-        moved = tuple(i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM)
-        self.poses.update(solution.poses)
-        return moved
-
-    def local_refine(self) -> tuple[int, ...]:
-        """Return the frames that moved when re-optimising the poses near the newest frame.
-
-        Near: the LOCAL_MAX nearest within LOCAL_RADIUS_WINDOWS window radii, and the newest LOCAL_RECENT frames;
-        the frames they share edges with are held where they are. Its cost is bounded however long the scan
-        (issue 15).
-        """
-        newest = self.poses[self.order[-1]].t
-        reach = LOCAL_RADIUS_WINDOWS * self.window_radius_mm
-        placed = np.array(self.order)
-        dist = np.abs(np.array([self.poses[i].t for i in self.order]) - newest)
-        near = np.flatnonzero(dist < reach)
-        nearest = near[np.argsort(dist[near], kind="stable")[:LOCAL_MAX]]
-        active = {int(i) for i in placed[nearest]} | set(self.order[-LOCAL_RECENT:])
-        active.discard(self.order[0])
-        edges = [e for e in self.edges if e.i in active or e.j in active]
-        held = {e.i for e in edges if e.i not in active} | {e.j for e in edges if e.j not in active}
-        if not held:
-            held = {self.order[0]}
-        return self._optimise({i: self.poses[i] for i in active | held}, edges, held)
-
-    def _optimise(self, poses: dict[int, Similarity], edges: list[Edge], held: set[int]) -> tuple[int, ...]:
+    def _optimise(
+        self,
+        poses: dict[int, Similarity],
+        edges: list[Edge],
+        held: set[int],
+        scale_priors: dict[int, tuple[float, float]] | None = None,
+    ) -> tuple[int, ...]:
         """Optimise `poses` on `edges` (undeformed) with `held` fixed; update them; return the frames that moved."""
-        solution = optimise_poses(poses, self.undeformed(edges), fixed=held)
-        moved = tuple(i for i, p in solution.poses.items() if abs(p.t - self.poses[i].t) > MOVED_MM and i in self.poses)
+        undeformed = self.corrections.undeformed(edges, self.poses)
+        solution = optimise_poses(poses, undeformed, fixed=held, scale_priors=scale_priors)
+        moved = moved_frames(solution.poses, self.poses)
         self.poses.update(solution.poses)
         return moved
 
@@ -593,7 +399,7 @@ class Registrar:
         self.features[pf.index] = pf.features
         self.times[pf.index] = pf.t_s
         self.stretches[pf.index] = pf.stretch
-        self.loads[pf.index] = pf.load.fz_n
+        self.corrections.loads[pf.index] = pf.load.fz_n
         self.edges.extend(edges)
         self.order.append(pf.index)
         self.veins[pf.index] = (pf.vein, np.packbits(pf.vein_mask > 0), _vein_scale(pf))

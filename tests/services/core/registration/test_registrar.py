@@ -13,6 +13,7 @@ import pytest
 from services.core import pipeline
 from services.core.inputs.scan import Scan
 from services.core.methods import MethodOptions, method_options
+from services.core.registration.edge_corrections import EdgeCorrections, view_evidence
 from services.core.registration.frame_prep import PreparedFrame
 from services.core.registration.outcome import (
     REASON_FEW_INLIERS,
@@ -24,7 +25,9 @@ from services.core.registration.outcome import (
     STATUS_REJECTED,
     FrameResult,
 )
-from services.core.registration.registrar import VIEW_REFIT_GROWTH, Registrar
+from services.core.registration.pose_graph import Edge
+from services.core.registration.refinement import VIEW_REFIT_GROWTH
+from services.core.registration.registrar import Registrar
 from services.core.similarity import IDENTITY, Similarity
 from tests.sim_cache import simulated
 from tests.tolerances import TOL
@@ -221,63 +224,6 @@ def test_frames_below_the_inlier_rule_are_placed_by_the_best_correlated_candidat
     assert all(refused[i].status == STATUS_LOST for i in weak[:1])
 
 
-def test_long_scan_refines_locally_between_growing_global_passes() -> None:
-    """Issue 15: past LOCAL_REFINE_FROM placed frames a refinement frees only the frames near the newest one
-    (far ones do not move at all: tolerance 0) until the placed frames grew by GLOBAL_GROWTH; then it is
-    global again, and the final refinement always is."""
-    from services.core.registration.pose_graph import Edge
-    from services.core.registration.registrar import GLOBAL_GROWTH, LOCAL_REFINE_FROM
-
-    options = dataclasses.replace(method_options("best"), fit_tilt=False)
-    registrar = Registrar(options, px_per_mm=8.0, window_radius_mm=20.0, centre_px=(320.0, 240.0))
-    n = LOCAL_REFINE_FROM + 50
-    rng = np.random.default_rng(5)
-    truth = {i: Similarity(1 + 0j, complex(3.6 * i, 0.0)) for i in range(n)}
-    for i in range(n):  # placed with a small random error, chained by exact edges
-        registrar.poses[i] = Similarity(1 + 0j, truth[i].t + complex(*rng.normal(0.0, 0.3, 2)))
-        registrar.order.append(i)
-        if i:
-            registrar.edges.append(Edge(i - 1, i, truth[i - 1].inverse().compose(truth[i]), 0.05))
-    registrar.last_global_refine = n  # a global pass just ran: the next one is local
-    before = dict(registrar.poses)
-    moved = registrar.refine()
-    assert moved and min(moved) >= n - 100, "only frames near the newest one move"
-    assert all(registrar.poses[i] == before[i] for i in range(n - 100))
-    registrar.last_global_refine = int(n / GLOBAL_GROWTH)  # grown enough: global again
-    moved = registrar.refine()
-    assert min(moved) < 50, "a global pass moves the early frames too"
-    registrar.last_global_refine = n
-    registrar.poses = dict(before)
-    assert min(registrar.refine(final=True)) < 50  # the final refinement is global
-
-
-def test_the_scale_prior_sets_frame_0_to_its_own_target_and_keeps_it_the_origin() -> None:
-    """Frame 0 is held at the scale the tissue law gives it, not at 1: a chain registered from frame 0 at scale 1
-    (its image 3 % larger than the law's unit, as a frame rectified at 30 N with a compliance a few % off) comes out
-    at the truth. The edges and targets are exact and the start is rescaled with frame 0, so only the solver's
-    rounding is left: tolerance 1e-6 (mm, and of a; 1e-16 measured). Held at 1, frame 0 put frame 1 0.47 mm off
-    and frame 7 1.13 mm; rescaling frame 0 alone left the graph's weak pull toward the registered poses (0.021 mm
-    at frame 7)."""
-    from services.core.registration.pose_graph import Edge
-
-    options = dataclasses.replace(method_options("best"), fit_tilt=False)
-    registrar = Registrar(options, px_per_mm=8.0, window_radius_mm=20.0, centre_px=(320.0, 240.0))
-    turn = np.exp(0.02j)
-    truth = {0: Similarity(0.97 + 0j, 0j)} | {k: Similarity(turn**k, complex(15.0 * k, 2.0 * k)) for k in range(1, 8)}
-    registered = {0: IDENTITY}
-    for k in range(1, 8):
-        relative = truth[k - 1].inverse().compose(truth[k])
-        registrar.edges.append(Edge(k - 1, k, relative, 0.05))
-        registered[k] = registered[k - 1].compose(relative)
-    registrar.poses = dict(registered)
-    registrar.order = list(range(8))
-    registrar.refine_scales({k: abs(p.a) for k, p in truth.items()}, 0.005)
-    assert registrar.poses[0].t == 0j and registrar.poses[0].a == pytest.approx(0.97, abs=1e-12)
-    for k in range(1, 8):
-        assert abs(registrar.poses[k].t - truth[k].t) < 1e-6, k
-        assert abs(registrar.poses[k].a - truth[k].a) < 1e-6, k
-
-
 @pytest.mark.slow
 def test_a_hard_scans_rows_close_loops_onto_the_row_before() -> None:
     # 30 N, 60 % overlap: the chain drifts a few mm between passes over the same place, and a loop closure must
@@ -318,17 +264,17 @@ def test_view_model_is_refitted_only_when_its_evidence_grew(monkeypatch: pytest.
     scan, options = simulated("raster", 1), method_options("best")
     fits: list[tuple[int, bool]] = []  # (edges with affine evidence, final pass) at each fit
     passes: list[bool] = []  # each global or local refinement: final?
-    fit_tilt, refine = Registrar.fit_tilt, Registrar.refine
+    fit_tilt, refine = EdgeCorrections.fit_tilt, Registrar.refine
 
-    def counting_fit(self: Registrar) -> object:
-        fits.append((self._view_evidence(), passes[-1]))
-        return fit_tilt(self)
+    def counting_fit(self: EdgeCorrections, edges: list[Edge], poses: dict[int, Similarity]) -> object:
+        fits.append((view_evidence(edges), passes[-1]))
+        return fit_tilt(self, edges, poses)
 
     def counting_refine(self: Registrar, final: bool = False) -> tuple[int, ...]:
         passes.append(final)
         return refine(self, final)
 
-    monkeypatch.setattr(Registrar, "fit_tilt", counting_fit)
+    monkeypatch.setattr(EdgeCorrections, "fit_tilt", counting_fit)
     monkeypatch.setattr(Registrar, "refine", counting_refine)
     _, registrar = _run(scan, options, frames=120)
     registrar.refine(final=True)

@@ -1,0 +1,59 @@
+"""Edge corrections: nothing is corrected before a fit, a kept drag undrags each edge once per fit, the direction of
+travel in each frame's own axes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.core.physics.drag import DragFit
+from services.core.registration.edge_corrections import (
+    DIRECTION_GAP,
+    EdgeCorrections,
+    directions_of_travel,
+    view_evidence,
+)
+from services.core.registration.pose_graph import Edge
+from services.core.similarity import IDENTITY, Similarity
+
+# matched points of frame j and frame i (mm): a spread of pairs, frame j 2 mm along x of frame i
+PAIRS = np.array([[x, y, x + 2.0, y] for x in (-8.0, 0.0, 8.0) for y in (-6.0, 0.0, 6.0)])
+
+
+def _drag(kept: bool) -> DragFit:
+    return DragFit(12.0, {0: 0.3 + 0j, 1: -0.2 + 0.1j}, 0.02 + 0j, 10.0, 2.0, 1, len(PAIRS), kept)
+
+
+def test_before_any_fit_edges_and_views_are_as_measured() -> None:
+    corrections = EdgeCorrections()
+    edges = [Edge(0, 1, Similarity(1 + 0j, 2 + 0j), 0.05, pairs=PAIRS)]
+    assert corrections.undeformed(edges, {0: IDENTITY, 1: IDENTITY}) is edges
+    assert corrections.undragged(edges[0]) is edges[0]
+    assert np.array_equal(corrections.view(0, {0: IDENTITY}), np.eye(2))
+    assert not corrections.dragged()
+
+
+def test_a_kept_drag_undrags_each_edge_once_per_fit() -> None:
+    corrections = EdgeCorrections(drag_fit=_drag(kept=True))
+    edge = Edge(0, 1, Similarity(1 + 0j, 2 + 0j), 0.05, pairs=PAIRS)
+    undragged = corrections.undragged(edge)
+    assert undragged.relative != edge.relative
+    assert corrections.undragged(edge) is undragged  # cached by the edge's identity
+    assert corrections.undeformed([edge], {0: IDENTITY, 1: IDENTITY}) == [undragged]
+    assert EdgeCorrections(drag_fit=_drag(kept=False)).undragged(edge) is edge  # a drag not kept is no drag
+    assert corrections.undragged(Edge(0, 1, edge.relative, 0.05)) == Edge(0, 1, edge.relative, 0.05)  # no pairs
+
+
+def test_directions_of_travel_are_in_each_frames_own_axes() -> None:
+    turned = 1j  # frames turned 90 deg: travel along the map's +x is along their -y
+    order = [0, 1, 2, 3 + DIRECTION_GAP + 1]
+    poses = {i: Similarity(turned, complex(float(i), 0.0)) for i in order[:3]}
+    poses[order[3]] = Similarity(turned, 40 + 0j)
+    directions = directions_of_travel(order, poses)
+    assert all(abs(directions[i] - (-1j)) < 1e-12 for i in order[:3])
+    assert directions[order[3]] == 0j  # alone across a gap: no direction
+
+
+def test_view_evidence_counts_the_edges_with_an_affine_on_their_inliers() -> None:
+    affine = np.hstack([np.eye(2), np.zeros((2, 1))])
+    edges = [Edge(0, 1, IDENTITY, 0.05, view_affine=affine), Edge(1, 2, IDENTITY, 0.05)]
+    assert view_evidence(edges) == 1
