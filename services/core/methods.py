@@ -33,6 +33,9 @@ class MethodOptions:
     scale_prior: float = 0.005  # at the end each frame's scale is held to that fit's law, this relative sigma (0: off)
     fit_tilt: bool = True  # learn the probe's true tilt (effective kappa) from the matches' affines; undo it
     fit_drag: bool = True  # learn the skin's friction drag under the sliding window from the matches; undo it
+    # also try the tissue's anisotropy axis fixed in the tissue (turning against the probe's yaw), the scan's evidence
+    # choosing: off by default, as on the simulated saturating cells the evidence chose it and the paths came out worse
+    tissue_axis: bool = False
     flat_field: bool = True  # divide out the IR ring's vignetting before blending
     min_inliers: int = 20  # unique RANSAC inliers for an accepted registration
     confirmed_inlier_share: float = 0.5  # ... this share of it for a match to an older frame agreeing with the latest's

@@ -121,10 +121,11 @@ class EdgeCorrections:
         """Return whether a drag was learned and kept (physics.drag): the edges, path and mosaic undo it."""
         return self.drag_fit is not None and self.drag_fit.kept
 
-    def fit_tilt(self, edges: list[Edge], poses: dict[int, Similarity]) -> ViewFit | None:
+    def fit_tilt(self, edges: list[Edge], poses: dict[int, Similarity], tissue_axis: bool = False) -> ViewFit | None:
         """Return the view model (kappa, anisotropy) refitted from every edge's affine, else the previous one.
 
-        The fit is services.core.physics.tissue_model's; None while no fit has succeeded yet.
+        The fit is services.core.physics.tissue_model's (with tissue_axis, the anisotropy's axis may also be fixed
+        in the tissue: each frame's yaw is passed); None while no fit has succeeded yet.
         """
         undragged = (self.undragged(e) for e in edges if e.view_affine is not None)
         evidence = [AffineEvidence(e.i, e.j, e.view_affine, e.affine_sigma) for e in undragged]
@@ -136,7 +137,7 @@ class EdgeCorrections:
             self.kappa_prior_n_per_mm,
             self.compliance_per_n,
             reference=self.kappa_reference,
-            yaw_rad={i: cmath.phase(p.a) for i, p in poses.items() if p.a != 0},
+            yaw_rad={i: cmath.phase(p.a) for i, p in poses.items() if p.a != 0} if tissue_axis else None,
         )
         if fit is not None:
             self.view_fit = fit

@@ -369,7 +369,7 @@ class Registrar:
         if self.options.fit_tilt and (
             final or view_evidence(self.edges) >= VIEW_REFIT_GROWTH * self.corrections.last_view_evidence
         ):
-            self.corrections.fit_tilt(self.edges, self.poses)
+            self.corrections.fit_tilt(self.edges, self.poses, self.options.tissue_axis)
         return self._optimise(self.poses, self.edges, {self.order[0]})
 
     def refine_scales(self, targets: dict[int, float], sigma: float) -> tuple[int, ...]:

@@ -266,9 +266,11 @@ def test_view_model_is_refitted_only_when_its_evidence_grew(monkeypatch: pytest.
     passes: list[bool] = []  # each global or local refinement: final?
     fit_tilt, refine = EdgeCorrections.fit_tilt, Registrar.refine
 
-    def counting_fit(self: EdgeCorrections, edges: list[Edge], poses: dict[int, Similarity]) -> object:
+    def counting_fit(
+        self: EdgeCorrections, edges: list[Edge], poses: dict[int, Similarity], tissue_axis: bool = False
+    ) -> object:
         fits.append((view_evidence(edges), passes[-1]))
-        return fit_tilt(self, edges, poses)
+        return fit_tilt(self, edges, poses, tissue_axis)
 
     def counting_refine(self: Registrar, final: bool = False) -> tuple[int, ...]:
         passes.append(final)

@@ -3,11 +3,11 @@
 One tolerance table, each band measured on `short` seed 1 (40 frames, tilts up to 7 deg, true kappa 0.108 N/mm)
 with its margin: tilt RMS 0.19-0.29 deg per axis (target 1 deg; 0.63-0.91 when the view model's evidence was
 the affine on the similarity's inliers, which understates the stretch); kappa fitted within 1.5 % (17-21 % high
-before); path RMSE 0.335 (linear), 0.343 (stiffening), 0.379 (toe), 0.490 (saturating, its anisotropy fixed in
-the tissue and the probe yawing +-15 deg) and 0.532 mm (power law: over these 40 frames' 3-12 N its curvature is
-at the noise, so the fit keeps the linear law). Every law's secant compliance at the scan's mean load is the
-simulator's true one, 4-10 % off the calibration's; the 5 % prior holds the level back, so the path is 0.6-1.1 %
-too large on this seed: the level, not the shape, is what these bands measure.
+before); path RMSE 0.335 (linear), 0.343 (stiffening), 0.379 (toe), 0.364 (saturating, its anisotropy fixed
+in the tissue and the probe yawing +-15 deg; 0.490 with tissue_axis=true) and 0.532 mm (power law: over these
+40 frames' 3-12 N its curvature is at the noise, so the fit keeps the linear law). Every law's secant compliance
+at the scan's mean load is the simulator's true one, 4-10 % off the calibration's; the 5 % prior holds the level
+back, so the path is 0.6-1.1 % too large on this seed: the level, not the shape, is what these bands measure.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ TOL = {  # law: (max path RMSE mm, max tilt RMS deg per axis, max |log(kappa / t
     "stiffening": (0.42, 0.5, 0.10),
     "power": (0.65, 0.5, 0.10),
     "toe": (0.46, 0.5, 0.10),
-    "saturating": (0.60, 0.5, 0.10),
+    "saturating": (0.45, 0.5, 0.10),
 }
 
 
@@ -52,9 +52,17 @@ def test_best_learns_the_tilt_of_a_hand_on_each_tissue_law(law: str) -> None:
     kappa = recon.learned["kappa_n_per_mm"]
     assert abs(math.log(kappa / truth["hooke_n_per_mm"])) <= max_kappa, kappa
     assert recon.learned["kappa_low_n_per_mm"] < kappa < recon.learned["kappa_high_n_per_mm"]
-    # the anisotropy's axis as the scan shows it: fixed in the tissue only where the simulated tissue has it so
-    # (the probe yaws by up to 15 deg there: its frames turn against the axis)
-    assert recon.learned["anisotropy_axis"] == truth["tissue"]["anisotropy_axis"]
+    assert recon.learned["anisotropy_axis"] == "probe"  # the tissue axis is tried only on request (below)
+
+
+def test_the_tissue_axis_is_chosen_on_request_where_the_tissue_has_it() -> None:
+    # tissue_axis=true: the scan's evidence chooses the saturating tissue's axis fixed in the tissue (the probe yaws
+    # by up to 15 deg), and the stiffening tissue's in the probe (it barely yaws), each reported with both residuals
+    for law, axis in (("saturating", "tissue"), ("stiffening", "probe")):
+        scan = simulated("short", 1, tissue=law)
+        recon = reconstruct(scan, method_options("best").with_overrides({"tissue_axis": True}))
+        assert recon.learned["anisotropy_axis"] == axis == scan.truth["tissue"]["anisotropy_axis"], law
+        assert recon.learned["affine_residual_rms_probe_axis"] is not None
 
 
 def test_without_the_view_model_tilts_are_the_calibrations_hundredths() -> None:
