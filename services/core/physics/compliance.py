@@ -194,69 +194,67 @@ def fit_compliance(
     reference = float(np.mean(loads))
     bounds = (0.5 * c_nominal, 1.5 * c_nominal)
 
-    shape = "stiffening"
-
-    def terms(k: float, s: float) -> np.ndarray:
+    def terms(k: float, s: float, shape: str) -> np.ndarray:
         return y - np.log(np.clip(1 - k * _shape(loads, s, reference, shape), 1e-3, None))
 
-    def spread(k: float, s: float) -> float:
-        return float(np.var(terms(k, s)))
+    def spread(k: float, s: float, shape: str) -> float:
+        return float(np.var(terms(k, s, shape)))
 
-    def least_squares(s: float) -> float:
-        return float(minimize_scalar(lambda k: spread(k, s), bounds=bounds, method="bounded", options=_TIGHT).x)
+    def least_squares(s: float, shape: str) -> float:
+        return float(minimize_scalar(lambda k: spread(k, s, shape), bounds=bounds, method="bounded", options=_TIGHT).x)
 
-    s, s_sd, chi2 = 0.0, 0.0, 0.0
+    shape, s, s_sd, chi2 = "stiffening", 0.0, 0.0, 0.0  # the linear law: s = 0, where both shapes are the same
     shape_rms: dict[str, float] = {}
     if stiffening:
-        noise_var = max(spread(least_squares(0.0), 0.0), SHAPE_NOISE_FLOOR**2)  # the scatter about the linear law
+        noise_var = max(spread(least_squares(0.0, shape), 0.0, shape), SHAPE_NOISE_FLOOR**2)  # about the linear law
 
-        def data_cost(rate: float) -> float:  # n/2 x the variance of the log-scales, profiled over the level
-            return n * spread(least_squares(rate), rate) / 2.0
+        def data_cost(rate: float, shape: str) -> float:  # n/2 x the log-scales' variance, profiled over the level
+            return n * spread(least_squares(rate, shape), rate, shape) / 2.0
 
-        def shape_cost(rate: float) -> float:  # -log posterior of the shape
-            prior = 0.0 if stiffening_prior_per_n is None else 0.5 * (rate / (unit * stiffening_prior_per_n)) ** 2
-            return data_cost(rate) / noise_var + prior
+        def prior_curvature(shape: str) -> float:  # of the half-normal prior on 1 / F_s, in the shape's rate
+            return 0.0 if stiffening_prior_per_n is None else (SHAPES[shape] * stiffening_prior_per_n) ** -2
 
-        best: tuple[float, str, float] | None = None  # (cost, shape, rate): the curved shape that explains best
-        for shape, unit in SHAPES.items():
-            found = minimize_scalar(shape_cost, bounds=(0.0, unit * STIFFENING_MAX_PER_N), method="bounded")
-            shape_rms[shape] = math.sqrt(spread(least_squares(float(found.x)), float(found.x)))
-            margin = SATURATING_MIN_GAIN_CHI2 / 2.0 if shape == "saturating" else 0.0
-            if best is None or float(found.fun) < best[0] - margin:
-                best = (float(found.fun), shape, float(found.x))
-        assert best is not None
-        shape, unit = best[1], SHAPES[best[1]]
-        chi2 = max(0.0, 2.0 * (shape_cost(0.0) - best[0]))
+        def shape_cost(rate: float, shape: str) -> float:  # -log posterior of the shape
+            return data_cost(rate, shape) / noise_var + 0.5 * prior_curvature(shape) * rate**2
+
+        costs: dict[str, tuple[float, float]] = {}  # each curved shape: (its cost, its rate) at its best rate
+        for name, unit in SHAPES.items():
+            found = minimize_scalar(
+                shape_cost, args=(name,), bounds=(0.0, unit * STIFFENING_MAX_PER_N), method="bounded"
+            )
+            costs[name] = (float(found.fun), float(found.x))
+            shape_rms[name] = math.sqrt(spread(least_squares(costs[name][1], name), costs[name][1], name))
+        better = costs["saturating"][0] < costs["stiffening"][0] - SATURATING_MIN_GAIN_CHI2 / 2.0
+        curved = "saturating" if better else "stiffening"
+        chi2 = max(0.0, 2.0 * (shape_cost(0.0, curved) - costs[curved][0]))
         if chi2 > max(math.log(n), STIFFENING_MIN_CHI2):
-            s = best[2]
-            h = max(_DIFF_STEP * unit * STIFFENING_MAX_PER_N, 1e-3 * s)
-            fitted_var = max(spread(least_squares(s), s), SHAPE_NOISE_FLOOR**2)  # the scatter about the law
-            prior_curvature = 0.0 if stiffening_prior_per_n is None else (unit * stiffening_prior_per_n) ** -2
-            curvature = _second_derivative(data_cost, max(s, h), h) / fitted_var + prior_curvature
+            shape, s = curved, costs[curved][1]
+            h = max(_DIFF_STEP * SHAPES[shape] * STIFFENING_MAX_PER_N, 1e-3 * s)
+            fitted_var = max(spread(least_squares(s, shape), s, shape), SHAPE_NOISE_FLOOR**2)  # about the law
+            curvature = _second_derivative(lambda r: data_cost(r, shape), max(s, h), h) / fitted_var
+            curvature += prior_curvature(shape)
             s_sd = 1.0 / math.sqrt(curvature) if curvature > 0 else math.inf
-        else:
-            shape = "stiffening"  # the linear law: s = 0, where both shapes are the same
 
-    k = least_squares(s)
+    k = least_squares(s, shape)
     if prior_rel is not None:
-        level_var = max(spread(k, s), floor**2)
+        level_var = max(spread(k, s, shape), floor**2)
 
         def neg_log_posterior(kk: float) -> float:
-            return n * spread(kk, s) / (2.0 * level_var) + 0.5 * ((kk / c_nominal - 1.0) / prior_rel) ** 2
+            return n * spread(kk, s, shape) / (2.0 * level_var) + 0.5 * ((kk / c_nominal - 1.0) / prior_rel) ** 2
 
         k = float(minimize_scalar(neg_log_posterior, bounds=bounds, method="bounded").x)
         k_curvature = _second_derivative(neg_log_posterior, k, _DIFF_STEP * k)
     else:
-        k_curvature = _second_derivative(lambda kk: n * spread(kk, s) / 2.0, k, _DIFF_STEP * k) / max(
-            spread(k, s), SHAPE_NOISE_FLOOR**2
+        k_curvature = _second_derivative(lambda kk: n * spread(kk, s, shape) / 2.0, k, _DIFF_STEP * k) / max(
+            spread(k, s, shape), SHAPE_NOISE_FLOOR**2
         )
     k_sd = 1.0 / math.sqrt(k_curvature) if k_curvature > 0 else math.inf
 
-    t = terms(k, s)
+    t = terms(k, s, shape)
     log_g = float(np.mean(t))
     # 68 % half-widths (Laplace): the level's given the shape, the shape's moving the level along its profile
     # (the least-squares level at each s), and the mean log-scale's own scatter
-    dlogg_dk = (np.mean(terms(k * (1 + _DIFF_STEP), s)) - log_g) / (k * _DIFF_STEP)
+    dlogg_dk = (np.mean(terms(k * (1 + _DIFF_STEP), s, shape)) - log_g) / (k * _DIFF_STEP)
     gauge_var = (dlogg_dk * k_sd) ** 2 + float(np.var(t)) / n
     grow = _zero_load_slope(s, reference, shape)
     c0 = k * grow  # the zero-load compliance of the law with secant k at F_ref
@@ -264,11 +262,10 @@ def fit_compliance(
     if s > 0 and math.isfinite(s_sd):
         ds = max(_DIFF_STEP * STIFFENING_MAX_PER_N, 1e-3 * s)
         s_lo, s_hi = max(s - ds, 0.0), s + ds
-        k_lo, k_hi = least_squares(s_lo), least_squares(s_hi)
-        dlogg_ds = (np.mean(terms(k_hi, s_hi)) - np.mean(terms(k_lo, s_lo))) / (s_hi - s_lo)
-        dc0_ds = (k_hi * _zero_load_slope(s_hi, reference, shape) - k_lo * _zero_load_slope(s_lo, reference, shape)) / (
-            s_hi - s_lo
-        )
+        k_lo, k_hi = least_squares(s_lo, shape), least_squares(s_hi, shape)
+        dlogg_ds = (np.mean(terms(k_hi, s_hi, shape)) - np.mean(terms(k_lo, s_lo, shape))) / (s_hi - s_lo)
+        c0_lo, c0_hi = (kk * _zero_load_slope(ss, reference, shape) for kk, ss in ((k_lo, s_lo), (k_hi, s_hi)))
+        dc0_ds = (c0_hi - c0_lo) / (s_hi - s_lo)
         gauge_var += (dlogg_ds * s_sd) ** 2
         c0_var += (dc0_ds * s_sd) ** 2
     return ComplianceFit(

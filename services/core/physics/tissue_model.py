@@ -285,7 +285,7 @@ def fit_view_model(
     yaw_i, yaw_j = (yaws[: len(usable)], yaws[len(usable) :]) if with_yaw else (np.zeros(len(usable)),) * 2
 
     def model(x: np.ndarray, axis: str) -> ViewModel:
-        return ViewModel(math.exp(x[0]), complex(x[1], x[2] if axis == "tissue" else 0.0), compliance_per_n, sep, axis)
+        return ViewModel(math.exp(x[0]), complex(x[1], x[2]), compliance_per_n, sep, axis)  # probe: x[2] stays 0
 
     def residuals(x: np.ndarray, axis: str) -> np.ndarray:
         m = model(x, axis)

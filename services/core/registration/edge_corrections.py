@@ -64,9 +64,10 @@ class EdgeCorrections:
         cached = self._views.get(index)
         if cached is None:
             pose = poses.get(index)
-            if pose is None or pose.a == 0:  # not placed yet: its yaw (the tissue axis's turn) is not known
+            placed = pose is not None and pose.a != 0
+            if not placed and self.view_fit.model.anisotropy_axis == "tissue":  # its yaw, the axis's turn, unknown
                 return self.view_fit.model.views(self.forces[index], 0.0)
-            cached = self.view_fit.model.views(self.forces[index], cmath.phase(pose.a))
+            cached = self.view_fit.model.views(self.forces[index], cmath.phase(pose.a) if placed else 0.0)
             self._views[index] = cached
         return cached
 

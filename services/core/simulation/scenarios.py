@@ -181,8 +181,8 @@ def simulate(
     on (scenario, seed), never on the imaging. truth: young_modulus_kpa, hooke_n_per_mm (the true constants),
     poses [[x_mm, y_mm, yaw_deg], ...] in frame 0's coordinates, fz_n and tilt_x_deg / tilt_y_deg per frame,
     blurred frame indices, blur_px per frame (0 = sharp), gains per frame, path_length_mm, force_offsets_n,
-    imaging (the variant as a dict), scenario, seed, tissue (the law, TissueLaw.to_dict), anisotropy_angle_frame0_deg
-    (the law's anisotropy axis in frame 0's axes, for an axis fixed in the tissue).
+    imaging (the variant as a dict), scenario, seed, tissue (the law, TissueLaw.to_dict), and for an
+    anisotropy axis fixed in the tissue anisotropy_angle_frame0_deg (the axis in frame 0's axes).
     tissue: None for the phantom the project's bands were measured on (spec §2's linear law, the calibration's
     kappa +-10 %, tilts under 0.3 deg); a law in TISSUE_LAWS for a patient as on the shared scans: a hand's
     effective kappa (draw_hand_kappa), tilts up to HAND_TILT_DEG (a tilted view: 1/cos along the tilt) and the
@@ -239,8 +239,9 @@ def simulate(
 
     geometry = frame_geometry(calib)
     fz, tx, ty = motion.load_at(motion.frame_t_s)
+    on_skin = ~in_air if in_air is not None else np.ones(n, bool)
     if law.kind != "linear":  # the calibration's E is the secant compliance at the scan's typical load
-        law = dataclasses.replace(law, anchor_n=float(np.mean(fz if in_air is None else fz[~in_air])))
+        law = dataclasses.replace(law, anchor_n=float(np.mean(fz[on_skin])))
     blurred_flags = rng_img.random(n) < look.blur_fraction
     blurred_flags[0] = False
     if in_air is not None:
@@ -250,7 +251,6 @@ def simulate(
     angles = motion_angles_deg(motion) + rng_img.normal(0.0, 10.0, n)  # the hand's jitter about the motion
     gains = frame_gains(rng_img, n, look)
     skin_drag = draw_skin_drag(rng_drag) if drag else None
-    on_skin = ~in_air if in_air is not None else np.ones(n, bool)
     drags = frame_drags_mm(rng_drag, skin_drag, motion, fz, on_skin) if skin_drag else np.zeros((n, 2))
     frames = []
     for k in range(n):
@@ -300,10 +300,10 @@ def simulate(
         "path_length_mm": path_length_mm(xy),
         "force_offsets_n": [float(v) for v in offsets],
         "tissue": law.to_dict(),
-        # the anisotropy's axis in frame 0's axes (the path's and the mosaic's) when it is fixed in the tissue
-        "anisotropy_angle_frame0_deg": law.anisotropy_angle_deg - float(motion.yaw_deg[0]),
         "texture": "procedural" if texture is None else "photograph",
     }
+    if law.anisotropy_axis == "tissue":  # the axis in frame 0's axes (the path's and the mosaic's)
+        truth["anisotropy_angle_frame0_deg"] = law.anisotropy_angle_deg - float(motion.yaw_deg[0])
     if skin_drag is not None:
         truth.update(drag=skin_drag.to_dict(), drag_mm=[[float(x), float(y)] for x, y in drags])
     if in_air is not None:

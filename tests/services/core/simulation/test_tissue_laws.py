@@ -56,13 +56,14 @@ def test_best_learns_the_tilt_of_a_hand_on_each_tissue_law(law: str) -> None:
 
 
 def test_the_tissue_axis_is_chosen_on_request_where_the_tissue_has_it() -> None:
-    # tissue_axis=true: the scan's evidence chooses the saturating tissue's axis fixed in the tissue (the probe yaws
-    # by up to 15 deg), and the stiffening tissue's in the probe (it barely yaws), each reported with both residuals
-    for law, axis in (("saturating", "tissue"), ("stiffening", "probe")):
-        scan = simulated("short", 1, tissue=law)
-        recon = reconstruct(scan, method_options("best").with_overrides({"tissue_axis": True}))
-        assert recon.learned["anisotropy_axis"] == axis == scan.truth["tissue"]["anisotropy_axis"], law
-        assert recon.learned["affine_residual_rms_probe_axis"] is not None
+    # tissue_axis=true on the saturating tissue (its axis fixed in the tissue, the probe yawing by up to 15 deg):
+    # both axes are fitted and reported, and the scan's evidence chooses the tissue's (without yaw the tissue axis
+    # is not fitted at all: tests/services/core/physics/test_tissue_model.py)
+    scan = simulated("short", 1, tissue="saturating")
+    recon = reconstruct(scan, method_options("best").with_overrides({"tissue_axis": True}))
+    assert recon.learned["anisotropy_axis"] == "tissue" == scan.truth["tissue"]["anisotropy_axis"]
+    probe, tissue = (recon.learned[f"affine_residual_rms_{axis}_axis"] for axis in ("probe", "tissue"))
+    assert probe is not None and tissue is not None and tissue < probe
 
 
 def test_without_the_view_model_tilts_are_the_calibrations_hundredths() -> None:
