@@ -34,7 +34,7 @@ from services.jobs.redis_backend import close, connect
 from services.log_format import configure_json_logging, failure_reason, request_id_var
 from services.settings import Settings, get_settings
 from services.store.audit import AuditLog
-from services.store.secrets import audit_key_bytes, token_secret_bytes, token_secrets
+from services.store.secrets import audit_key_bytes, token_secrets
 from services.store.storage import SessionStore
 
 API_VERSION = "1.0.0"
@@ -142,7 +142,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         s.data_dir.mkdir(parents=True, exist_ok=True)
         app.state.settings = s
         app.state.keys = key_table(s.api_keys)
-        app.state.token_secret = token_secret_bytes(s)
         app.state.token_secrets = token_secrets(s)  # oldest first: the previous secrets still verify
         app.state.store = SessionStore(s.data_dir)
         app.state.audit = AuditLog(s.data_dir / "audit" / "audit.jsonl", audit_key_bytes(s), s.audit_max_bytes)

@@ -98,8 +98,14 @@ def waiting(r: redis.Redis, prefix: str) -> dict[str, list[str]]:
 
 
 def depth(r: redis.Redis, prefix: str) -> int:
-    """Return how many jobs are queued or running: the jobs stream's entries plus those waiting in lanes."""
-    return int(r.xlen(queue.jobs_stream(prefix))) + sum(len(ids) for ids in waiting(r, prefix).values())
+    """Return how many jobs are queued or running: the jobs stream's entries plus those waiting in lanes (counted
+    with LLEN: every enqueue and every metrics scrape asks, and the ids themselves are not needed)."""
+    members = [_text(m) for m in r.lrange(queue.job_lanes_key(prefix), 0, -1)]
+    pipe = r.pipeline(transaction=False)
+    pipe.xlen(queue.jobs_stream(prefix))
+    for member in members:
+        pipe.llen(prefix + member)
+    return sum(int(n) for n in pipe.execute())
 
 
 def known_jobs(r: redis.Redis, prefix: str) -> set[str]:

@@ -10,6 +10,7 @@ A limit of 0 is no limit. The message names the quota and its limit, never the k
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 
@@ -66,6 +67,10 @@ def take(
 
 
 def give_back(r: redis.Redis, counter: str | None, n: int = 1) -> None:
-    """Return `n` units a request took (`take`'s counter) and did not use: its upload was a duplicate or failed."""
+    """Return `n` units a request took (`take`'s counter) and did not use: its upload was a duplicate or failed.
+
+    Best effort: it runs while another error is on its way out, which a Redis failure here must not replace; a
+    unit not given back only counts against its key until the window ends."""
     if counter is not None:
-        r.eval(_GIVE_BACK, 1, counter, str(int(n)))
+        with contextlib.suppress(redis.RedisError):
+            r.eval(_GIVE_BACK, 1, counter, str(int(n)))

@@ -45,6 +45,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from services.store.durable import fsync_dir
+
 GENESIS = "0" * 64
 CHAIN = "hmac-sha256"  # the `chain` field of a keyed record
 _TAIL = 64 * 1024
@@ -161,11 +163,7 @@ class AuditLog:
         last = self.files()[:-1]
         number = int(_ROTATED.match(last[-1].name).group(1)) + 1 if last else 1  # type: ignore[union-attr]
         os.rename(self.path, self.path.parent / f"audit-{number:06d}.jsonl")
-        dir_fd = os.open(self.path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
+        fsync_dir(self.path.parent)
 
     def _last_rotated_hash(self) -> str:
         """Return the last record's hash of the newest rotated file (GENESIS when there is none)."""

@@ -30,12 +30,19 @@ def test_durable_tiles_are_synced_once_after_the_batch(backend: Backend, monkeyp
     changed = pyramid.update(canvas, set(canvas.tiles))
     fsyncs: list[int] = []
     syncs: list[Path] = []
+    on_disk: list[int] = []  # tiles written when the sync ran: it must come after every one
     monkeypatch.setattr(durable.os, "fsync", lambda fd: fsyncs.append(fd))
-    monkeypatch.setattr(results_store, "sync_filesystem", lambda path: syncs.append(path))
+
+    def sync(path: Path) -> None:
+        syncs.append(path)
+        on_disk.append(len(list(results.version_dir(sid, 1).rglob("*.png"))))
+
+    monkeypatch.setattr(results_store, "sync_filesystem", sync)
 
     revisions: dict[str, dict[str, int]] = {}
     written = publisher.write_tiles(sid, 1, pyramid, changed, 1, revisions, durable=True)
     assert syncs == [results.version_dir(sid, 1)] and not fsyncs  # once, after every tile
+    assert on_disk == [2 * len(changed)]  # both layers' tiles
     assert {len(names) for names in written.values()} == {len(changed)}
     for level, col, row in changed:
         for layer in ("vein", "force"):

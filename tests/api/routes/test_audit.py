@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -90,6 +91,15 @@ def test_repeated_reads_are_coalesced_writes_are_not(client: TestClient, session
     records = client.get("/v1/audit", params={"session": session_id}, headers=ADMIN).json()["records"]
     assert [r["action"] for r in records].count("session.read") == 1
     assert [r["action"] for r in records].count("session.finish") == 2
+
+
+def test_the_services_audit_log_rotates_at_its_setting(make_client: Callable[..., TestClient]) -> None:
+    # audit_max_bytes reaches the API's log: a 2000-byte cap rotates it within a few requests, the chain verified
+    client = make_client(audit_max_bytes=2000)
+    for i in range(12):
+        client.post("/v1/sessions", json={"calibration": calibration_doc(), "label": f"l{i}"}, headers=INGEST)
+    verified = client.get("/v1/audit/verify", headers=ADMIN).json()
+    assert verified["ok"] and verified["files"] > 1, verified
 
 
 @pytest.mark.slow

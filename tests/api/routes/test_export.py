@@ -193,7 +193,7 @@ def test_export_and_sheet_auth(ready: tuple[TestClient, dict, MosaicImage]) -> N
     client, created, _ = ready
     sid, token = created["id"], created["viewer_token"]
     other = create(client, key=auth("ingest-key-b-0123456789abcdef"))
-    expired = make_viewer_token(client.app.state.token_secret, sid, 10, now=1000.0)  # type: ignore[attr-defined]
+    expired = make_viewer_token(client.app.state.token_secrets, sid, 10, now=1000.0)  # type: ignore[attr-defined]
     for route in AUTH_ROUTES:
         url = f"/v1/sessions/{sid}{route}"
         sep = "&" if "?" in url else "?"

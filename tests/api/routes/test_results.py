@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from typing import Any
 
 import cv2
@@ -215,7 +216,7 @@ def test_view_routes_auth(ready: tuple[TestClient, str, dict], short_scan: Scan)
     client, sid, created = ready
     other = create_session(client, short_scan, key=auth("ingest-key-b-0123456789abcdef"))
     token, other_token = created["viewer_token"], other["viewer_token"]
-    secret = client.app.state.token_secret  # type: ignore[attr-defined]
+    secret = client.app.state.token_secrets  # type: ignore[attr-defined]
     expired = make_viewer_token(secret, sid, 10, now=1000.0)
     for route in VIEW_ROUTES:
         url = f"/v1/sessions/{sid}{route}"
@@ -245,3 +246,17 @@ def test_extent_helper(ready: tuple[TestClient, str, dict], bundle: Bundle) -> N
     assert re.match(r"^[0-9a-f]{32}$", sid)
     state = client.get(f"/v1/sessions/{sid}", headers=INGEST).json()  # the session state carries it too
     assert state["extent"] == ext
+
+
+def test_a_token_signed_with_a_previous_secret_still_opens_the_view(
+    make_client: Callable[..., TestClient], short_scan: Scan
+) -> None:
+    # previous_token_secrets reaches the app: a link signed before the secret was rotated still verifies
+    old = "previous-secret-0123456789abcdef-01"
+    client = make_client(previous_token_secrets=[old])
+    sid = create_session(client, short_scan)["id"]
+    now = client.app.state.clock()  # type: ignore[attr-defined]
+    token = make_viewer_token(old.encode(), sid, 600, now=now)
+    assert client.get(f"/v1/sessions/{sid}?token={token}").status_code == 200
+    stranger = make_viewer_token(b"some-other-secret-0123456789abcdef", sid, 600, now=now)
+    assert client.get(f"/v1/sessions/{sid}?token={stranger}").status_code == 401

@@ -232,10 +232,13 @@ def test_the_finish_pastes_again_only_the_frames_that_moved(live_run: LiveRun, m
     assert not live.finish()
     unfinished = live.canvas.render()
     monkeypatch.undo()
+    planes = {key: tile.copy() for key, tile in live.canvas.tiles.items()}
     touched = live.finish()
     again = [i for i in live.pasted if not np.array_equal(live.pasted[i], before[i])]
     assert again == far
     assert touched and len(touched) < len(tiles)  # only the tiles the moved frames cover
+    # ... and those it reports are all that changed: the worker re-renders only them
+    assert all(np.array_equal(live.canvas.tiles[key], planes[key]) for key in planes if key not in touched)
     finished = live.canvas.render()
     live._restitch()  # every frame afresh at its final place, the near one too
     assert not np.array_equal(live.pasted[near], before[near])
