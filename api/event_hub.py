@@ -126,20 +126,26 @@ class EventHub:
                                 sub.interrupt()
         except (redis.RedisError, OSError):
             log.warning("event streams interrupted: the reader lost Redis")
-            for subs in list(self.subscribers.values()):
-                for sub in list(subs):
-                    self.unsubscribe(sub)
-                    sub.interrupt()
+            self._interrupt_all()
         finally:
             self._task = None
 
+    def _interrupt_all(self) -> None:
+        """Drop every subscription and interrupt its stream (it ends; the client reconnects and catches up)."""
+        for subs in list(self.subscribers.values()):
+            for sub in list(subs):
+                self.unsubscribe(sub)
+                sub.interrupt()
+
     async def close(self) -> None:
-        """Stop the reader and close the connections (the app is stopping)."""
+        """Stop the reader, interrupt the streams still subscribed and close the connections (the app is stopping,
+        or the Redis server moved)."""
         task = self._task
         if task is not None:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
+        self._interrupt_all()
         for client in (self._reader, self.client):
             with contextlib.suppress(redis.RedisError, OSError, RuntimeError):
                 await client.aclose()

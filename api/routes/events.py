@@ -102,6 +102,8 @@ def event_hub(request: Request, url: str) -> EventHub:
     """Return the app's event hub (one Redis reader for all its streams), made on the first stream."""
     hub: EventHub | None = getattr(request.app.state, "event_hub", None)
     if hub is None or hub.url != url:  # a restarted embedded Redis listens on a new socket
+        if hub is not None:  # the old one's connections closed, its streams interrupted (they reconnect)
+            asyncio.get_running_loop().create_task(hub.close())
         hub = request.app.state.event_hub = EventHub(url)
     return hub
 
