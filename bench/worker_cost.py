@@ -37,7 +37,7 @@ PARTS = (
 WORK = ("prepare", "register")  # the algorithm; the other steps are the service's overhead
 
 
-def measure(frames: int, flush_every: int, seed: int) -> dict[str, float]:
+def measure(frames: int, flush_every: int, seed: int, overrides: dict[str, object]) -> dict[str, float]:
     """Return CPU ms per frame of each step of a live worker's work on a simulated raster (this process)."""
     import cv2
 
@@ -53,7 +53,7 @@ def measure(frames: int, flush_every: int, seed: int) -> dict[str, float]:
 
     cv2.setNumThreads(int(os.environ.get("BENCH_CV_THREADS", "1")))
     scan = simulate("raster", seed)
-    options = method_options("best")
+    options = method_options("best").with_overrides(overrides)
     calib = scan.calibration
     forces = frame_forces(scan)
     mask, flat = window_setup(scan, options)
@@ -140,14 +140,15 @@ def measure(frames: int, flush_every: int, seed: int) -> dict[str, float]:
     }
 
 
-def run_config(args: argparse.Namespace, copies: int, threads: int, repo: Path) -> list[dict[str, float]]:
-    """Return the per-part figures of `copies` children run at once on `repo` with `threads` BLAS/OpenCV threads."""
+def run_config(args: argparse.Namespace, copies: int, threads: int, repo: Path, options: str) -> list[dict[str, float]]:
+    """Return the per-part figures of `copies` children run at once on `repo` with `threads` BLAS/OpenCV threads,
+    `best` with the method options `options` (JSON)."""
     env = dict(os.environ)
     env["PYTHONPATH"] = str(repo)
     env["OPENBLAS_NUM_THREADS"] = str(threads)
     env["BENCH_CV_THREADS"] = str(threads)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--frames", str(args.frames)]
-    cmd += ["--flush-every", str(args.flush_every)]
+    cmd += ["--flush-every", str(args.flush_every), "--option-set", options]
     procs = [
         subprocess.Popen([*cmd, "--seed", str(1 + k)], env=env, cwd=repo, stdout=subprocess.PIPE, text=True)
         for k in range(copies)
@@ -171,38 +172,48 @@ def main() -> int:
     p.add_argument("--repo", type=Path, action="append", default=None, help="source trees to measure")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--seed", type=int, default=1, help=argparse.SUPPRESS)
+    p.add_argument(
+        "--option-set",
+        action="append",
+        default=None,
+        help='method options of `best` to measure (JSON), e.g. {"track_overlap": 0.85}',
+    )
     args = p.parse_args()
     if args.child:
-        print(json.dumps(measure(args.frames, args.flush_every, args.seed)))
+        print(json.dumps(measure(args.frames, args.flush_every, args.seed, json.loads(args.option_set[0]))))
         return 0
     repos = args.repo or [REPO]
     configs = [
-        (repo, copies, threads)
+        (repo, copies, threads, options)
+        for options in args.option_set or ["{}"]
         for repo in repos
         for threads in (int(t) for t in args.threads.split(","))
         for copies in (int(c) for c in args.copies.split(","))
     ]
     print(f"raster, {args.frames} frames, a flush every {args.flush_every} frames; CPU ms per frame (mean of copies)")
     print()
-    print("| tree | copies | threads | " + " | ".join(PARTS) + " | overhead | total | vs first |")
-    print("|---|---:|---:|" + "---:|" * (len(PARTS) + 3))
+    print("| tree | options | copies | threads | " + " | ".join(PARTS) + " | overhead | total | vs first |")
+    print("|---|---|---:|---:|" + "---:|" * (len(PARTS) + 3))
     base = None
     walls = []
-    for repo, copies, threads in configs:
-        print(f"running {repo.name}: {copies} copies x {threads} threads ...", file=sys.stderr)
-        rows = run_config(args, copies, threads, repo)
+    for repo, copies, threads, options in configs:
+        print(f"running {repo.name} {options}: {copies} copies x {threads} threads ...", file=sys.stderr)
+        rows = run_config(args, copies, threads, repo, options)
         mean = {part: sum(r[part] for r in rows) / len(rows) for part in PARTS}
         total = sum(mean.values())
         overhead = total - sum(mean[part] for part in WORK)
         base = total if base is None else base
         cells = " | ".join(f"{mean[part]:.1f}" for part in PARTS)
-        row = f"| {repo.name} | {copies} | {threads} | {cells} | {overhead:.1f} | {total:.1f} | {total / base:.2f}x |"
+        row = f"| {repo.name} | {options} | {copies} | {threads} | {cells} | {overhead:.1f} | {total:.1f} "
+        row += f"| {total / base:.2f}x |"
         print(row, flush=True)
         wall = {part: sum(r[f"{part}_wall"] for r in rows) / len(rows) for part in PARTS}
-        walls.append(f"| {repo.name} | {copies} | {threads} | " + " | ".join(f"{wall[p]:.1f}" for p in PARTS) + " |")
+        walls.append(
+            f"| {repo.name} | {options} | {copies} | {threads} | " + " | ".join(f"{wall[p]:.1f}" for p in PARTS) + " |"
+        )
     print("\nwall ms per frame (mean of copies): a step's waits (fsync, other processes) are in it\n")
-    print("| tree | copies | threads | " + " | ".join(PARTS) + " |")
-    print("|---|---:|---:|" + "---:|" * len(PARTS))
+    print("| tree | options | copies | threads | " + " | ".join(PARTS) + " |")
+    print("|---|---|---:|---:|" + "---:|" * len(PARTS))
     print("\n".join(walls))
     return 0
 

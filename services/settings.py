@@ -9,7 +9,7 @@ WorkerSettings), parsed and checked by this model: unknown or mistyped fields st
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import (
     AliasChoices,
@@ -24,6 +24,7 @@ from pydantic import (
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from services.core.inputs.image_header import DEFAULT_MAX_FRAME_SIDE
+from services.core.method_options import validate_options
 from services.core.methods import METHOD_NAMES
 from services.pacs.destinations import Destination, destinations_from_doc, parse_destinations
 
@@ -44,6 +45,8 @@ class WorkerSettings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     method: Literal[METHOD_NAMES] = "best"  # type: ignore[valid-type]  # the live run's method (version 1)
+    # ... and its method options, as a reprocess request gives them (e.g. {"track_overlap": 0.85}): checked once here
+    method_options: dict[str, Any] = Field(default_factory=dict)
     lost_timeout_s: float = Field(default=10.0, ge=0)  # a missing frame is lost when a later one arrived this long ago
     lease_ms: int = Field(default=15_000, gt=0)  # registration lease; renewed while working
     claim_idle_ms: int = Field(default=30_000, ge=0)  # XAUTOCLAIM entries idle longer than this (a crashed worker's)
@@ -69,6 +72,12 @@ class WorkerSettings(BaseModel):
     pacs_retry_first_s: float = Field(default=5.0, gt=0)  # ... the wait after the first, doubling ...
     pacs_retry_max_s: float = Field(default=300.0, gt=0)  # ... up to this
     pacs_wait_s: float = Field(default=5.0, gt=0)  # a send job queued before its session is done looks again after
+
+    @model_validator(mode="after")
+    def _live_options_valid(self) -> WorkerSettings:
+        """Refuse live method options a reprocess request would be refused (services.core.method_options)."""
+        validate_options({"method": self.method, "method_options": self.method_options})
+        return self
 
 
 class Settings(BaseSettings):

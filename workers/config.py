@@ -86,8 +86,9 @@ class Context:
         jobs.update_job(self.r, self.prefix, job_id, **values)
 
     def live_options(self) -> dict[str, str]:
-        """Return the options a live version is made with: this worker's method."""
-        return {"method": self.config.method, "source": "live"}
+        """Return the options a live version is made with: this worker's method and its options, if any."""
+        options = {"method_options": dict(self.config.method_options)} if self.config.method_options else {}
+        return {"method": self.config.method, **options, "source": "live"}
 
     @cached_property
     def audit(self) -> AuditLog:

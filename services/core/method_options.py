@@ -27,6 +27,8 @@ _BOUNDS: dict[str, dict[str, float]] = {
     "vein_scale": {"gt": 0, "le": 1},  # a fraction of full resolution
     "ratio": {"ge": 0, "le": 1},  # Lowe ratio
     "min_correlation": {"ge": 0, "le": 1},  # ECC correlation
+    "track_overlap": {"ge": 0, "le": 1},  # a share of the keyframe's window
+    "track_correlation": {"ge": 0, "le": 1},  # ECC correlation
     "confirmed_inlier_share": {"ge": 0, "le": 1},  # a share
     "blur_ratio": {"ge": 0, "le": 1},  # a fraction of the running median
     "contrast_threshold": {"ge": 0, "le": 1},  # SIFT's (0.03 by default)

@@ -16,41 +16,50 @@ from services.core.registration.frame_prep import PreparedFrame
 from services.store.file_formats import PREPARED_STORED, check_format, npz_bytes
 
 # 2: the IMU's tilts at the frame time (array "imu_tilt_deg", absent without an IMU); 3: the focus measure
-# (array "focus"; NaN, unknown, when read from an older file)
-PREPARED_FORMAT = 3
-READABLE_FORMATS = (0, 1, 2, 3)
+# (array "focus"; NaN, unknown, when read from an older file); 4: the features optional (no "points": none yet)
+PREPARED_FORMAT = 4
+READABLE_FORMATS = (0, 1, 2, 3, 4)
 
 
 def prepared_to_bytes(pf: PreparedFrame) -> bytes:
     """Return a PreparedFrame as .npz bytes (lossless; descriptors as uint8 when they are whole 0..255)."""
-    desc = np.asarray(pf.features.descriptors)
+    imu = {} if pf.imu_tilt_deg is None else {"imu_tilt_deg": np.asarray(pf.imu_tilt_deg, np.float64)}
+    return npz_bytes(
+        PREPARED_STORED,
+        **imu,
+        **_features_arrays(pf.features),
+        format=np.array([PREPARED_FORMAT], np.int64),
+        meta=np.array([pf.index, pf.seq], np.int64),
+        scalars=np.array(
+            [pf.t_s, pf.load.fz_n, pf.load.theta_x_rad, pf.load.theta_y_rad, pf.stretch, pf.sharpness], np.float64
+        ),
+        forces_n=np.asarray(pf.forces_n, np.float64),
+        image=pf.image,
+        mask=pf.mask,
+        vein=pf.vein,
+        vein_mask=pf.vein_mask,
+        focus=np.array([pf.focus], np.float64),
+    )
+
+
+def _features_arrays(features: Features | None) -> dict[str, np.ndarray]:
+    """Return a frame's features as the file's arrays (none for a frame not described yet: format 4)."""
+    if features is None:
+        return {}
+    desc = np.asarray(features.descriptors)
     if desc.size == 0 or (
         np.all(np.isfinite(desc)) and desc.min() >= 0 and desc.max() <= 255 and np.array_equal(desc, np.round(desc))
     ):
         desc_stored = desc.astype(np.uint8)
     else:
         desc_stored = desc.astype(np.float32)
-    imu = {} if pf.imu_tilt_deg is None else {"imu_tilt_deg": np.asarray(pf.imu_tilt_deg, np.float64)}
-    return npz_bytes(
-        PREPARED_STORED,
-        **imu,
-        format=np.array([PREPARED_FORMAT], np.int64),
-        meta=np.array([pf.index, pf.seq], np.int64),
-        scalars=np.array(
-            [pf.t_s, pf.load.fz_n, pf.load.theta_x_rad, pf.load.theta_y_rad, pf.stretch, pf.sharpness], np.float64
-        ),
-        desc_float=np.array([desc.dtype == np.float32], bool),
-        forces_n=np.asarray(pf.forces_n, np.float64),
-        image=pf.image,
-        mask=pf.mask,
-        vein=pf.vein,
-        vein_mask=pf.vein_mask,
-        points=np.asarray(pf.features.points, np.float64),
-        descriptors=desc_stored,
-        desc_width=np.array([desc.shape[1] if desc.ndim == 2 else 128], np.int64),
-        sizes_px=np.asarray(pf.features.sizes_px, np.float64),
-        focus=np.array([pf.focus], np.float64),
-    )
+    return {
+        "desc_float": np.array([desc.dtype == np.float32], bool),
+        "points": np.asarray(features.points, np.float64),
+        "descriptors": desc_stored,
+        "desc_width": np.array([desc.shape[1] if desc.ndim == 2 else 128], np.int64),
+        "sizes_px": np.asarray(features.sizes_px, np.float64),
+    }
 
 
 def prepared_from_bytes(data: bytes, what: str = "prepared frame") -> PreparedFrame:
@@ -59,11 +68,13 @@ def prepared_from_bytes(data: bytes, what: str = "prepared frame") -> PreparedFr
     check_format(what, int(z["format"][0]) if "format" in z.files else 0, READABLE_FORMATS)
     index, seq = (int(v) for v in z["meta"])
     t_s, fz, tx, ty, stretch, sharpness = (float(v) for v in z["scalars"])
-    # whole 0..255 descriptors stay uint8, as features.detect makes them: a live session keeps every frame's
-    # features, and float32 would hold 4x the memory for the same values
-    desc = z["descriptors"].reshape(-1, int(z["desc_width"][0]))
-    desc = desc.astype(np.float32) if bool(z["desc_float"][0]) else desc.astype(np.uint8)
-    features = Features(z["points"].reshape(-1, 2), desc, z["sizes_px"])
+    features = None  # a frame prepared for tracking is described by registration if it becomes a keyframe
+    if "points" in z.files:
+        # whole 0..255 descriptors stay uint8, as features.detect makes them: a live session keeps every frame's
+        # features, and float32 would hold 4x the memory for the same values
+        desc = z["descriptors"].reshape(-1, int(z["desc_width"][0]))
+        desc = desc.astype(np.float32) if bool(z["desc_float"][0]) else desc.astype(np.uint8)
+        features = Features(z["points"].reshape(-1, 2), desc, z["sizes_px"])
     return PreparedFrame(
         index=index,
         seq=seq,

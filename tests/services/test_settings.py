@@ -31,9 +31,21 @@ def test_worker_timings_come_from_one_json_variable(monkeypatch: pytest.MonkeyPa
     monkeypatch.setenv("VEINMOSAIC_WORKER_CONFIG", json.dumps({"flush_every_s": 0.3, "debug_order": True}))
     cfg = Settings().worker_config
     assert cfg.flush_every_s == 0.3 and cfg.debug_order is True and cfg.lease_ms == WorkerSettings().lease_ms
+    monkeypatch.setenv("VEINMOSAIC_WORKER_CONFIG", json.dumps({"method_options": {"track_overlap": 0.8}}))
+    assert Settings().worker_config.method_options == {"track_overlap": 0.8}
 
 
-@pytest.mark.parametrize("doc", [{"flush_evry_s": 0.3}, {"lease_ms": "soon"}, {"lease_ms": 0}, {"method": "magic"}])
+BAD_WORKER_CONFIGS = [
+    {"flush_evry_s": 0.3},
+    {"lease_ms": "soon"},
+    {"lease_ms": 0},
+    {"method": "magic"},
+    {"method_options": {"no_such_option": 1}},  # the live method's options: checked as a reprocess request's
+    {"method_options": {"track_overlap": 1.5}},
+]
+
+
+@pytest.mark.parametrize("doc", BAD_WORKER_CONFIGS)
 def test_a_bad_worker_config_stops_start_up(monkeypatch: pytest.MonkeyPatch, doc: dict) -> None:
     monkeypatch.setenv("VEINMOSAIC_WORKER_CONFIG", json.dumps(doc))
     with pytest.raises(ValidationError):

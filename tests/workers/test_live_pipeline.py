@@ -273,3 +273,20 @@ def test_a_scan_in_strokes_with_dropped_frames_gives_the_offline_path_live(
     assert reasons == {"missing", "no_contact"} and max(r["stroke"] or 0 for r in rows) == 1
     frames = results.read_mosaic_meta(sid, 1)["frames"]
     assert frames["no_contact"] == sum(r["reason"] == "no_contact" for r in rows) > 10
+
+
+def test_a_live_run_that_tracks_frames_gives_the_offline_path(
+    backend: Backend, spawn_worker: Callable[..., Any]
+) -> None:
+    # the worker's live method options (worker config method_options) reach the version's options.json, and the
+    # frames prepared without features (format 4) are described in registration as offline: the same path
+    tracking = {"track_overlap": 0.7}
+    spawn_worker("a", method_options=tracking)
+    store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
+    scan = scan_of(1)
+    sid = store_scan(store, scan, backend.r, backend.prefix)
+    wait_done(store, sid)
+    assert results.read_options(sid, 1)["method_options"] == tracking
+    off = reconstruct(scan, method_options("best").with_overrides(tracking))
+    assert off.rows != offline_of(1).rows  # tracking changes the registration: this is not the default path again
+    assert_matches_offline(results.read_path(sid, 1), 1, off)

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -72,6 +72,28 @@ class DragFit:
     def of(self, frame: int) -> complex:
         """Return a frame's drag (complex mm, its axes): 0 where none was fitted or the drag is not kept."""
         return self.drag_mm.get(frame, 0j) if self.kept else 0j
+
+    def filled(self, frames: Sequence[int], reach: int) -> DragFit:
+        """Return the fit with a drag for every frame in `frames` that has none of its own: its neighbours' in the
+        sequence, interpolated linearly (complex mm, the frame's axes), or the nearer one's when the other is more
+        than `reach` frames away (frames placed without feature evidence: a tracked frame between keyframes)."""
+        known = np.array(sorted(self.drag_mm), np.int64)
+        if not len(known):
+            return self
+        values = np.array([self.drag_mm[int(f)] for f in known], complex)
+        drags = dict(self.drag_mm)
+        for f in frames:
+            if f in drags:
+                continue
+            k = int(np.searchsorted(known, f))
+            before = k - 1 if k > 0 and f - known[k - 1] <= reach else None
+            after = k if k < len(known) and known[k] - f <= reach else None
+            if before is not None and after is not None:
+                w = (f - known[before]) / (known[after] - known[before])
+                drags[f] = complex((1 - w) * values[before] + w * values[after])
+            elif before is not None or after is not None:
+                drags[f] = complex(values[before if before is not None else after])
+        return replace(self, drag_mm=drags)
 
     def to_dict(self) -> dict[str, float | int | bool]:
         """Return the fitted profile for the report's "tissue" (mm, mm/N, deg from the motion, chi-square units)."""

@@ -27,7 +27,7 @@ from services.core.registration.outcome import (
 )
 from services.core.registration.place_index import PlaceIndex
 from services.core.registration.pose_graph import Edge
-from services.core.registration.registrar import LOOP_GATE_MM, Registrar
+from services.core.registration.registrar import LOOP_GATE_MM, MAX_TRACKED_RUN, Registrar
 
 CANDIDATES = 3  # frames the place index proposes that are verified geometrically
 MIN_VOTES = 6  # ... each with at least this many descriptor votes
@@ -91,10 +91,14 @@ class Atlas:
         landing: the frame starts a stroke (the probe was just set down), so nothing is predicted from motion.
         """
         if self.active is None:
-            return self._start_map(pf, self.main)
+            return self._start_map(self.main.describe(pf), self.main)
         if self.main.options.registration != "keyframes":  # the baselines (paper, sift-chain) as published: one map
             return AtlasResult(self.main.add(pf), True)
         result: FrameResult | None = None
+        if not landing and (tracked := self.active.track(pf)) is not None:  # no features, no loops: its keyframe's
+            self.owner[pf.index] = self.active
+            return AtlasResult(tracked, self.active is self.main)
+        pf = self.active.describe(pf)  # a keyframe, a landing or a frame to relocalise: matched by its features
         if not landing:
             result = self.active.add(pf)
             if result.status != STATUS_OK and result.reason == REASON_BLUR:
@@ -110,7 +114,7 @@ class Atlas:
             if len(pf.features) < FRAGMENT_MIN_FEATURES * self.active.options.min_inliers:
                 lost = result or FrameResult(pf.index, STATUS_LOST, None, 0, False, reason=REASON_FEW_KEYPOINTS)
                 return AtlasResult(lost, False)
-            return self._start_map(pf, self.new_map())
+            return self._start_map(pf, self.new_map())  # described above
         assert result is not None
         self.active = placed
         self.owner[pf.index] = placed
@@ -184,7 +188,9 @@ class Atlas:
             for other_map in self.maps:
                 if other_map is on:
                     continue
-                for other in other_map.order[-RECENT_JOIN_FRAMES:]:
+                for other in [
+                    i for i in other_map.order[-RECENT_JOIN_FRAMES - MAX_TRACKED_RUN :] if i in other_map.features
+                ][-RECENT_JOIN_FRAMES:]:
                     if other >= pf.index - RECENT_JOIN_FRAMES - 1 and (match := self._verify(pf, other)):
                         found = (other_map, other, match)
                         break
@@ -248,10 +254,10 @@ def _ties(target: Registrar, joined: set[int]) -> list[Edge]:
 
     Each match must agree with the merged poses within the registrar's LOOP_GATE_MM (a false match lands far).
     """
-    ordered = sorted(joined)  # in the order they were taken: spread along the fragment's path
+    ordered = sorted(i for i in joined if i in target.features)  # keyframes, as taken: spread along the fragment
     step = max(1, -(-len(ordered) // TIE_FRAMES))
     newcomers = ordered[::step]
-    old = [i for i in target.order if i not in joined]
+    old = [i for i in target.order if i not in joined and i in target.features]
     edges = []
     for i in newcomers:
         near = sorted(old, key=lambda j: abs(target.poses[j].t - target.poses[i].t))[:TIE_NEIGHBOURS]

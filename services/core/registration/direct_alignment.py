@@ -42,6 +42,7 @@ class DirectFit:
     transform: Similarity
     correlation: float
     overlap: float
+    affine: np.ndarray | None = None  # the alignment's affine (2x3, moving mm -> fixed mm) it was projected from
 
 
 def alignment_image(
@@ -82,6 +83,14 @@ def _to_mm(m: np.ndarray, img: AlignmentImage, level: int) -> Similarity:
     return Similarity(a, (t - c + a * c) / k)
 
 
+def _affine_mm(m: np.ndarray, img: AlignmentImage, level: int) -> np.ndarray:
+    """Return the 2x3 mm affine (moving -> fixed) of a 2x3 pixel matrix at one level."""
+    k = img.px_per_mm * WORK_SCALE / 2**level
+    c = np.asarray(img.centre_px, np.float64) * WORK_SCALE / 2**level
+    a = np.asarray(m[:, :2], np.float64)
+    return np.hstack([a, ((a @ c + m[:, 2] - c) / k)[:, None]])
+
+
 def _phase_shift(fixed: np.ndarray, moving_warped: np.ndarray, overlap: np.ndarray) -> tuple[float, float, float]:
     """Return (dx, dy, response): the shift that moves the warped moving image onto the fixed one (pixels)."""
     win = cv2.createHanningWindow(fixed.shape[::-1], cv2.CV_32F)
@@ -103,6 +112,22 @@ def _overlap(fixed: AlignmentImage, moving: AlignmentImage, m: np.ndarray, level
     fm = fixed.masks[level]
     landed = cv2.warpAffine(moving.masks[level], m, fm.shape[::-1], flags=cv2.INTER_NEAREST)
     return cv2.bitwise_and(fm, landed)
+
+
+def overlap_pairs(fixed: AlignmentImage, moving: AlignmentImage, affine_mm: np.ndarray, step_px: int) -> np.ndarray:
+    """Return (n, 4) point pairs (moving x, y, fixed x, y; mm) on a grid of the overlap under an alignment's affine.
+
+    What a feature match's inlier pairs are to its edge: the places the alignment relates, to undo a deformation
+    that varies across the window (physics.drag) from. Grid every step_px pixels of the finest level.
+    """
+    k = fixed.px_per_mm * WORK_SCALE  # finest-level pixels per mm
+    c = np.asarray(fixed.centre_px, np.float64) * WORK_SCALE  # the principal point in them
+    a, t = np.asarray(affine_mm, np.float64)[:, :2], np.asarray(affine_mm, np.float64)[:, 2]
+    to_px = np.hstack([a, (k * t + c - a @ c)[:, None]]).astype(np.float32)  # the affine in those pixels
+    ys, xs = np.nonzero(_overlap(fixed, moving, to_px, 0)[::step_px, ::step_px])
+    fixed_mm = (np.stack([xs, ys], axis=1) * float(step_px) - c) / k
+    moving_mm = (fixed_mm - t) @ np.linalg.inv(a).T
+    return np.hstack([moving_mm, fixed_mm])
 
 
 def correlation(fixed: AlignmentImage, moving: AlignmentImage, transform: Similarity) -> tuple[float, float]:
@@ -141,6 +166,7 @@ def align(
             m[0, 2] += dx
             m[1, 2] += dy
     estimate = _to_mm(m, fixed, top)
+    affine = None
     for level in range(top, finest - 1, -1):
         m = _to_px(estimate, fixed, level)
         if np.count_nonzero(_overlap(fixed, moving, m, level)) < 50:
@@ -149,6 +175,6 @@ def align(
             m = _ecc(fixed.levels[level], fixed.masks[level], moving.levels[level], moving.masks[level], m)
         except cv2.error:
             return None
-        estimate = _to_mm(m, fixed, level)
+        estimate, affine = _to_mm(m, fixed, level), _affine_mm(m, fixed, level)
     corr, share = correlation(fixed, moving, estimate)
-    return DirectFit(estimate, corr, share)
+    return DirectFit(estimate, corr, share, affine)

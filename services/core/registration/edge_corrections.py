@@ -29,6 +29,7 @@ from services.core.similarity import Similarity
 
 DIRECTION_GAP = 3  # frames: a placed neighbour farther in the sequence is across a gap, not the way the probe went
 STILL_MM = 0.3  # a frame whose neighbours are closer than this together has no direction of travel
+FILL_REACH = 12  # frames: a frame without drag evidence takes its fitted neighbours' drag within this reach
 
 
 @dataclass(eq=False)
@@ -112,8 +113,11 @@ class EdgeCorrections:
 
     def fit_drag(self, edges: list[Edge], order: list[int], poses: dict[int, Similarity]) -> DragFit | None:
         """Return the skin's drag fitted to every edge's inlier pairs (physics.drag), also kept as drag_fit."""
-        evidence = [DragEvidence(e.i, e.j, e.pairs, e.relative.a) for e in edges if e.pairs is not None]
-        self.drag_fit = fit_drag(evidence, self.loads, directions_of_travel(order, poses))
+        # a direct alignment's pairs (inliers 0) are sampled from its affine: no curvature to learn a drag from
+        evidence = [DragEvidence(e.i, e.j, e.pairs, e.relative.a) for e in edges if e.pairs is not None and e.inliers]
+        fit = fit_drag(evidence, self.loads, directions_of_travel(order, poses))
+        # frames without feature edges (tracked between keyframes) take their neighbours' drag
+        self.drag_fit = None if fit is None else fit.filled(order, FILL_REACH)
         self._undeformed = {}
         self._undragged = {}
         return self.drag_fit

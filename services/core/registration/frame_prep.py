@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -12,7 +12,6 @@ import numpy as np
 from services.core.contact import focus_measure
 from services.core.inputs.calibration import Calibration
 from services.core.methods import MethodOptions
-from services.core.physics.camera import px_to_mm
 from services.core.physics.force_model import LoadState, centre_stretch, depth_deviation_mm, load_state
 from services.core.physics.rectification import rectify_map
 from services.core.registration.features import Features, detect_features
@@ -34,7 +33,8 @@ class PreparedFrame:
     stretch: float  # nu F_Z / (E A) at the centre, dimensionless
     image: np.ndarray  # (H, W) uint8, rectified, photometrically normalised (median skin = 128)
     mask: np.ndarray  # (H, W) uint8 0/255, the window in rectified pixels
-    features: Features  # points in mm about the principal point (rectified, undeformed)
+    features: Features | None  # points in mm about the principal point (rectified, undeformed); None: not described
+    # yet (a method that tracks frames describes only its keyframes: describe_frame)
     vein: np.ndarray  # (h, w) uint8 vein map of the rectified frame (0 = skin) at options.vein_scale of (H, W)
     vein_mask: np.ndarray  # (h, w) uint8 0/255, where the vein map is valid (the window less a margin)
     sharpness: float  # variance of the Laplacian inside the window, grey levels^2
@@ -118,16 +118,10 @@ def prepare_frame(
     image = cv2.remap(normalise_photometry(raw, mask, flat), map_x, map_y, cv2.INTER_LINEAR)
     rect_mask = cv2.remap(mask, map_x, map_y, cv2.INTER_NEAREST, borderValue=0)
     vein = enhance_veins(image, rect_mask, FEATURE_MARGIN_PX, options.vein_scale)
-    inner = cv2.erode(rect_mask, np.ones((2 * FEATURE_MARGIN_PX + 1,) * 2, np.uint8))
-    if options.enhance:  # features of the vein map, back in frame pixels (pixel centres scale about their corner)
-        found = _detect(vein.image, vein.mask, options)
-        found = Features((found.points + 0.5) / vein.scale - 0.5, found.descriptors, found.sizes_px / vein.scale)
-    else:
-        found = _detect(image, inner, options)
-    features = Features(px_to_mm(found.points, calib), found.descriptors, found.sizes_px)
+    inner = _inner(rect_mask)
     lap = cv2.Laplacian(image, cv2.CV_32F)
     sharpness = float(np.var(lap[inner > 0])) if np.any(inner) else 0.0
-    return PreparedFrame(
+    prepared = PreparedFrame(
         index=index,
         seq=seq,
         t_s=float(t_s),
@@ -136,13 +130,43 @@ def prepare_frame(
         stretch=centre_stretch(state, calib),
         image=image,
         mask=rect_mask,
-        features=features,
+        features=None,
         vein=vein.image,
         vein_mask=vein.mask,
         sharpness=sharpness,
         imu_tilt_deg=_imu_or_none(imu_tilt_deg),
         focus=focus_measure(image, rect_mask),
     )
+    if tracks_frames(options):  # features on demand: only the frames that become keyframes need them
+        return prepared
+    return describe_frame(prepared, options, calib.principal_point, calib.px_per_mm)
+
+
+def tracks_frames(options: MethodOptions) -> bool:
+    """Return whether the method tracks most frames without features (so preparation leaves them to registration)."""
+    return options.registration == "keyframes" and options.track_overlap > 0
+
+
+def describe_frame(
+    pf: PreparedFrame, options: MethodOptions, centre_px: tuple[float, float], px_per_mm: float
+) -> PreparedFrame:
+    """Return the prepared frame with its features (points in mm about the principal point centre_px); itself when
+    it has them already."""
+    if pf.features is not None:
+        return pf
+    if options.enhance:  # features of the vein map, back in frame pixels (pixel centres scale about their corner)
+        scale = options.vein_scale  # the vein map's pixels per frame pixel (enhance_veins)
+        found = _detect(pf.vein, pf.vein_mask, options)
+        found = Features((found.points + 0.5) / scale - 0.5, found.descriptors, found.sizes_px / scale)
+    else:
+        found = _detect(pf.image, _inner(pf.mask), options)
+    points_mm = (found.points - np.asarray(centre_px, np.float64)) / px_per_mm  # as physics.camera.px_to_mm
+    return replace(pf, features=Features(points_mm, found.descriptors, found.sizes_px))
+
+
+def _inner(mask: np.ndarray) -> np.ndarray:
+    """Return the window less FEATURE_MARGIN_PX: where keypoints and sharpness are taken (0/255)."""
+    return cv2.erode(mask, np.ones((2 * FEATURE_MARGIN_PX + 1,) * 2, np.uint8))
 
 
 def _imu_or_none(imu_tilt_deg: np.ndarray | None) -> np.ndarray | None:

@@ -13,10 +13,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.core.methods import MethodOptions
-from services.core.registration.direct_alignment import AlignmentImage, DirectFit, align, alignment_image, correlation
+from services.core.registration.direct_alignment import (
+    AlignmentImage,
+    DirectFit,
+    align,
+    alignment_image,
+    correlation,
+    overlap_pairs,
+)
 from services.core.registration.edge_corrections import EdgeCorrections, view_evidence
 from services.core.registration.features import Features
-from services.core.registration.frame_prep import PreparedFrame
+from services.core.registration.frame_prep import PreparedFrame, describe_frame, tracks_frames
 from services.core.registration.matching import SimilarityFit, estimate_similarity, match_features
 from services.core.registration.outcome import (
     REASON_BLUR,
@@ -47,6 +54,10 @@ MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the p
 DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
 DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - correlation)
 ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
+DIRECT_AFFINE_SIGMA = 1e-3  # a tracking alignment's affine as the view model's evidence: its standard error
+TRACK_PAIR_STEP_PX = 8  # a tracked edge's overlap sampled every this many alignment pixels (2 mm): its drag undone
+FIRST_KEYFRAMES = 10  # a map's first frames are all keyframes: the map's axes are its first frame's (held)
+MAX_TRACKED_RUN = 8  # frames after a keyframe: the next one is a keyframe however well it tracks (loops, drag)
 
 
 def _vein_scale(pf: PreparedFrame) -> float:
@@ -114,8 +125,9 @@ class Registrar:
         if not self.order:
             return []
         latest = self.order[-1] if latest is None else latest
-        placed = np.array(self.order)
-        centres = np.array([self.poses[i].t for i in self.order])
+        described = [i for i in self.order if i in self.features]  # the keyframes: tracked frames have no features
+        placed = np.array(described)
+        centres = np.array([self.poses[i].t for i in described])
         dist = np.abs(centres - predicted.t)
         near = placed[dist < radius_mm]
         near_dist = dist[dist < radius_mm]
@@ -148,6 +160,8 @@ class Registrar:
         return max(3, round(self.options.min_inliers * self.options.confirmed_inlier_share))
 
     def _pairwise(self, pf: FrameEvidence, other: int, min_inliers: int | None = None) -> Match | None:
+        if other not in self.features:  # a tracked frame: matched through its keyframe only
+            return None
         fit = self._match(pf, self.features[other], min_inliers)
         return None if fit is None else feature_match(fit)
 
@@ -170,6 +184,7 @@ class Registrar:
 
     def add(self, pf: PreparedFrame) -> FrameResult:
         """Return the result of registering one prepared frame: its status, pose and which earlier frames moved."""
+        pf = self.describe(pf)
         self.corrections.record(pf)
         blurred = self._is_blurred(pf)
         if not self.order:
@@ -195,6 +210,57 @@ class Registrar:
                 return self._reject(pf, STATUS_REJECTED, blurred, REASON_IMPLAUSIBLE)
             return self._accept(pf, pose, [], n, blurred)
         return self._add_keyframes(pf, predicted, lost_for, blurred)
+
+    def describe(self, pf: PreparedFrame) -> PreparedFrame:
+        """Return the frame with its features (frame_prep.describe_frame): a keyframe, or a frame to relocalise."""
+        return describe_frame(pf, self.options, self.centre_px, self.px_per_mm)
+
+    def keyframe(self) -> int | None:
+        """Return the newest placed frame with features (a keyframe) of the current run, or None."""
+        for i in reversed(self.order):
+            if i < self.run_start:
+                return None
+            if i in self.features:
+                return i
+        return None
+
+    def track(self, pf: PreparedFrame) -> FrameResult | None:
+        """Return the result of a frame tracked on the newest keyframe, or None when it must be a keyframe.
+
+        Tracking (issue 32, after SVO's sparse image alignment): the frame's vein map is aligned directly onto the
+        keyframe's from the motion prediction, with no features. The frame is placed by that one edge when the
+        alignment's correlation reaches options.track_correlation and the frame still covers options.track_overlap
+        of the keyframe's window; otherwise (or after lost frames, a blurred frame, MAX_TRACKED_RUN frames) it is a
+        keyframe: described, matched against the keyframes around it, loops closed (add).
+        """
+        if (
+            not tracks_frames(self.options) or len(self.order) < FIRST_KEYFRAMES or pf.index - self.order[-1] != 1
+        ):  # frames lost in between: no motion to track from
+            return None
+        kf = self.keyframe()
+        if kf is None or pf.index - kf > MAX_TRACKED_RUN or self._is_blurred(pf):
+            return None
+        predicted = self.predict(pf.t_s)
+        assert predicted is not None
+        found = self._tracking_match(pf, kf, self.poses[kf].inverse().compose(predicted), self.options.track_overlap)
+        if found is None or not self._plausible(self.poses[kf].compose(found.relative), predicted, 0):
+            return None
+        self.corrections.record(pf)
+        edges = [self._edge(pf, kf, found)]
+        pose = place_node(self.poses, self.corrections.undeformed(edges, self.poses), pf.index)
+        return self._accept(pf, pose, edges, 0, False)
+
+    def _tracking_match(self, pf: PreparedFrame, other: int, start: Similarity, min_overlap: float) -> Match | None:
+        """Return the direct alignment of a frame on placed frame `other` from `start` (frame mm -> other mm) as a
+        match with its affine and overlap pairs, or None below options.track_correlation or min_overlap."""
+        fixed, moving = self._alignment(other), self._alignment(pf.index, pf)
+        fit = align(fixed, moving, start, recentre=False)
+        if fit is None or fit.affine is None:
+            return None
+        if fit.correlation < self.options.track_correlation or fit.overlap < min_overlap:
+            return None
+        pairs = overlap_pairs(fixed, moving, fit.affine, TRACK_PAIR_STEP_PX)
+        return Match(fit.transform, 0, self._direct_rms(fit), fit.affine, DIRECT_AFFINE_SIGMA, fit.affine, pairs=pairs)
 
     def _alignment(self, index: int, pf: PreparedFrame | None = None) -> AlignmentImage:
         """Return the direct-alignment pyramid of a frame (placed ones cached, the latest few only)."""
@@ -245,7 +311,8 @@ class Registrar:
         latest: int | None = None,
         found: Match | None = None,
     ) -> FrameResult:
-        latest = self.order[-1] if latest is None else latest
+        if latest is None:  # the newest frame, or the newest keyframe when that one was tracked (no features)
+            latest = self.order[-1] if self.order[-1] in self.features else self.keyframe() or self.order[-1]
         edges: list[Edge] = []
         anchor: Similarity | None = None
         found = self._pairwise(pf, latest) if found is None else found
@@ -305,7 +372,9 @@ class Registrar:
         to_latest = self.poses[latest].inverse()
         starts = [to_latest.compose(predicted), Similarity(predicted.a / self.poses[latest].a, 0j)]
         best = self._direct(pf, latest, starts, recentre=True)
-        weak = self._match(pf, self.features[latest], max(3, self.options.min_inliers // 2))
+        weak = None
+        if latest in self.features:
+            weak = self._match(pf, self.features[latest], max(3, self.options.min_inliers // 2))
         if weak is not None:
             refined = self._direct(pf, latest, [weak.transform], recentre=False)
             if refined is not None and (best is None or refined.correlation > best.correlation):
@@ -396,7 +465,8 @@ class Registrar:
         self, pf: PreparedFrame, pose: Similarity, edges: list[Edge], inliers: int, blurred: bool
     ) -> FrameResult:
         self.poses[pf.index] = pose
-        self.features[pf.index] = pf.features
+        if pf.features is not None:  # a keyframe (tracked frames are matched through their keyframe)
+            self.features[pf.index] = pf.features
         self.times[pf.index] = pf.t_s
         self.stretches[pf.index] = pf.stretch
         self.corrections.loads[pf.index] = pf.load.fz_n

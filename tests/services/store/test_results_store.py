@@ -93,6 +93,15 @@ def test_prepared_roundtrip_is_lossless() -> None:
     assert back.imu_tilt_deg is not None and prepared_from_bytes(data).imu_tilt_deg is None
 
 
+def test_a_frame_prepared_without_features_comes_back_without_them() -> None:
+    # a method that tracks frames describes only its keyframes, in registration (format 4: features optional)
+    pf = dataclasses.replace(_prepared(7, np.zeros((3, 128), np.uint8)), features=None)
+    back = prepared_from_bytes(prepared_to_bytes(pf))
+    assert back.features is None
+    assert np.array_equal(back.vein, pf.vein) and np.array_equal(back.image, pf.image)
+    assert len(prepared_to_bytes(pf)) < len(prepared_to_bytes(_prepared(7, np.zeros((300, 128), np.uint8))))
+
+
 def test_versions_and_current(stores: tuple[ResultsStore, str]) -> None:
     rs, sid = stores
     assert rs.current_version(sid) is None

@@ -7,7 +7,15 @@ import cv2
 import numpy as np
 import pytest
 
-from services.core.physics.drag import DragEvidence, fit_drag, profile, undrag, undrag_maps, undragged_transforms
+from services.core.physics.drag import (
+    DragEvidence,
+    DragFit,
+    fit_drag,
+    profile,
+    undrag,
+    undrag_maps,
+    undragged_transforms,
+)
 from services.core.similarity import Similarity
 
 WIDTH_MM = 15.0  # the true profile's width (one of the widths the fit tries)
@@ -131,3 +139,16 @@ def test_undrag_maps_restore_the_skin_at_rest() -> None:
     inner = np.s_[20:-20, 20:-20]  # away from the border the maps reach past
     assert np.max(np.abs(restored[inner] - at_rest[inner])) < 0.01
     assert np.max(np.abs(imaged[inner] - at_rest[inner])) > 0.2
+
+
+def test_frames_without_evidence_take_their_neighbours_drag() -> None:
+    # a tracked frame (no feature edge of its own) between two fitted keyframes takes the drag interpolated
+    # between theirs; one with a fitted frame on one side only within reach takes that one's; beyond reach none
+    fit = DragFit(10.0, {0: 1 + 0j, 4: 3 + 2j, 30: -1j}, 0.1 + 0j, 10.0, 5.0, 30, 300, True)
+    filled = fit.filled(range(0, 40), reach=8)
+    assert filled.of(2) == pytest.approx(2 + 1j, abs=1e-12)  # half way between frames 0 and 4
+    assert filled.of(1) == pytest.approx(1.5 + 0.5j, abs=1e-12)
+    assert filled.of(10) == pytest.approx(3 + 2j, abs=1e-12)  # frame 30 is 20 away: frame 4's alone
+    assert filled.of(24) == pytest.approx(-1j, abs=1e-12)  # frame 4 is 20 away: frame 30's alone
+    assert filled.of(17) == 0j and 17 not in filled.drag_mm  # nothing within reach: no drag
+    assert filled.of(4) == 3 + 2j and fit.of(2) == 0j  # fitted drags kept; the fit itself unchanged

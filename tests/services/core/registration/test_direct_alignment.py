@@ -16,6 +16,7 @@ from services.core.registration.direct_alignment import (
     align,
     alignment_image,
     correlation,
+    overlap_pairs,
 )
 from services.core.registration.vein_enhancement import enhance_veins
 from services.core.similarity import Similarity
@@ -125,3 +126,19 @@ def test_disjoint_windows_give_none() -> None:
     assert align(fixed, moving, far, recentre=True) is None
     assert align(fixed, moving, far, recentre=False) is None
     assert correlation(fixed, moving, far) == (0.0, 0.0)
+
+
+def test_the_affine_and_its_overlap_pairs_agree_with_the_alignment() -> None:
+    # a tracked frame's edge keeps the alignment's affine (the view model's evidence) and pairs sampled on its
+    # overlap (to undo the skin's drag from): both must be the same geometry as the similarity it reports
+    truth = _similarity(3.0, -4.0, 1.0, 1.01)
+    fixed, moving = _pair(truth, 0)
+    fit = align(fixed, moving, Similarity(truth.a, truth.t + 0.5), recentre=False)
+    assert fit is not None and fit.affine is not None
+    assert np.allclose(fit.affine[:, :2], truth.matrix()[:, :2], atol=TOL.direct_scale)
+    assert np.allclose(fit.affine[:, 2], truth.matrix()[:, 2], atol=TOL.direct_shift_mm)
+    pairs = overlap_pairs(fixed, moving, fit.affine, step_px=8)
+    assert len(pairs) > 100  # a 2 mm grid over most of the 25 mm-radius window
+    assert np.allclose(pairs[:, :2] @ fit.affine[:, :2].T + fit.affine[:, 2], pairs[:, 2:], atol=1e-9)
+    radius = sv.WINDOW_RADIUS_PX / sv.PX_PER_MM  # both points of every pair lie in their windows (0.5 mm: pixels)
+    assert np.all(np.hypot(*pairs[:, :2].T) <= radius + 0.5) and np.all(np.hypot(*pairs[:, 2:].T) <= radius + 0.5)

@@ -12,6 +12,7 @@ from services.core.physics.camera import mm_to_px, px_to_mm
 from services.core.physics.force_model import LoadState, local_load_n
 from services.core.physics.rectification import pixel_grid
 from services.core.registration.frame_prep import (
+    describe_frame,
     estimate_flat_field,
     estimate_window_mask,
     load_map_n,
@@ -99,8 +100,10 @@ def test_to_unit_float_rejects_other_types() -> None:
         to_unit_float(np.zeros((4, 4, 3), np.uint8))
 
 
-def _prepare(scan: Scan, forces: np.ndarray, rectify: bool = True, index: int = 0, vein_scale: float = 0.5):
-    options = method_options("best").with_overrides({"rectify": rectify, "vein_scale": vein_scale})
+def _prepare(
+    scan: Scan, forces: np.ndarray, rectify: bool = True, index: int = 0, vein_scale: float = 0.5, **overrides
+):
+    options = method_options("best").with_overrides({"rectify": rectify, "vein_scale": vein_scale, **overrides})
     return prepare_frame(
         scan.frame(index),
         index=index,
@@ -206,3 +209,22 @@ def test_load_map_is_spec_local_load_on_every_pixel(scan: Scan, state: LoadState
     got = load_map_n(calib, state)
     assert got.shape == (h, w) and got.dtype == np.float32
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=5e-5)
+
+
+@pytest.mark.parametrize("enhance", [True, False], ids=["vein-map", "grey-levels"])
+def test_features_on_demand_are_the_features_prepared(scan: Scan, enhance: bool) -> None:
+    # a method that tracks frames prepares them without features; describing one later (a keyframe) must give
+    # exactly what preparing it with features gives, so tracking changes which frames are described, not how
+    prepared = _prepare(scan, np.full(4, 1.5), index=3, enhance=enhance)
+    lazy = _prepare(scan, np.full(4, 1.5), index=3, enhance=enhance, track_overlap=0.8)
+    assert prepared.features is not None and lazy.features is None
+    options = method_options("best").with_overrides({"enhance": enhance, "track_overlap": 0.8})
+    described = describe_frame(lazy, options, scan.calibration.principal_point, scan.calibration.px_per_mm)
+    assert described.features is not None and len(described.features) > 100
+    for got, want in zip(
+        (described.features.points, described.features.descriptors, described.features.sizes_px),
+        (prepared.features.points, prepared.features.descriptors, prepared.features.sizes_px),
+        strict=True,
+    ):
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+    assert describe_frame(described, options, (0.0, 0.0), 1.0) is described  # described once

@@ -27,7 +27,7 @@ from services.core.registration.outcome import (
 )
 from services.core.registration.pose_graph import Edge
 from services.core.registration.refinement import VIEW_REFIT_GROWTH
-from services.core.registration.registrar import Registrar
+from services.core.registration.registrar import FIRST_KEYFRAMES, MAX_TRACKED_RUN, Registrar
 from services.core.similarity import IDENTITY, Similarity
 from tests.sim_cache import simulated
 from tests.tolerances import TOL
@@ -284,3 +284,47 @@ def test_view_model_is_refitted_only_when_its_evidence_grew(monkeypatch: pytest.
     assert len(during) >= 2 and fits[-1][1]  # refitted while the scan went on, and at the end
     assert all(later >= VIEW_REFIT_GROWTH * earlier for earlier, later in itertools.pairwise(during))
     assert len(during) < sum(1 for final in passes if not final)  # fewer fits than passes (all global here)
+
+
+@pytest.fixture(scope="module")
+def tracking(scan: Scan) -> dict[float, tuple[list[FrameResult], Registrar, set[int]]]:
+    """The short scan registered as the atlas does with tracking (track, else add), per track_overlap (0: off)."""
+    out = {}
+    for overlap in (0.0, 0.7, 0.999):
+        options = method_options("best").with_overrides({"track_overlap": overlap})
+        forces = pipeline.frame_forces(scan)
+        mask, flat = pipeline.window_setup(scan, options)
+        radius = pipeline.window_radius_mm(mask, scan.calibration)
+        registrar = Registrar(options, scan.calibration.px_per_mm, radius, centre_px=scan.calibration.principal_point)
+        results, tracked = [], set()
+        for pf in pipeline.prepared_frames(scan, forces, mask, flat, options):
+            assert (pf.features is None) == (overlap > 0)  # features are left to registration when it tracks
+            result = registrar.track(pf)
+            if result is not None:
+                tracked.add(pf.index)
+            results.append(result or registrar.add(pf))
+        out[overlap] = (results, registrar, tracked)
+    return out
+
+
+def test_tracked_frames_are_placed_on_a_keyframe_without_features(scan: Scan, tracking) -> None:
+    results, registrar, tracked = tracking[0.7]
+    assert all(r.status == STATUS_OK for r in results)
+    # measured 26 of 40 tracked; the map's first FIRST_KEYFRAMES frames are all keyframes
+    assert len(tracked) >= 15 and not tracked & set(range(FIRST_KEYFRAMES))
+    assert set(registrar.features) == {r.index for r in results} - tracked  # only keyframes are described
+    for e in (e for e in registrar.edges if e.j in tracked):
+        assert e.i in registrar.features and 0 < e.j - e.i <= MAX_TRACKED_RUN  # onto a recent keyframe
+        assert e.inliers == 0 and e.affine is not None and e.pairs is not None and len(e.pairs) > 100
+    assert sum(1 for e in registrar.edges if e.j in tracked) == len(tracked)  # one edge each
+    # placed as well as the keyframes are: max error 0.35 mm here, 0.37 mm without tracking (frame 0's mm, before
+    # self-calibration: see RELOCALISED_MM)
+    assert max(_errors_mm(scan, results).values()) < RELOCALISED_MM
+
+
+def test_without_tracking_every_frame_is_a_keyframe(tracking) -> None:
+    # track_overlap 0 (the default): nothing tracked; a frame below the overlap or correlation is a keyframe
+    for overlap in (0.0, 0.999):
+        results, registrar, tracked = tracking[overlap]
+        assert not tracked and set(registrar.features) == {r.index for r in results}
+    assert [r.pose for r in tracking[0.0][0]] == [r.pose for r in tracking[0.999][0]]  # the same registration
