@@ -54,7 +54,6 @@ MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the p
 DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
 DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - correlation)
 ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
-DIRECT_AFFINE_SIGMA = 1e-3  # a tracking alignment's affine as the view model's evidence: its standard error
 TRACK_PAIR_STEP_PX = 8  # a tracked edge's overlap sampled every this many alignment pixels (2 mm): its drag undone
 FIRST_KEYFRAMES = 10  # a map's first frames are all keyframes: the map's axes are its first frame's (held)
 MAX_TRACKED_RUN = 8  # frames after a keyframe: the next one is a keyframe however well it tracks (loops, drag)
@@ -260,7 +259,7 @@ class Registrar:
         if fit.correlation < self.options.track_correlation or fit.overlap < min_overlap:
             return None
         pairs = overlap_pairs(fixed, moving, fit.affine, TRACK_PAIR_STEP_PX)
-        return Match(fit.transform, 0, self._direct_rms(fit), fit.affine, DIRECT_AFFINE_SIGMA, fit.affine, pairs=pairs)
+        return Match(fit.transform, 0, self._direct_rms(fit), fit.affine, pairs=pairs)
 
     def _alignment(self, index: int, pf: PreparedFrame | None = None) -> AlignmentImage:
         """Return the direct-alignment pyramid of a frame (placed ones cached, the latest few only)."""
