@@ -15,7 +15,7 @@ whole offline pipeline), and the worse axis's tilt RMS error in degrees where th
 scans, the tissue-* cells), and where
 the error lies (evaluation.GlobalError): the path's scale % (+ too large) and turn deg about frame 0, and the RMSE
 left after that similarity (the path's shape), and `air placed`: frames placed that the reference has no row for
-(taken in the air: none should be).
+(taken in the air: none should be), and `tracked %`: placed frames tracked without features (best-track).
 Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe, tissue-saturating: a patient as on the shared
 scans (a hand's tilt, a tissue law of that shape with anisotropy: along the frame's x or y, or for saturating fixed
 in the tissue at any angle while the probe yaws +-15 deg), not an imaging look. Cell drag: that patient (linear
@@ -172,6 +172,7 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
         path_length_mm=report.path_length_mm,
         s_per_frame=recon.seconds / len(scan),
         air_placed=report.n_registered_without_reference,  # frames placed that the reference says were in the air
+        tracked_pct=100.0 * (1.0 - recon.keyframes / max(1, len(recon.poses))),  # placed without features
     )
     if report.global_error is not None:  # where the error lies: the path's scale and turn, and its shape
         row.update(
@@ -188,7 +189,7 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
 HEADER = (
     f"{'source':<6} | {'scan / cell':<28} | {'method':<10} | {'registered %':>12} | {'RMSE mm':>8} |"
     f" {'final drift mm':>14} | {'error ratio %':>13} | {'s/frame':>7} | {'tilt RMS deg':>12} |"
-    f" {'scale %':>7} | {'turn deg':>8} | {'after sim. mm':>13} | {'air placed':>10}"
+    f" {'scale %':>7} | {'turn deg':>8} | {'after sim. mm':>13} | {'air placed':>10} | {'tracked %':>9}"
 )
 
 
@@ -209,7 +210,8 @@ def table_line(row: dict[str, Any]) -> str:
         f" {fmt(row['final_drift_mm'], '14.3f')} | {fmt(row['error_ratio_pct'], '13.4f')} |"
         f" {fmt(row['s_per_frame'], '7.3f')} | {fmt(row.get('tilt_rmse_deg'), '12.2f')} |"
         f" {fmt(row.get('scale_pct'), '+7.2f')} | {fmt(row.get('turn_deg'), '+8.3f')} |"
-        f" {fmt(row.get('after_similarity_mm'), '13.3f')} | {fmt(row.get('air_placed'), '10d')}"
+        f" {fmt(row.get('after_similarity_mm'), '13.3f')} | {fmt(row.get('air_placed'), '10d')} |"
+        f" {fmt(row.get('tracked_pct'), '9.1f')}"
     )
 
 

@@ -46,6 +46,7 @@ class Reconstruction:
     compliance: ComplianceFit | None
     seconds: float
     learned: dict[str, Any] = field(default_factory=dict)  # SessionReconstruction.learned_model()
+    keyframes: int = 0  # placed frames registered by their features (the rest tracked: MethodOptions.track_overlap)
 
     @property
     def estimate_mm(self) -> np.ndarray:
@@ -152,4 +153,5 @@ def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = 
         session.compliance,
         time.perf_counter() - started,
         session.learned_model(),
+        len(session.registrar.features),
     )
