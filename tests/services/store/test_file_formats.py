@@ -30,14 +30,17 @@ def _with_format(data: bytes, fmt: int | None) -> bytes:
 def test_prepared_frames_carry_their_format() -> None:
     pf = _prepared(7, np.ones((3, 128), np.float32))
     data = prepared_to_bytes(pf)
-    assert int(np.load(io.BytesIO(data))["format"][0]) == PREPARED_FORMAT == 3
+    assert int(np.load(io.BytesIO(data))["format"][0]) == PREPARED_FORMAT == 4
     _assert_same(pf, prepared_from_bytes(data))
+    _assert_same(pf, prepared_from_bytes(_with_format(data, 3)))  # format 3: features always there, the same layout
     _assert_same(pf, prepared_from_bytes(_with_format(data, None)))  # written before formats: format 0, read
     _assert_same(pf, prepared_from_bytes(_with_format(data, 1)))  # format 1: the same layout without an IMU
     older = _with_format(_without(data, "focus"), 2)  # format 2: no focus measure, read as unknown (NaN)
     _assert_same(pf, prepared_from_bytes(older), focus_kept=False)
-    with pytest.raises(UnknownFormatError, match=r"prepared frame 7: format 4 is unknown .*reads formats 0, 1, 2, 3"):
-        prepared_from_bytes(_with_format(data, 4), "prepared frame 7")
+    with pytest.raises(
+        UnknownFormatError, match=r"prepared frame 7: format 5 is unknown .*reads formats 0, 1, 2, 3, 4"
+    ):
+        prepared_from_bytes(_with_format(data, 5), "prepared frame 7")
 
 
 def _without(data: bytes, name: str) -> bytes:
