@@ -232,16 +232,16 @@ class Registrar:
         of the keyframe's window; otherwise (or after lost frames, a blurred frame, MAX_TRACKED_RUN frames) it is a
         keyframe: described, matched against the keyframes around it, loops closed (add).
         """
-        if (
-            not tracks_frames(self.options) or len(self.order) < FIRST_KEYFRAMES or pf.index - self.order[-1] != 1
-        ):  # frames lost in between: no motion to track from
+        if not tracks_frames(self.options) or len(self.order) < FIRST_KEYFRAMES:
+            return None
+        if pf.index - self.order[-1] != 1:  # frames lost in between: no motion to track from
             return None
         kf = self.keyframe()
         if kf is None or pf.index - kf > MAX_TRACKED_RUN or self._is_blurred(pf):
             return None
         predicted = self.predict(pf.t_s)
         assert predicted is not None
-        found = self._tracking_match(pf, kf, self.poses[kf].inverse().compose(predicted), self.options.track_overlap)
+        found = self._tracking_match(pf, kf, self.poses[kf].inverse().compose(predicted))
         if found is None or not self._plausible(self.poses[kf].compose(found.relative), predicted, 0):
             return None
         self.corrections.record(pf)
@@ -249,14 +249,14 @@ class Registrar:
         pose = place_node(self.poses, self.corrections.undeformed(edges, self.poses), pf.index)
         return self._accept(pf, pose, edges, 0, False)
 
-    def _tracking_match(self, pf: PreparedFrame, other: int, start: Similarity, min_overlap: float) -> Match | None:
+    def _tracking_match(self, pf: PreparedFrame, other: int, start: Similarity) -> Match | None:
         """Return the direct alignment of a frame on placed frame `other` from `start` (frame mm -> other mm) as a
-        match with its affine and overlap pairs, or None below options.track_correlation or min_overlap."""
+        match with its affine and overlap pairs, or None below options.track_correlation or options.track_overlap."""
         fixed, moving = self._alignment(other), self._alignment(pf.index, pf)
         fit = align(fixed, moving, start, recentre=False)
         if fit is None or fit.affine is None:
             return None
-        if fit.correlation < self.options.track_correlation or fit.overlap < min_overlap:
+        if fit.correlation < self.options.track_correlation or fit.overlap < self.options.track_overlap:
             return None
         pairs = overlap_pairs(fixed, moving, fit.affine, TRACK_PAIR_STEP_PX)
         return Match(fit.transform, 0, self._direct_rms(fit), fit.affine, pairs=pairs)
@@ -311,7 +311,8 @@ class Registrar:
         found: Match | None = None,
     ) -> FrameResult:
         if latest is None:  # the newest frame, or the newest keyframe when that one was tracked (no features)
-            latest = self.order[-1] if self.order[-1] in self.features else self.keyframe() or self.order[-1]
+            newest_keyframe = self.keyframe()
+            latest = self.order[-1] if self.order[-1] in self.features or newest_keyframe is None else newest_keyframe
         edges: list[Edge] = []
         anchor: Similarity | None = None
         found = self._pairwise(pf, latest) if found is None else found
