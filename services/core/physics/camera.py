@@ -47,9 +47,14 @@ def distort_points_px(ideal_px: np.ndarray, calib: Calibration) -> np.ndarray:
 
 def px_to_mm(points_px: np.ndarray, calib: Calibration) -> np.ndarray:
     """Return positions in mm about the principal point of ideal pixel positions (..., 2)."""
-    cx, cy = calib.principal_point
+    return px_to_mm_about(points_px, calib.principal_point, calib.px_per_mm)
+
+
+def px_to_mm_about(points_px: np.ndarray, centre_px: tuple[float, float], px_per_mm: float) -> np.ndarray:
+    """Return positions in mm about centre_px (the principal point) of ideal pixel positions (..., 2)."""
+    cx, cy = centre_px
     p = np.asarray(points_px, dtype=np.float64)
-    return np.stack([(p[..., 0] - cx), (p[..., 1] - cy)], axis=-1) / calib.px_per_mm
+    return np.stack([(p[..., 0] - cx), (p[..., 1] - cy)], axis=-1) / px_per_mm
 
 
 def mm_to_px(points_mm: np.ndarray, calib: Calibration) -> np.ndarray:

@@ -66,10 +66,16 @@ def alignment_image(
     return AlignmentImage(tuple(levels), tuple(masks), centre_px, px_per_mm)
 
 
+def _level_frame(img: AlignmentImage, level: int) -> tuple[float, np.ndarray]:
+    """Return (one level's pixels per mm, the principal point (2,) in that level's pixels)."""
+    scale = WORK_SCALE / 2**level
+    return img.px_per_mm * scale, np.asarray(img.centre_px, np.float64) * scale
+
+
 def _to_px(s: Similarity, img: AlignmentImage, level: int) -> np.ndarray:
     """Return the 2x3 matrix of a mm similarity (moving -> fixed) in one level's pixels."""
-    k = img.px_per_mm * WORK_SCALE / 2**level  # level pixels per mm
-    c = complex(*img.centre_px) * WORK_SCALE / 2**level  # the principal point in level pixels
+    k, centre = _level_frame(img, level)
+    c = complex(*centre)
     a, t = s.a, c + k * s.t - s.a * c
     return np.array([[a.real, -a.imag, t.real], [a.imag, a.real, t.imag]], np.float32)
 
@@ -77,18 +83,24 @@ def _to_px(s: Similarity, img: AlignmentImage, level: int) -> np.ndarray:
 def _to_mm(m: np.ndarray, img: AlignmentImage, level: int) -> Similarity:
     """Return the nearest mm similarity (moving -> fixed) of a 2x3 pixel matrix at one level."""
     a = complex((m[0, 0] + m[1, 1]) / 2.0, (m[1, 0] - m[0, 1]) / 2.0)
-    k = img.px_per_mm * WORK_SCALE / 2**level
-    c = complex(*img.centre_px) * WORK_SCALE / 2**level
+    k, centre = _level_frame(img, level)
+    c = complex(*centre)
     t = complex(m[0, 2], m[1, 2])
     return Similarity(a, (t - c + a * c) / k)
 
 
 def _affine_mm(m: np.ndarray, img: AlignmentImage, level: int) -> np.ndarray:
-    """Return the 2x3 mm affine (moving -> fixed) of a 2x3 pixel matrix at one level."""
-    k = img.px_per_mm * WORK_SCALE / 2**level
-    c = np.asarray(img.centre_px, np.float64) * WORK_SCALE / 2**level
+    """Return the 2x3 mm affine (moving -> fixed) of a 2x3 pixel matrix at one level (_affine_px's inverse)."""
+    k, c = _level_frame(img, level)
     a = np.asarray(m[:, :2], np.float64)
     return np.hstack([a, ((a @ c + m[:, 2] - c) / k)[:, None]])
+
+
+def _affine_px(affine_mm: np.ndarray, img: AlignmentImage, level: int) -> np.ndarray:
+    """Return the 2x3 pixel matrix at one level of a mm affine (moving -> fixed) (_affine_mm's inverse)."""
+    k, c = _level_frame(img, level)
+    a, t = np.asarray(affine_mm, np.float64)[:, :2], np.asarray(affine_mm, np.float64)[:, 2]
+    return np.hstack([a, (k * t + c - a @ c)[:, None]])
 
 
 def _phase_shift(fixed: np.ndarray, moving_warped: np.ndarray, overlap: np.ndarray) -> tuple[float, float, float]:
@@ -120,12 +132,12 @@ def overlap_pairs(fixed: AlignmentImage, moving: AlignmentImage, affine_mm: np.n
     What a feature match's inlier pairs are to its edge: the places the alignment relates, to undo a deformation
     that varies across the window (physics.drag) from. Grid every step_px pixels of the finest level.
     """
-    k = fixed.px_per_mm * WORK_SCALE  # finest-level pixels per mm
-    c = np.asarray(fixed.centre_px, np.float64) * WORK_SCALE  # the principal point in them
-    a, t = np.asarray(affine_mm, np.float64)[:, :2], np.asarray(affine_mm, np.float64)[:, 2]
-    to_px = np.hstack([a, (k * t + c - a @ c)[:, None]]).astype(np.float32)  # the affine in those pixels
-    ys, xs = np.nonzero(_overlap(fixed, moving, to_px, 0)[::step_px, ::step_px])
+    k, c = _level_frame(fixed, 0)
+    ys, xs = np.nonzero(
+        _overlap(fixed, moving, _affine_px(affine_mm, fixed, 0).astype(np.float32), 0)[::step_px, ::step_px]
+    )
     fixed_mm = (np.stack([xs, ys], axis=1) * float(step_px) - c) / k
+    a, t = np.asarray(affine_mm, np.float64)[:, :2], np.asarray(affine_mm, np.float64)[:, 2]
     moving_mm = (fixed_mm - t) @ np.linalg.inv(a).T
     return np.hstack([moving_mm, fixed_mm])
 

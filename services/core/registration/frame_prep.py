@@ -12,6 +12,7 @@ import numpy as np
 from services.core.contact import focus_measure
 from services.core.inputs.calibration import Calibration
 from services.core.methods import MethodOptions
+from services.core.physics.camera import px_to_mm_about
 from services.core.physics.force_model import LoadState, centre_stretch, depth_deviation_mm, load_state
 from services.core.physics.rectification import rectify_map
 from services.core.registration.features import Features, detect_features
@@ -160,7 +161,7 @@ def describe_frame(
         found = Features((found.points + 0.5) / scale - 0.5, found.descriptors, found.sizes_px / scale)
     else:
         found = _detect(pf.image, _inner(pf.mask), options)
-    points_mm = (found.points - np.asarray(centre_px, np.float64)) / px_per_mm  # as physics.camera.px_to_mm
+    points_mm = px_to_mm_about(found.points, centre_px, px_per_mm)
     return replace(pf, features=Features(points_mm, found.descriptors, found.sizes_px))
 
 
