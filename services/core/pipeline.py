@@ -47,6 +47,7 @@ class Reconstruction:
     seconds: float
     learned: dict[str, Any] = field(default_factory=dict)  # SessionReconstruction.learned_model()
     keyframes: int = 0  # placed frames registered by their features (the rest tracked: MethodOptions.track_overlap)
+    closures: int = 0  # loop-closure edges in the final pose graph (spanning more than MethodOptions.loop_gap frames)
 
     @property
     def estimate_mm(self) -> np.ndarray:
@@ -154,4 +155,5 @@ def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = 
         time.perf_counter() - started,
         session.learned_model(),
         len(session.registrar.features),
+        sum(e.loop for e in session.registrar.edges),
     )

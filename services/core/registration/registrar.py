@@ -141,14 +141,17 @@ class Registrar:
                     chosen.append(pool.pop(0))
         return chosen
 
-    def _match(self, pf: FrameEvidence, train: Features, min_inliers: int | None = None) -> SimilarityFit | None:
-        """Return the similarity from the frame's mm to the train features' mm, or None on weak evidence."""
+    def _match(
+        self, pf: FrameEvidence, train: Features, min_inliers: int | None = None, ransac_px: float | None = None
+    ) -> SimilarityFit | None:
+        """Return the similarity from the frame's mm to the train features' mm, or None on weak evidence
+        (RANSAC gate: options.ransac_px unless `ransac_px` is given)."""
         same_place = 2.0 / self.px_per_mm
         iq, it = match_features(pf.features, train, self.options.ratio, same_point=same_place)
         return estimate_similarity(
             pf.features.points[iq],
             train.points[it],
-            self.ransac_mm,
+            self.ransac_mm if ransac_px is None else ransac_px / self.px_per_mm,
             seed=pf.index,
             min_inliers=self.options.min_inliers if min_inliers is None else min_inliers,
             dedupe_radius=same_place,
@@ -163,6 +166,20 @@ class Registrar:
             return None
         fit = self._match(pf, self.features[other], min_inliers)
         return None if fit is None else feature_match(fit)
+
+    def _older(self, pf: FrameEvidence, other: int, min_inliers: int | None) -> Match | None:
+        """Return the match to an older keyframe: at the RANSAC gate, else (options.loop_ransac_px) at the looser
+        gate when that finds more inliers than a match short of options.min_inliers (a dragged skin's closure)."""
+        found = self._pairwise(pf, other, min_inliers)
+        loose = self.options.loop_ransac_px
+        if (
+            loose <= 0
+            or other not in self.features
+            or (found is not None and found.inliers >= self.options.min_inliers)
+        ):
+            return found
+        fit = self._match(pf, self.features[other], min_inliers, loose)
+        return found if fit is None or (found is not None and fit.inliers <= found.inliers) else feature_match(fit)
 
     def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity, lost_for: int) -> tuple[Similarity, int] | None:
         """Match against the mosaic's features around the prediction (the paper's registration)."""
@@ -337,7 +354,7 @@ class Registrar:
             # when no other frame matched in full: it ties a hard scan's row to the row before where nothing else
             # does, and adds no noisier scale where full edges are (on simulated raster and short it cost up to
             # 0.1 mm when always kept)
-            found = self._pairwise(pf, other, self._confirmed_min_inliers() if anchor is not None else None)
+            found = self._older(pf, other, self._confirmed_min_inliers() if anchor is not None else None)
             if found is None:
                 continue
             pose = self.poses[other].compose(found.relative)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -13,7 +14,9 @@ import pytest
 from services.core import pipeline
 from services.core.inputs.scan import Scan
 from services.core.methods import MethodOptions, method_options
+from services.core.physics.drag import profile
 from services.core.registration.edge_corrections import EdgeCorrections, view_evidence
+from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
 from services.core.registration.outcome import (
     REASON_FEW_INLIERS,
@@ -24,6 +27,7 @@ from services.core.registration.outcome import (
     STATUS_OK,
     STATUS_REJECTED,
     FrameResult,
+    Match,
 )
 from services.core.registration.pose_graph import Edge
 from services.core.registration.refinement import VIEW_REFIT_GROWTH
@@ -328,3 +332,37 @@ def test_without_tracking_every_frame_is_a_keyframe(tracking) -> None:
         results, registrar, tracked = tracking[overlap]
         assert not tracked and set(registrar.features) == {r.index for r in results}
     assert [r.pose for r in tracking[0.0][0]] == [r.pose for r in tracking[0.999][0]]  # the same registration
+
+
+def _keypoint_pair(drag_mm: float) -> tuple[Features, SimpleNamespace]:
+    """Return an older keyframe's 50 keypoints (mm, uniquely described) and a frame seeing the same skin with a
+    drag of `drag_mm` at its centre relative to it (physics.drag's Gaussian profile, 15 mm wide)."""
+    rng = np.random.default_rng(3)
+    points = np.column_stack([rng.uniform(-35, 35, 50), rng.uniform(-25, 25, 50)])
+    z = points[:, 0] + 1j * points[:, 1]
+    moved = z + drag_mm * profile(z, 15.0)
+    descriptors = rng.integers(0, 256, (50, 128)).astype(np.uint8)
+    older = Features(points, descriptors, np.full(50, 2.0))
+    seen = Features(np.column_stack([moved.real, moved.imag]), descriptors.copy(), np.full(50, 2.0))
+    return older, SimpleNamespace(index=40, features=seen, stretch=1.0)
+
+
+def _older_match(drag_mm: float, loop_ransac_px: float) -> Match | None:
+    older, frame = _keypoint_pair(drag_mm)
+    options = method_options("best").with_overrides({"loop_ransac_px": loop_ransac_px})
+    registrar = Registrar(options, 8.0, 40.0, centre_px=(320.0, 240.0))  # 2 px = 0.25 mm gate
+    registrar.features[0] = older
+    return registrar._older(frame, 0, None)
+
+
+def test_a_closure_the_skin_drag_breaks_is_recovered_at_the_loop_gate() -> None:
+    # 2.5 mm of drag at the centre against the rim: no similarity holds 20 pairs within 0.25 mm, 4 px (0.5 mm) does
+    assert _older_match(2.5, 0.0) is None
+    found = _older_match(2.5, 4.0)
+    assert found is not None and found.inliers >= method_options("best").min_inliers
+
+
+def test_the_loop_gate_leaves_a_match_that_holds_at_the_ransac_gate() -> None:
+    tight, loose = _older_match(0.0, 0.0), _older_match(0.0, 4.0)
+    assert tight is not None and loose is not None
+    assert (loose.inliers, loose.relative) == (tight.inliers, tight.relative)
