@@ -168,18 +168,28 @@ class Registrar:
         return None if fit is None else feature_match(fit)
 
     def _older(self, pf: FrameEvidence, other: int, min_inliers: int | None) -> Match | None:
-        """Return the match to an older keyframe: at the RANSAC gate, else (options.loop_ransac_px) at the looser
-        gate when that finds more inliers than a match short of options.min_inliers (a dragged skin's closure)."""
+        """Return the match to an older keyframe at the RANSAC gate; when that falls short of options.min_inliers
+        and the newest frame travels against `other` (two rows of a raster: the skin dragged opposite ways), the
+        match at options.loop_ransac_px's looser gate if it holds options.min_inliers in full (0: off)."""
         found = self._pairwise(pf, other, min_inliers)
-        loose = self.options.loop_ransac_px
-        if (
-            loose <= 0
-            or other not in self.features
-            or (found is not None and found.inliers >= self.options.min_inliers)
-        ):
+        full = self.options.min_inliers
+        if self.options.loop_ransac_px <= 0 or (found is not None and found.inliers >= full):
             return found
-        fit = self._match(pf, self.features[other], min_inliers, loose)
-        return found if fit is None or (found is not None and fit.inliers <= found.inliers) else feature_match(fit)
+        if other not in self.features or not self._opposite(other):
+            return found
+        fit = self._match(pf, self.features[other], min_inliers, self.options.loop_ransac_px)
+        return found if fit is None or fit.inliers < full else feature_match(fit)
+
+    def _heading(self, index: int) -> complex:
+        """Return a placed frame's direction of travel (mosaic mm per frame, its placed neighbours'), 0 alone."""
+        k = self.order.index(index)
+        before = self.order[max(k - 1, 0)]
+        after = self.order[min(k + 1, len(self.order) - 1)]
+        return self.poses[after].t - self.poses[before].t
+
+    def _opposite(self, other: int) -> bool:
+        """Return whether the newest frame travels against placed frame `other` (two rows of a raster)."""
+        return (self._heading(self.order[-1]) * self._heading(other).conjugate()).real < 0
 
     def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity, lost_for: int) -> tuple[Similarity, int] | None:
         """Match against the mosaic's features around the prediction (the paper's registration)."""
