@@ -44,10 +44,10 @@ class MethodOptions:
     min_inliers: int = 20  # unique RANSAC inliers for an accepted registration
     confirmed_inlier_share: float = 0.5  # ... this share of it for a match to an older frame agreeing with the latest's
     ransac_px: float = 2.0  # RANSAC reprojection threshold, pixels of the rectified frame
-    # a keyframe's match to an older one travelled the opposite way that fails ransac_px in full is tried again with
-    # this looser gate (pixels; 0: off). Skin dragged opposite ways on two rows moves the overlap's centre by more than
-    # ransac_px against its rim, so a dragged raster loses most of its closures (issue 31). Off: docs/accuracy.md
-    loop_ransac_px: float = 0.0
+    # once the scan's skin shows a drag, a keyframe's match to an older one travelled the opposite way that fails
+    # ransac_px in full is tried again with this looser gate (pixels; 0: off). Skin dragged opposite ways on two rows
+    # moves the overlap's centre by more than ransac_px against its rim: a raster loses most closures (issue 31)
+    loop_ransac_px: float = 4.0
     ratio: float = 0.8  # Lowe ratio test
     neighbours: int = 4  # keyframes matched per frame (keyframes registration)
     loop_gap: int = 25  # an edge spanning more frames than this is a loop closure

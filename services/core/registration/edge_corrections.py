@@ -113,14 +113,23 @@ class EdgeCorrections:
 
     def fit_drag(self, edges: list[Edge], order: list[int], poses: dict[int, Similarity]) -> DragFit | None:
         """Return the skin's drag fitted to every edge's inlier pairs (physics.drag), also kept as drag_fit."""
-        # a direct alignment's pairs (inliers 0) are sampled from its affine: no curvature to learn a drag from
-        evidence = [DragEvidence(e.i, e.j, e.pairs, e.relative.a) for e in edges if e.pairs is not None and e.inliers]
-        fit = fit_drag(evidence, self.loads, directions_of_travel(order, poses))
+        fit = self._drag(edges, order, poses)
         # frames without feature edges (tracked between keyframes) take their neighbours' drag
         self.drag_fit = None if fit is None else fit.filled(order, FILL_REACH)
         self._undeformed = {}
         self._undragged = {}
         return self.drag_fit
+
+    def drag_evident(self, edges: list[Edge], order: list[int], poses: dict[int, Similarity]) -> bool:
+        """Return whether the edges so far show the skin dragged (physics.drag keeps a fit), keeping nothing: while
+        the scan goes on the drag is only detected, and undone at the end (fit_drag)."""
+        fit = self._drag(edges, order, poses)
+        return fit is not None and fit.kept
+
+    def _drag(self, edges: list[Edge], order: list[int], poses: dict[int, Similarity]) -> DragFit | None:
+        # a direct alignment's pairs (inliers 0) are sampled from its affine: no curvature to learn a drag from
+        evidence = [DragEvidence(e.i, e.j, e.pairs, e.relative.a) for e in edges if e.pairs is not None and e.inliers]
+        return fit_drag(evidence, self.loads, directions_of_travel(order, poses))
 
     def dragged(self) -> bool:
         """Return whether a drag was learned and kept (physics.drag): the edges, path and mosaic undo it."""
@@ -172,13 +181,20 @@ def view_evidence(edges: list[Edge]) -> int:
     return sum(1 for e in edges if e.view_affine is not None)
 
 
+def step_of_travel(order: list[int], poses: dict[int, Similarity], k: int) -> complex:
+    """Return the placed frame order[k]'s step of travel (map mm): between its placed neighbours in the sequence,
+    each only within DIRECTION_GAP frames (0 when alone in its run: a lift or a gap is not the way it went)."""
+    i = order[k]
+    before = order[k - 1] if k > 0 and i - order[k - 1] <= DIRECTION_GAP else i
+    after = order[k + 1] if k + 1 < len(order) and order[k + 1] - i <= DIRECTION_GAP else i
+    return poses[after].t - poses[before].t
+
+
 def directions_of_travel(order: list[int], poses: dict[int, Similarity]) -> dict[int, complex]:
     """Return each placed frame's unit direction of travel in its own axes (0 when still or alone in its run)."""
     out: dict[int, complex] = {}
     for k, i in enumerate(order):
-        before = order[k - 1] if k > 0 and i - order[k - 1] <= DIRECTION_GAP else i
-        after = order[k + 1] if k + 1 < len(order) and order[k + 1] - i <= DIRECTION_GAP else i
-        step = poses[after].t - poses[before].t
+        step = step_of_travel(order, poses, k)
         a = poses[i].a
         out[i] = (step / abs(step)) * (abs(a) / a) if abs(step) > STILL_MM and a != 0 else 0j
     return out

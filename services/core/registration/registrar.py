@@ -21,7 +21,7 @@ from services.core.registration.direct_alignment import (
     correlation,
     overlap_pairs,
 )
-from services.core.registration.edge_corrections import EdgeCorrections, view_evidence
+from services.core.registration.edge_corrections import EdgeCorrections, step_of_travel, view_evidence
 from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame, describe_frame, tracks_frames
 from services.core.registration.matching import SimilarityFit, estimate_similarity, match_features
@@ -56,6 +56,8 @@ DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - 
 ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
 TRACK_PAIR_STEP_PX = 8  # a tracked edge's overlap sampled every this many alignment pixels (2 mm): its drag undone
 FIRST_KEYFRAMES = 10  # a map's first frames are all keyframes: the map's axes are its first frame's (held)
+DRAG_CHECK_EDGES = 600  # the newest edges a global refinement checks for a dragged skin (~0.1 s; a raster's shows
+# by its second row): a long examination's checks cost no more
 MAX_TRACKED_RUN = 8  # frames after a keyframe: the next one is a keyframe however well it tracks (loops, drag)
 
 
@@ -84,6 +86,7 @@ class Registrar:
     loops_since_refine: int = 0
     last_global_refine: int = 0  # placed frames at the last global refinement
     run_start: int = 0  # the first frame of the current run (placed after a landing or a relocalisation)
+    drag_evident: bool = False  # a global refinement found the skin dragged (options.loop_ransac_px applies)
     # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
@@ -168,28 +171,23 @@ class Registrar:
         return None if fit is None else feature_match(fit)
 
     def _older(self, pf: FrameEvidence, other: int, min_inliers: int | None) -> Match | None:
-        """Return the match to an older keyframe at the RANSAC gate; when that falls short of options.min_inliers
-        and the newest frame travels against `other` (two rows of a raster: the skin dragged opposite ways), the
-        match at options.loop_ransac_px's looser gate if it holds options.min_inliers in full (0: off)."""
+        """Return the match to an older keyframe at the RANSAC gate; when that falls short of options.min_inliers,
+        the scan's skin is dragged (drag_evident) and the newest frame travels against `other` (two rows of a
+        raster: dragged opposite ways), the match at options.loop_ransac_px's looser gate if it holds
+        options.min_inliers in full (0: off)."""
         found = self._pairwise(pf, other, min_inliers)
         full = self.options.min_inliers
-        if self.options.loop_ransac_px <= 0 or (found is not None and found.inliers >= full):
+        if self.options.loop_ransac_px <= 0 or not self.drag_evident or (found is not None and found.inliers >= full):
             return found
         if other not in self.features or not self._opposite(other):
             return found
         fit = self._match(pf, self.features[other], min_inliers, self.options.loop_ransac_px)
         return found if fit is None or fit.inliers < full else feature_match(fit)
 
-    def _heading(self, index: int) -> complex:
-        """Return a placed frame's direction of travel (mosaic mm per frame, its placed neighbours'), 0 alone."""
-        k = self.order.index(index)
-        before = self.order[max(k - 1, 0)]
-        after = self.order[min(k + 1, len(self.order) - 1)]
-        return self.poses[after].t - self.poses[before].t
-
     def _opposite(self, other: int) -> bool:
         """Return whether the newest frame travels against placed frame `other` (two rows of a raster)."""
-        return (self._heading(self.order[-1]) * self._heading(other).conjugate()).real < 0
+        newest = step_of_travel(self.order, self.poses, len(self.order) - 1)
+        return (newest * step_of_travel(self.order, self.poses, self.order.index(other)).conjugate()).real < 0
 
     def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity, lost_for: int) -> tuple[Similarity, int] | None:
         """Match against the mosaic's features around the prediction (the paper's registration)."""
@@ -462,6 +460,9 @@ class Registrar:
         self.last_global_refine = n
         if final and self.options.fit_drag:
             self.corrections.fit_drag(self.edges, self.order, self.poses)
+        elif self.options.fit_drag and self.options.loop_ransac_px > 0 and not self.drag_evident:
+            recent = self.edges[-DRAG_CHECK_EDGES:]
+            self.drag_evident = self.corrections.drag_evident(recent, self.order, self.poses)
         if self.options.fit_tilt and (
             final or view_evidence(self.edges) >= VIEW_REFIT_GROWTH * self.corrections.last_view_evidence
         ):

@@ -1,9 +1,10 @@
 """Edge corrections: nothing is corrected before a fit, a kept drag undrags each edge once per fit, the direction of
-travel in each frame's own axes."""
+travel in each frame's own axes, the drag detected while the scan goes on."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from services.core.physics.drag import DragFit
 from services.core.registration.edge_corrections import (
@@ -14,6 +15,7 @@ from services.core.registration.edge_corrections import (
 )
 from services.core.registration.pose_graph import Edge
 from services.core.similarity import IDENTITY, Similarity
+from tests.services.core.physics.test_drag import _scan as drag_scan
 
 # matched points of frame j and frame i (mm): a spread of pairs, frame j 2 mm along x of frame i
 PAIRS = np.array([[x, y, x + 2.0, y] for x in (-8.0, 0.0, 8.0) for y in (-6.0, 0.0, 6.0)])
@@ -57,3 +59,16 @@ def test_view_evidence_counts_the_edges_with_an_affine_on_their_inliers() -> Non
     affine = np.hstack([np.eye(2), np.zeros((2, 1))])
     edges = [Edge(0, 1, IDENTITY, 0.05, view_affine=affine), Edge(1, 2, IDENTITY, 0.05)]
     assert view_evidence(edges) == 1
+
+
+@pytest.mark.parametrize(("gain_mm_per_n", "evident"), [(0.1, True), (0.0, False)])
+def test_the_drag_is_detected_while_the_scan_goes_on_without_being_kept(gain_mm_per_n: float, evident: bool) -> None:
+    evidence, loads, _, truth = drag_scan(gain_mm_per_n, seed=3)  # a serpentine of 3 rows, dragged or not
+    poses = truth["poses"]
+    edges = [
+        Edge(ev.i, ev.j, poses[ev.i].inverse().compose(poses[ev.j]), 0.05, inliers=len(ev.pairs), pairs=ev.pairs)
+        for ev in evidence
+    ]
+    corrections = EdgeCorrections(loads=loads)
+    assert corrections.drag_evident(edges, sorted(poses), poses) is evident
+    assert corrections.drag_fit is None  # detected only: the drag is undone at the end (fit_drag)
