@@ -56,8 +56,9 @@ DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - 
 ALIGNMENT_CACHE = 12  # placed frames whose alignment pyramids are kept (the latest ones: most often matched)
 TRACK_PAIR_STEP_PX = 8  # a tracked edge's overlap sampled every this many alignment pixels (2 mm): its drag undone
 FIRST_KEYFRAMES = 10  # a map's first frames are all keyframes: the map's axes are its first frame's (held)
-DRAG_CHECK_EDGES = 600  # the newest edges a global refinement checks for a dragged skin (~0.1 s; a raster's shows
-# by its second row): a long examination's checks cost no more
+DRAG_CHECK_EDGES = 600  # the newest edges a global refinement checks for a dragged skin (a raster's shows by its
+# second row): a long examination's checks cost no more than a short one's
+SAME_PLACE_PX = 2.0  # keypoints matched within this of each other (rectified pixels) are one place (A-SIFT's views)
 MAX_TRACKED_RUN = 8  # frames after a keyframe: the next one is a keyframe however well it tracks (loops, drag)
 
 
@@ -90,11 +91,6 @@ class Registrar:
     # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
-
-    @property
-    def ransac_mm(self) -> float:
-        """Return the RANSAC threshold in mm."""
-        return self.options.ransac_px / self.px_per_mm
 
     def predict(self, t_s: float) -> Similarity | None:
         """Return the constant-velocity prediction of the pose at time t_s, or None before any frame."""
@@ -144,20 +140,25 @@ class Registrar:
                     chosen.append(pool.pop(0))
         return chosen
 
-    def _match(
-        self, pf: FrameEvidence, train: Features, min_inliers: int | None = None, ransac_px: float | None = None
+    def _match(self, pf: FrameEvidence, train: Features, min_inliers: int | None = None) -> SimilarityFit | None:
+        """Return the similarity from the frame's mm to the train features' mm, or None on weak evidence."""
+        return self._verify(pf, self._matched(pf, train), min_inliers, self.options.ransac_px)
+
+    def _matched(self, pf: FrameEvidence, train: Features) -> tuple[np.ndarray, np.ndarray]:
+        """Return the frame's and the train features' points (mm) their descriptors match (ratio test)."""
+        iq, it = match_features(pf.features, train, self.options.ratio, same_point=SAME_PLACE_PX / self.px_per_mm)
+        return pf.features.points[iq], train.points[it]
+
+    def _verify(
+        self, pf: FrameEvidence, matched: tuple[np.ndarray, np.ndarray], min_inliers: int | None, ransac_px: float
     ) -> SimilarityFit | None:
-        """Return the similarity from the frame's mm to the train features' mm, or None on weak evidence
-        (RANSAC gate: options.ransac_px unless `ransac_px` is given)."""
-        same_place = 2.0 / self.px_per_mm
-        iq, it = match_features(pf.features, train, self.options.ratio, same_point=same_place)
+        """Return the RANSAC similarity of matched points at a gate of ransac_px pixels, or None on weak evidence."""
         return estimate_similarity(
-            pf.features.points[iq],
-            train.points[it],
-            self.ransac_mm if ransac_px is None else ransac_px / self.px_per_mm,
+            *matched,
+            ransac_px / self.px_per_mm,
             seed=pf.index,
             min_inliers=self.options.min_inliers if min_inliers is None else min_inliers,
-            dedupe_radius=same_place,
+            dedupe_radius=SAME_PLACE_PX / self.px_per_mm,
         )
 
     def _confirmed_min_inliers(self) -> int:
@@ -174,15 +175,18 @@ class Registrar:
         """Return the match to an older keyframe at the RANSAC gate; when that falls short of options.min_inliers,
         the scan's skin is dragged (drag_evident) and the newest frame travels against `other` (two rows of a
         raster: dragged opposite ways), the match at options.loop_ransac_px's looser gate if it holds
-        options.min_inliers in full (0: off)."""
-        found = self._pairwise(pf, other, min_inliers)
+        options.min_inliers in full (0: off). The descriptors are matched once for both gates."""
+        if other not in self.features:  # a tracked frame: matched through its keyframe only
+            return None
+        matched = self._matched(pf, self.features[other])
+        fit = self._verify(pf, matched, min_inliers, self.options.ransac_px)
         full = self.options.min_inliers
-        if self.options.loop_ransac_px <= 0 or not self.drag_evident or (found is not None and found.inliers >= full):
-            return found
-        if other not in self.features or not self._opposite(other):
-            return found
-        fit = self._match(pf, self.features[other], min_inliers, self.options.loop_ransac_px)
-        return found if fit is None or fit.inliers < full else feature_match(fit)
+        looser = self.options.loop_ransac_px > 0 and self.drag_evident and (fit is None or fit.inliers < full)
+        if looser and self._opposite(other):
+            loose = self._verify(pf, matched, min_inliers, self.options.loop_ransac_px)
+            if loose is not None and loose.inliers >= full:
+                return feature_match(loose)
+        return None if fit is None else feature_match(fit)
 
     def _opposite(self, other: int) -> bool:
         """Return whether the newest frame travels against placed frame `other` (two rows of a raster)."""

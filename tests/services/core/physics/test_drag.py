@@ -8,65 +8,22 @@ import numpy as np
 import pytest
 
 from services.core.physics.drag import (
-    DragEvidence,
     DragFit,
     fit_drag,
-    profile,
     undrag,
     undrag_maps,
     undragged_transforms,
 )
 from services.core.similarity import Similarity
-
-WIDTH_MM = 15.0  # the true profile's width (one of the widths the fit tries)
-STEP_MM = 4.0  # frames 4 mm apart along a row, as the shared rasters' 3.8 mm
-NOISE_MM = 0.03  # feature localisation noise (a quarter pixel at 8 px/mm)
+from tests.services.core.physics.dragged_serpentine import WIDTH_MM, dragged_serpentine
 
 
 def _at(s: Similarity, z: complex) -> complex:
     return s.a * z + s.t
 
 
-def _rest_to_frame(rest: np.ndarray, pose: Similarity, drag: complex) -> np.ndarray:
-    """Return the frame points (complex mm) that show skin resting at world points `rest` under a frame's drag."""
-    q = (rest - pose.t) / pose.a  # undragged frame coordinates
-    p = q.copy()
-    for _ in range(30):  # p - D phi(p) = q, by fixed point (|D phi'| << 1)
-        p = q + drag * profile(p, WIDTH_MM)
-    return p
-
-
-def _scan(gain_mm_per_n: float, seed: int) -> tuple[list[DragEvidence], dict[int, float], dict[int, complex], dict]:
-    """Return matches between 3 rows of 12 frames (a serpentine: the drag flips with the stroke), the loads, the
-    directions of travel, and the truth (poses and drags)."""
-    rng = np.random.default_rng(seed)
-    poses, drags, loads, directions = {}, {}, {}, {}
-    k = 0
-    for row in range(3):
-        way = 1 if row % 2 == 0 else -1
-        for col in range(12):
-            x = (col if way > 0 else 11 - col) * STEP_MM
-            poses[k] = Similarity(np.exp(1j * rng.normal(0, 0.01)), complex(x, 20.0 * row))
-            loads[k] = float(rng.uniform(4.0, 16.0))
-            directions[k] = complex(way, 0.0)
-            drags[k] = gain_mm_per_n * loads[k] * way * rng.uniform(0.6, 1.0)  # stick-slip
-            k += 1
-    evidence = []
-    for i in poses:
-        for j in poses:
-            if j <= i or abs(poses[j].t - poses[i].t) > 28.0:
-                continue
-            centre = (poses[i].t + poses[j].t) / 2
-            rest = centre + rng.uniform(-14, 14, 60) + 1j * rng.uniform(-9, 9, 60)
-            pi = _rest_to_frame(rest, poses[i], drags[i]) + np.array([1, 1j]) @ rng.normal(0, NOISE_MM, (2, 60))
-            pj = _rest_to_frame(rest, poses[j], drags[j]) + np.array([1, 1j]) @ rng.normal(0, NOISE_MM, (2, 60))
-            pairs = np.stack([pj.real, pj.imag, pi.real, pi.imag], axis=1).astype(np.float32)
-            evidence.append(DragEvidence(i, j, pairs, poses[j].a / poses[i].a))
-    return evidence, loads, directions, {"poses": poses, "drags": drags}
-
-
 def test_drags_are_found_where_the_skin_is_dragged() -> None:
-    evidence, loads, directions, truth = _scan(0.1, seed=3)  # 0.4-1.6 mm at the centre
+    evidence, loads, directions, truth = dragged_serpentine(0.1, seed=3)  # 0.4-1.6 mm at the centre
     fit = fit_drag(evidence, loads, directions)
     assert fit is not None and fit.kept
     assert fit.width_mm == WIDTH_MM  # the profile's width chosen by the evidence
@@ -79,7 +36,7 @@ def test_drags_are_found_where_the_skin_is_dragged() -> None:
 
 
 def test_undragged_edges_match_the_rest_poses() -> None:
-    evidence, loads, directions, truth = _scan(0.1, seed=4)
+    evidence, loads, directions, truth = dragged_serpentine(0.1, seed=4)
     fit = fit_drag(evidence, loads, directions)
     assert fit is not None and fit.kept
     poses = truth["poses"]
@@ -102,14 +59,14 @@ def test_undragged_edges_match_the_rest_poses() -> None:
 
 
 def test_no_drag_is_kept_where_there_is_none() -> None:
-    evidence, loads, directions, _ = _scan(0.0, seed=5)
+    evidence, loads, directions, _ = dragged_serpentine(0.0, seed=5)
     fit = fit_drag(evidence, loads, directions)
     assert fit is not None and not fit.kept
     assert all(fit.of(k) == 0 for k in loads)
 
 
 def test_too_little_evidence_fits_nothing() -> None:
-    evidence, loads, directions, _ = _scan(0.1, seed=6)
+    evidence, loads, directions, _ = dragged_serpentine(0.1, seed=6)
     assert fit_drag(evidence[:5], loads, directions) is None
 
 

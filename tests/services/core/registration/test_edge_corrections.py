@@ -15,7 +15,7 @@ from services.core.registration.edge_corrections import (
 )
 from services.core.registration.pose_graph import Edge
 from services.core.similarity import IDENTITY, Similarity
-from tests.services.core.physics.test_drag import _scan as drag_scan
+from tests.services.core.physics.dragged_serpentine import dragged_serpentine
 
 # matched points of frame j and frame i (mm): a spread of pairs, frame j 2 mm along x of frame i
 PAIRS = np.array([[x, y, x + 2.0, y] for x in (-8.0, 0.0, 8.0) for y in (-6.0, 0.0, 6.0)])
@@ -63,7 +63,7 @@ def test_view_evidence_counts_the_edges_with_an_affine_on_their_inliers() -> Non
 
 @pytest.mark.parametrize(("gain_mm_per_n", "evident"), [(0.1, True), (0.0, False)])
 def test_the_drag_is_detected_while_the_scan_goes_on_without_being_kept(gain_mm_per_n: float, evident: bool) -> None:
-    evidence, loads, _, truth = drag_scan(gain_mm_per_n, seed=3)  # a serpentine of 3 rows, dragged or not
+    evidence, loads, _, truth = dragged_serpentine(gain_mm_per_n, seed=3)  # a serpentine of 3 rows, dragged or not
     poses = truth["poses"]
     edges = [
         Edge(ev.i, ev.j, poses[ev.i].inverse().compose(poses[ev.j]), 0.05, inliers=len(ev.pairs), pairs=ev.pairs)

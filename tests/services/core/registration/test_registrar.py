@@ -33,6 +33,7 @@ from services.core.registration.pose_graph import Edge
 from services.core.registration.refinement import VIEW_REFIT_GROWTH
 from services.core.registration.registrar import FIRST_KEYFRAMES, MAX_TRACKED_RUN, Registrar
 from services.core.similarity import IDENTITY, Similarity
+from tests.services.core.physics.dragged_serpentine import dragged_serpentine
 from tests.sim_cache import simulated
 from tests.tolerances import TOL
 
@@ -381,3 +382,25 @@ def test_the_loop_gate_leaves_a_match_that_holds_at_the_ransac_gate() -> None:
     tight, loose = _older_match(0.0, 0.0), _older_match(0.0, 4.0)
     assert tight is not None and loose is not None
     assert (loose.inliers, loose.relative) == (tight.inliers, tight.relative)
+
+
+@pytest.mark.parametrize(
+    ("gain_mm_per_n", "loop_ransac_px", "evident"), [(0.1, 4.0, True), (0.0, 4.0, False), (0.1, 0.0, False)]
+)
+def test_a_global_refinement_finds_the_skin_dragged(gain_mm_per_n: float, loop_ransac_px: float, evident: bool) -> None:
+    # a serpentine's matches (3 rows of 12 frames), its skin dragged or not: the refinement's check sets the loop
+    # gate going (and only when the gate is on); the view model is left out (the synthetic edges have no affine)
+    evidence, loads, _, truth = dragged_serpentine(gain_mm_per_n, seed=3)
+    options = method_options("best").with_overrides({"loop_ransac_px": loop_ransac_px, "fit_tilt": False})
+    registrar = Registrar(options, 8.0, 40.0, centre_px=(320.0, 240.0))
+    registrar.corrections.loads.update(loads)
+    registrar.order.extend(sorted(truth["poses"]))
+    registrar.poses.update(truth["poses"])
+    poses = truth["poses"]
+    registrar.edges.extend(
+        Edge(ev.i, ev.j, poses[ev.i].inverse().compose(poses[ev.j]), 0.05, inliers=len(ev.pairs), pairs=ev.pairs)
+        for ev in evidence
+    )
+    registrar.refine()
+    assert registrar.drag_evident is evident
+    assert registrar.corrections.drag_fit is None  # detected only: undone at the end
