@@ -88,3 +88,40 @@ def test_a_fragment_chains_then_joins_and_every_frame_is_placed(stroke: Stroke) 
     estimate = np.array([complex(r.x_mm, r.y_mm) for r in rows])
     truth = np.array([(reference[s][0] - origin) * np.exp(-1j * yaw) for s in seqs])
     assert np.max(np.abs(estimate - truth)) <= JOINED_MAX_ERROR_MM, np.round(np.abs(estimate - truth), 2)
+
+
+def _fragmented(frames: dict[int, PreparedFrame], dragged_map: int | None) -> tuple[Atlas, list[PreparedFrame]]:
+    """Return an atlas holding the stroke's end and, after a landing at its start (no overlap), a fragment of one
+    frame; `dragged_map` (0 the main map, 1 the fragment, None neither) has found the skin dragged. Also return
+    the start's frames still to feed."""
+    end = [s for s in range(31, 43) if s in frames]
+    start = [s for s in range(0, 25) if s in frames]
+    fed = _feed(frames, end + start)
+    atlas = _atlas()
+    for pf in fed[: len(end)]:
+        atlas.add(pf, landing=False)
+    if dragged_map == 0:
+        atlas.main.drag_evident = True
+    atlas.add(fed[len(end)], landing=True)
+    assert len(atlas.maps) == 2  # the landing overlaps nothing placed: a fragment
+    if dragged_map == 1:
+        atlas.maps[1].drag_evident = True
+    return atlas, fed[len(end) + 1 :]
+
+
+def test_a_fragment_begun_after_a_lift_knows_the_skin_is_dragged(stroke: Stroke) -> None:
+    frames, _ = stroke
+    atlas, _ = _fragmented(frames, dragged_map=0)
+    assert atlas.maps[1].drag_evident  # the patient's skin: the fragment's closures get the looser gate too
+    atlas, _ = _fragmented(frames, dragged_map=None)
+    assert not any(m.drag_evident for m in atlas.maps)  # nothing found: nothing assumed
+
+
+def test_a_drag_a_fragment_found_reaches_the_main_map(stroke: Stroke) -> None:
+    frames, _ = stroke
+    atlas, rest = _fragmented(frames, dragged_map=1)
+    atlas.add(rest[0], landing=False)
+    assert atlas.main.drag_evident
+    for pf in rest[1:]:  # ... and stays with it when the fragment joins the map
+        atlas.add(pf, landing=False)
+    assert len(atlas.maps) == 1 and atlas.main.drag_evident
