@@ -35,6 +35,7 @@ _BOUNDS: dict[str, dict[str, float]] = {
     "scale_prior": {"ge": 0, "le": 1},  # a relative sigma
     "ransac_px": {"ge": 0, "le": 50},  # pixels of a rectified frame
     "loop_ransac_px": {"ge": 0, "le": 50},  # pixels of a rectified frame
+    "drag_pair_gate": {"ge": 0, "le": 10},  # RANSAC gates
     "max_jump_mm": {"ge": 0, "le": 1000},  # a breast is smaller
     "max_features": {"ge": 0, "le": 20_000},  # SIFT's cap per view (0: no cap)
     "target_features": {"ge": 0, "le": 10_000},  # keypoints kept per frame

@@ -48,6 +48,10 @@ class MethodOptions:
     # ransac_px in full is tried again with this looser gate (pixels; 0: off). Skin dragged opposite ways on two rows
     # moves the overlap's centre by more than ransac_px against its rim: a raster loses most closures (issue 31)
     loop_ransac_px: float = 4.0
+    # the skin drag's evidence (physics.drag): 0, a match's inliers; > 0, its pairs within this many RANSAC gates of
+    # its similarity. The gate cuts the pairs a drag moves most (the window's centre), so the drags fitted to the
+    # inliers come out smaller than the skin's (issue 31; opt-in: docs/accuracy.md, "Skin drag")
+    drag_pair_gate: float = 0.0
     ratio: float = 0.8  # Lowe ratio test
     neighbours: int = 4  # keyframes matched per frame (keyframes registration)
     loop_gap: int = 25  # an edge spanning more frames than this is a loop closure

@@ -128,7 +128,11 @@ class EdgeCorrections:
 
     def _drag(self, edges: list[Edge], order: list[int], poses: dict[int, Similarity]) -> DragFit | None:
         # a direct alignment's pairs (inliers 0) are sampled from its affine: no curvature to learn a drag from
-        evidence = [DragEvidence(e.i, e.j, e.pairs, e.relative.a) for e in edges if e.pairs is not None and e.inliers]
+        evidence = [
+            DragEvidence(e.i, e.j, e.pairs if e.drag_pairs is None else e.drag_pairs, e.relative.a)
+            for e in edges
+            if e.pairs is not None and e.inliers
+        ]
         return fit_drag(evidence, self.loads, directions_of_travel(order, poses))
 
     def dragged(self) -> bool:

@@ -33,7 +33,10 @@ class SimilarityFit:
     view_affine: np.ndarray | None = None
     centre: complex = 0j  # the inliers' centroid (src units): where the fit's translation is best known
     spread: float = 0.0  # the inliers' RMS distance from it (src units): the lever of its rotation and scale
-    pairs: np.ndarray | None = None  # float32 (n, 4): the unique inliers, src x, y then dst x, y (drag evidence)
+    pairs: np.ndarray | None = None  # float32 (n, 4): the unique inliers, src x, y then dst x, y
+    # float32 (n, 4): the unique pairs within drag_gate thresholds of the similarity (estimate_similarity), the skin
+    # drag's evidence: the inliers alone are the pairs a drag moved least (the gate cuts the window's centre)
+    drag_pairs: np.ndarray | None = None
 
 
 def nearest_descriptors(
@@ -135,11 +138,13 @@ def estimate_similarity(
     seed: int = 0,
     min_inliers: int = 8,
     dedupe_radius: float = 0.0,
+    drag_gate: float = 0.0,
 ) -> SimilarityFit | None:
     """Return the RANSAC similarity src -> dst (LM-refined on inliers), or None with too few inliers.
 
     `threshold` is the reprojection threshold in dst units; inliers are counted after merging matches
-    repeated within dedupe_radius (src units scaled alike), so counts are honest for A-SIFT.
+    repeated within dedupe_radius (src units scaled alike), so counts are honest for A-SIFT. drag_gate > 0: the
+    fit's drag_pairs are the unique pairs within drag_gate x threshold of the similarity (0: none).
     """
     if len(src) < max(3, min_inliers):
         return None
@@ -173,10 +178,20 @@ def estimate_similarity(
     a_rms = _affine_rms(view_affine, src[chosen], dst[chosen]) if view_affine is not None else rms
     affine_sigma = a_rms / (math.sqrt(int(chosen.sum())) * spread) if spread > 0 else math.inf
     centre, lever = centroid_and_spread(src[inl])
-    kept = np.flatnonzero(inl)
-    kept = kept[np.linspace(0, len(kept) - 1, min(len(kept), PAIRS_KEPT)).astype(int)]
-    pairs = np.hstack([src[kept], dst[kept]]).astype(np.float32)
-    return SimilarityFit(transform, n, rms, inl, affine, affine_sigma, view_affine, centre, lever, pairs)
+    pairs = _pairs(src, dst, np.flatnonzero(inl))
+    drag_pairs = None
+    if drag_gate > 0:
+        near = np.flatnonzero(np.hypot(*(transform.apply(src) - dst).T) < drag_gate * threshold)
+        if dedupe_radius > 0 and len(near) > 1:
+            near = near[unique_pairs(src[near], dst[near], dedupe_radius)]
+        drag_pairs = _pairs(src, dst, near)
+    return SimilarityFit(transform, n, rms, inl, affine, affine_sigma, view_affine, centre, lever, pairs, drag_pairs)
+
+
+def _pairs(src: np.ndarray, dst: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """Return float32 (n, 4) pairs (src x, y then dst x, y) of at most PAIRS_KEPT of `chosen`, spread over it."""
+    kept = chosen[np.linspace(0, len(chosen) - 1, min(len(chosen), PAIRS_KEPT)).astype(int)]
+    return np.hstack([src[kept], dst[kept]]).astype(np.float32)
 
 
 def centroid_and_spread(points: np.ndarray) -> tuple[complex, float]:

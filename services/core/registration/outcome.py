@@ -64,6 +64,7 @@ class Match:
     centre: complex = 0j  # where the match is measured (the inliers' centroid, frame mm); 0 for a direct one
     spread_mm: float = 0.0  # the inliers' RMS distance from it; 0: unknown (the pose graph's default lever)
     pairs: np.ndarray | None = None  # the feature inliers (n, 4: frame x, y, placed x, y; mm), see SimilarityFit
+    drag_pairs: np.ndarray | None = None  # the skin drag's evidence (the same layout), see SimilarityFit
 
 
 def feature_match(fit: SimilarityFit) -> Match:
@@ -78,6 +79,7 @@ def feature_match(fit: SimilarityFit) -> Match:
         fit.centre,
         fit.spread,
         fit.pairs,
+        fit.drag_pairs,
     )
 
 

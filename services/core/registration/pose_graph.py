@@ -45,6 +45,8 @@ class Edge:
     lever_mm: float = 0.0  # the inliers' spread about it (mm): the lever of the a-rows; 0 = the graph's default
     # the match's inliers (n, 4: frame j x, y, frame i x, y; mm), the skin drag's evidence (physics.drag)
     pairs: np.ndarray | None = field(default=None, compare=False, repr=False)
+    # the pairs near the match's similarity, the inliers among them (the drag's evidence; None: the inliers)
+    drag_pairs: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def with_relative(self, relative: Similarity) -> Edge:
         """Return the same edge measuring another relative similarity (e.g. between undeformed frames)."""

@@ -159,6 +159,7 @@ class Registrar:
             seed=pf.index,
             min_inliers=self.options.min_inliers if min_inliers is None else min_inliers,
             dedupe_radius=SAME_PLACE_PX / self.px_per_mm,
+            drag_gate=self.options.drag_pair_gate,
         )
 
     def _confirmed_min_inliers(self) -> int:
@@ -348,7 +349,8 @@ class Registrar:
         if found is not None and self.options.direct_refine:
             refined = self._direct(pf, latest, [found.relative], recentre=False)
             if refined is not None:
-                found = Match(refined.transform, found.inliers, found.rms, pairs=found.pairs)
+                pairs, drag_pairs = found.pairs, found.drag_pairs
+                found = Match(refined.transform, found.inliers, found.rms, pairs=pairs, drag_pairs=drag_pairs)
         if found is None and self.options.direct_fallback:
             found = self._fallback(pf, latest, predicted)
         if found is not None:
@@ -447,6 +449,7 @@ class Registrar:
             centre=match.centre,
             lever_mm=match.spread_mm,
             pairs=match.pairs,
+            drag_pairs=match.drag_pairs,
         )
 
     def refine(self, final: bool = False) -> tuple[int, ...]:

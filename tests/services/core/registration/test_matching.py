@@ -213,3 +213,20 @@ def test_the_affine_evidence_is_not_shrunk_by_the_similarity_inliers() -> None:
         naive.append(a[0, 0] - a[1, 1])
     assert abs(np.mean(found) - 0.015) < 0.0015, found
     assert np.mean(naive) < np.mean(found) - 0.002, (naive, found)  # what the similarity's inliers alone give
+
+
+def test_the_drag_pairs_reach_past_the_gate_where_the_inliers_stop() -> None:
+    # 54 matches on a grid under a shift, the six nearest the centre moved 0.4 mm more (a dragged skin's centre):
+    # past the 0.25 mm gate (2 px at 8 px/mm), within two gates
+    grid = np.array([[x, y] for x in np.arange(-20.0, 21.0, 5.0) for y in np.arange(-15.0, 16.0, 6.0)])
+    dst = grid + np.array([3.0, 1.0])
+    centre = np.hypot(grid[:, 0], grid[:, 1]) < 6.0
+    dst[centre] += np.array([0.4, 0.0])
+    fit = estimate_similarity(grid, dst, 0.25, min_inliers=8)
+    assert fit is not None and fit.drag_pairs is None  # no gate given: the inliers are all there is
+    dragged = estimate_similarity(grid, dst, 0.25, min_inliers=8, drag_gate=2.0)
+    assert dragged is not None and dragged.pairs is not None and dragged.drag_pairs is not None
+    at_centre = {tuple(p) for p in grid[centre]}
+    assert not at_centre & {tuple(p) for p in dragged.pairs[:, :2].astype(np.float64)}  # the gate cut them
+    assert at_centre <= {tuple(p) for p in dragged.drag_pairs[:, :2].astype(np.float64)}  # the drag's evidence
+    assert len(dragged.drag_pairs) == len(dragged.pairs) + int(centre.sum())
