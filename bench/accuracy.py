@@ -33,8 +33,8 @@ Usage: python bench/accuracy.py [--quick] [--methods best,sift-chain,paper] [--s
 `paper` costs about 1 s/frame: leave it out of --methods for a fast run. best-nodrag: best without the skin drag
 model (fit_drag=false), to show what learning the drag is worth. best-track: best tracking frames on keyframes
 (track_overlap=0.85), to show what it costs in accuracy and saves in time. best-noloopgate: best without
-the looser loop gate for the closures a dragged skin breaks (loop_ransac_px=0). best-dragpairs: the skin drag learned
-from every match's pairs within two RANSAC gates of its similarity, not its inliers alone (drag_pair_gate=2).
+the looser loop gate for the closures a dragged skin breaks (loop_ransac_px=0). best-nodragpairs: the skin drag learned
+from the matches' inliers alone, not their pairs within 1.25 RANSAC gates of the similarity (drag_pair_gate=0).
 --quick: the shared scans and five cells of the 40-frame `short` scenario, seed 1 (a few minutes without `paper`).
 """
 
@@ -91,7 +91,7 @@ ABLATIONS = {
     "best-nodrag": ("best", {"fit_drag": False}),
     "best-track": ("best", {"track_overlap": 0.85}),  # most frames tracked without features (issue 32; opt-in)
     "best-noloopgate": ("best", {"loop_ransac_px": 0.0}),  # no looser gate for the closures a dragged skin breaks
-    "best-dragpairs": ("best", {"drag_pair_gate": 2.0}),  # the drag learned from the pairs within 2 gates (opt-in)
+    "best-nodragpairs": ("best", {"drag_pair_gate": 0.0}),  # the drag learned from the matches' inliers alone
 }
 DRAG_CELLS = {"drag": "linear"}  # a patient (linear law, a hand's tilt) whose skin the sliding window drags
 QUICK_LOOKS = ("default", "faint", "noise4", "heavy-blur", "16bit", *TISSUE_CELLS, *DRAG_CELLS)

@@ -50,8 +50,9 @@ class MethodOptions:
     loop_ransac_px: float = 4.0
     # the skin drag's evidence (physics.drag): 0, a match's inliers; > 0, its pairs within this many RANSAC gates of
     # its similarity. The gate cuts the pairs a drag moves most (the window's centre), so the drags fitted to the
-    # inliers come out smaller than the skin's (issue 31; opt-in: docs/accuracy.md, "Skin drag")
-    drag_pair_gate: float = 0.0
+    # inliers come out smaller than the skin's (issue 31). 1.25 of 1.25, 1.5 and 2 tried: the one that turns no
+    # shared scan further about frame 0 (docs/accuracy.md, "Skin drag")
+    drag_pair_gate: float = 1.25
     ratio: float = 0.8  # Lowe ratio test
     neighbours: int = 4  # keyframes matched per frame (keyframes registration)
     loop_gap: int = 25  # an edge spanning more frames than this is a loop closure
