@@ -125,17 +125,18 @@ class Atlas:
 
     def _share_drag_evidence(self) -> None:
         """Mark every map's skin dragged once one map's refinement found it so (Registrar.drag_evident): the drag
-        is the patient's, not a stroke's, so a fragment begun after a lift looks for the closures it breaks too."""
+        is the patient's, not a stroke's, so a fragment begun after a lift looks for the closures it breaks too, and a
+        join (merge_maps) leaves the map with it. Run after every placed frame and before a map's first."""
         if any(m.drag_evident for m in self.maps):
             for m in self.maps:
                 m.drag_evident = True
 
     def _start_map(self, pf: PreparedFrame, fresh: Registrar) -> AtlasResult:
         """Return the result of a frame that starts a map of its own: the empty main map, or a new fragment."""
-        fresh.drag_evident = any(m.drag_evident for m in self.maps)
-        result = fresh.add(pf)
         if fresh not in self.maps:
             self.maps.append(fresh)
+        self._share_drag_evidence()  # before its first frame: a fragment starts knowing what the maps found
+        result = fresh.add(pf)
         self.active = fresh
         self.owner[pf.index] = fresh
         self._index(pf, fresh)
@@ -249,7 +250,6 @@ def merge_maps(
     target.edges.extend(source.edges)
     target.order = [target.order[0], *sorted(set(target.order[1:]) | set(source.order))]  # the origin stays first
     target.run_start = max(target.run_start, source.run_start)
-    target.drag_evident = target.drag_evident or source.drag_evident  # the patient's skin, whichever map saw it
     target.edges.append(target._edge(pf, other, match))
     target.edges.extend(_ties(target, set(source.order)))
     target.last_global_refine = 0  # the next refinement is global: the joined frames are held by one edge
