@@ -35,6 +35,7 @@ model (fit_drag=false), to show what learning the drag is worth. best-track: bes
 (track_overlap=0.85), to show what it costs in accuracy and saves in time. best-noloopgate: best without
 the looser loop gate for the closures a dragged skin breaks (loop_ransac_px=0). best-nodragpairs: the skin drag learned
 from the matches' inliers alone, not their pairs within 1.25 RANSAC gates of the similarity (drag_pair_gate=0).
+best-reselect: the drag's pairs and the undragged edges' chosen about the undragged skin (drag_reselect=true).
 --quick: the shared scans and five cells of the 40-frame `short` scenario, seed 1 (a few minutes without `paper`).
 """
 
@@ -92,6 +93,7 @@ ABLATIONS = {
     "best-track": ("best", {"track_overlap": 0.85}),  # most frames tracked without features (issue 32; opt-in)
     "best-noloopgate": ("best", {"loop_ransac_px": 0.0}),  # no looser gate for the closures a dragged skin breaks
     "best-nodragpairs": ("best", {"drag_pair_gate": 0.0}),  # the drag learned from the matches' inliers alone
+    "best-reselect": ("best", {"drag_reselect": True}),  # pairs chosen about the undragged skin (opt-in)
 }
 DRAG_CELLS = {"drag": "linear"}  # a patient (linear law, a hand's tilt) whose skin the sliding window drags
 QUICK_LOOKS = ("default", "faint", "noise4", "heavy-blur", "16bit", *TISSUE_CELLS, *DRAG_CELLS)

@@ -53,6 +53,11 @@ class MethodOptions:
     # inliers come out smaller than the skin's (issue 31). 1.25 of 1.25, 1.5 and 2 tried: the one that turns no
     # shared scan further about frame 0 (docs/accuracy.md, "Skin drag")
     drag_pair_gate: float = 1.25
+    # opt-in (issue 31): each match keeps its pairs within NEAR_PAIR_GATES gates; the drag is fitted to those within
+    # drag_pair_gate gates of the undragged skin (one re-selection), and every edge undragged is re-measured on its
+    # near pairs within one gate of the undragged skin: the gate about the dragged similarity leaves edges turned.
+    # Off by default: it tipped clinical_veins_24's compliance law to linear (0.227 -> 0.373 mm)
+    drag_reselect: bool = False
     ratio: float = 0.8  # Lowe ratio test
     neighbours: int = 4  # keyframes matched per frame (keyframes registration)
     loop_gap: int = 25  # an edge spanning more frames than this is a loop closure

@@ -113,6 +113,8 @@ class SessionReconstruction:
                 separation_mm=self.calibration.sensor_separation_mm,
                 kappa_prior_n_per_mm=self.calibration.hooke_n_per_mm,
                 compliance_per_n=self.calibration.compliance_per_n,
+                gate_mm=self.options.ransac_px / self.calibration.px_per_mm if self.options.drag_reselect else 0.0,
+                drag_pair_gates=self.options.drag_pair_gate,
             ),
         )
 

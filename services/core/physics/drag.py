@@ -40,6 +40,8 @@ GAIN_SIGMA_MM_PER_N = 0.5  # the gain g's own weak prior about 0 (mm per N)
 MIN_EDGES = 20  # fewer feature edges: no drag fitted
 MIN_PAIRS = 8  # an edge with fewer inlier pairs carries no curvature worth fitting
 NOISE_FLOOR_MM = 0.02  # an edge's point noise is at least this (a perfect-looking fit is no infinite weight)
+REGATE_ROUNDS = 3  # a gate about a least-squares similarity, refitted on what it keeps this many times
+RESELECT_ROUNDS = 1  # fit_drag's evidence re-selected about the undragged skin this many times (2 overshot the drag)
 AIC_FACTOR = 2.0  # the drag is kept when it lowers the weighted residual by more than this per effective parameter
 
 
@@ -245,10 +247,63 @@ def fit_drag(
     loads_n: Mapping[int, float],
     directions: Mapping[int, complex],
     widths_mm: Sequence[float] = WIDTHS_MM,
+    reselect_gate_mm: float = 0.0,
 ) -> DragFit | None:
     """Return the scan's drag fitted to the matches' inlier pairs (module docstring), or None on too little
-    evidence. loads_n: each frame's load (N); directions: its unit direction of travel in its own axes (0: still)."""
+    evidence. loads_n: each frame's load (N); directions: its unit direction of travel in its own axes (0: still).
+
+    reselect_gate_mm > 0: the evidence holds each match's near pairs (a wider gate than its RANSAC's); the pairs
+    fitted are those within this gate of their similarity, first as measured, then with the first fit's drags
+    undone (RESELECT_ROUNDS): a gate about the similarity keeps the pairs the drag moved least, one about the
+    undragged skin does not.
+    """
     usable = [ev for ev in evidence if ev.pairs is not None and len(ev.pairs) >= MIN_PAIRS]
+    if len(usable) < MIN_EDGES:
+        return None
+    if reselect_gate_mm <= 0:
+        return _fit(usable, loads_n, directions, widths_mm)
+    fit = _fit(_reselected(usable, None, reselect_gate_mm), loads_n, directions, widths_mm)
+    for _ in range(RESELECT_ROUNDS):
+        if fit is None or not fit.kept:
+            break
+        fit = _fit(_reselected(usable, fit, reselect_gate_mm), loads_n, directions, widths_mm)
+    return fit
+
+
+def _reselected(evidence: Sequence[DragEvidence], fit: DragFit | None, gate_mm: float) -> list[DragEvidence]:
+    """Return the evidence with each match's pairs cut to those within gate_mm of their own similarity once the
+    fit's drags are undone (fit None: as measured); a match left with fewer than MIN_PAIRS is dropped."""
+    out = []
+    for ev in evidence:
+        pj, pi = _complex(ev.pairs)
+        if fit is not None:
+            pj = undrag(pj, fit.drag_mm.get(ev.j, 0j), fit.width_mm)
+            pi = undrag(pi, fit.drag_mm.get(ev.i, 0j), fit.width_mm)
+        keep = _within_gate(pj, pi, gate_mm)
+        if keep is not None:
+            out.append(replace(ev, pairs=ev.pairs[keep]))
+    return out
+
+
+def _within_gate(pj: np.ndarray, pi: np.ndarray, gate_mm: float) -> np.ndarray | None:
+    """Return the mask of complex pairs (frame j -> frame i, mm) within gate_mm of their least-squares similarity,
+    refitted on the pairs kept (REGATE_ROUNDS times), or None when fewer than MIN_PAIRS remain."""
+    keep = np.ones(len(pj), bool)
+    for _ in range(REGATE_ROUNDS):
+        if keep.sum() < MIN_PAIRS:
+            return None
+        fit = _lsq_similarity(pj[keep], pi[keep])
+        keep = np.abs(fit.a * pj + fit.t - pi) < gate_mm
+    return keep if keep.sum() >= MIN_PAIRS else None
+
+
+def _fit(
+    usable: Sequence[DragEvidence],
+    loads_n: Mapping[int, float],
+    directions: Mapping[int, complex],
+    widths_mm: Sequence[float],
+) -> DragFit | None:
+    """Return the drag fitted to the evidence's pairs (fit_drag), or None on fewer than MIN_EDGES matches."""
     if len(usable) < MIN_EDGES:
         return None
     frames = sorted({ev.i for ev in usable} | {ev.j for ev in usable})
@@ -283,15 +338,26 @@ def undragged_transforms(
     drag_i: complex,
     drag_j: complex,
     width_mm: float,
+    near_pairs: np.ndarray | None = None,
+    gate_mm: float = 0.0,
 ) -> tuple[Similarity, list[np.ndarray | None]]:
     """Return an edge's relative similarity and affines (frame j mm -> frame i mm, 2x3) between undragged frames.
 
     Each is the measured one composed (on frame i's side) with what undoing the drags changes in the least-squares
     fit of the edge's pairs (a similarity for the relative, an affine for the affines): so what the measurement
     adds to its raw pairs (a direct alignment's refinement, the inliers the pairs leave out) is kept.
+    near_pairs and gate_mm > 0: the fit after undoing is of the near pairs (a wider RANSAC gate) within gate_mm of
+    their similarity once undragged, not of the inliers, which the gate about the dragged similarity chose (the
+    pairs the drag moved least: undone, they leave the edge turned; issue 31).
     """
     pj, pi = _complex(pairs)
     qj, qi = undrag(pj, drag_j, width_mm), undrag(pi, drag_i, width_mm)
+    if near_pairs is not None and gate_mm > 0:
+        nj, ni = _complex(near_pairs)
+        nj, ni = undrag(nj, drag_j, width_mm), undrag(ni, drag_i, width_mm)
+        keep = _within_gate(nj, ni, gate_mm)
+        if keep is not None:
+            qj, qi = nj[keep], ni[keep]
     moved = _lsq_similarity(qj, qi).compose(_lsq_similarity(pj, pi).inverse()).compose(relative)
     raw, fixed = fit_affine(_xy(pj), _xy(pi)), fit_affine(_xy(qj), _xy(qi))
     if raw is None or fixed is None:  # degenerate pairs (collinear): the affines as measured

@@ -44,6 +44,10 @@ class EdgeCorrections:
     imu_tilts: dict[int, np.ndarray] = field(default_factory=dict)  # frames with an IMU: its tilts (deg) then
     view_fit: ViewFit | None = None  # the probe's tilt and tissue anisotropy learned from the edges' affines
     kappa_reference: HookeFit | None = None  # kappa fitted to the IMU's tilts (the view fit's prior), if any
+    # > 0 (MethodOptions.drag_reselect): the RANSAC gate (mm) about the undragged skin that the drag fit's pairs
+    # (drag_pair_gates of it) and the undragged edges' pairs (one) are chosen within, from each edge's near pairs
+    gate_mm: float = 0.0
+    drag_pair_gates: float = 0.0
     drag_fit: DragFit | None = None  # the skin's friction drag learned from the edges' inlier pairs (at the end)
     last_view_evidence: int = 0  # edges with affine evidence at the last view fit
     _views: dict[int, np.ndarray] = field(default_factory=dict)  # each frame's view D under the current fit
@@ -105,7 +109,14 @@ class EdgeCorrections:
         cached = self._undragged.get(id(e))
         if cached is None or cached[0] is not e:
             relative, (affine, view_affine) = undragged_transforms(
-                e.relative, (e.affine, e.view_affine), e.pairs, fit.of(e.i), fit.of(e.j), fit.width_mm
+                e.relative,
+                (e.affine, e.view_affine),
+                e.pairs,
+                fit.of(e.i),
+                fit.of(e.j),
+                fit.width_mm,
+                e.drag_pairs,
+                self.gate_mm,
             )
             cached = (e, replace(e, relative=relative, affine=affine, view_affine=view_affine))
             self._undragged[id(e)] = cached
@@ -133,7 +144,12 @@ class EdgeCorrections:
             for e in edges
             if e.pairs is not None and e.inliers
         ]
-        return fit_drag(evidence, self.loads, directions_of_travel(order, poses))
+        return fit_drag(
+            evidence,
+            self.loads,
+            directions_of_travel(order, poses),
+            reselect_gate_mm=self.drag_pair_gates * self.gate_mm,
+        )
 
     def dragged(self) -> bool:
         """Return whether a drag was learned and kept (physics.drag): the edges, path and mosaic undo it."""

@@ -59,6 +59,7 @@ FIRST_KEYFRAMES = 10  # a map's first frames are all keyframes: the map's axes a
 DRAG_CHECK_EDGES = 600  # the newest edges a global refinement checks for a dragged skin (a raster's shows by its
 # second row): a long examination's checks cost no more than a short one's
 SAME_PLACE_PX = 2.0  # keypoints matched within this of each other (rectified pixels) are one place (A-SIFT's views)
+NEAR_PAIR_GATES = 3.0  # MethodOptions.drag_reselect: the pairs a match keeps, within this many RANSAC gates
 MAX_TRACKED_RUN = 8  # frames after a keyframe: the next one is a keyframe however well it tracks (loops, drag)
 
 
@@ -159,7 +160,7 @@ class Registrar:
             seed=pf.index,
             min_inliers=self.options.min_inliers if min_inliers is None else min_inliers,
             dedupe_radius=SAME_PLACE_PX / self.px_per_mm,
-            drag_gate=self.options.drag_pair_gate,
+            drag_gate=NEAR_PAIR_GATES if self.options.drag_reselect else self.options.drag_pair_gate,
         )
 
     def _confirmed_min_inliers(self) -> int:

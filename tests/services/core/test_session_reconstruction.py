@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from services.core import session_reconstruction
-from services.core.inputs.calibration import Calibration
+from services.core.inputs.calibration import Calibration, default_calibration
 from services.core.inputs.scan import Scan
 from services.core.methods import MethodOptions, method_options
 from services.core.mosaic.canvas import MosaicImage
@@ -245,3 +245,13 @@ def test_the_finish_pastes_again_only_the_frames_that_moved(live_run: LiveRun, m
     whole = live.canvas.render()
     assert grey_gap(finished, whole) <= TOL.finish_restitch_grey
     assert grey_gap(unfinished, whole) > TOL.finish_restitch_grey
+
+
+@pytest.mark.parametrize(("reselect", "gate_px"), [(False, 0.0), (True, 2.0)])
+def test_each_map_reselects_the_drags_pairs_at_the_ransac_gate_only_when_asked(reselect: bool, gate_px: float) -> None:
+    calib = default_calibration()
+    options = dataclasses.replace(method_options("best"), drag_reselect=reselect)
+    session = SessionReconstruction(calib, options, 30.0)
+    corrections = session.registrar.corrections
+    assert corrections.gate_mm == pytest.approx(gate_px / calib.px_per_mm)  # the RANSAC gate, in mm; 0: off
+    assert corrections.drag_pair_gates == options.drag_pair_gate
