@@ -138,9 +138,11 @@ class EdgeCorrections:
         return fit is not None and fit.kept
 
     def _drag(self, edges: list[Edge], order: list[int], poses: dict[int, Similarity]) -> DragFit | None:
-        # a direct alignment's pairs (inliers 0) are sampled from its affine: no curvature to learn a drag from
+        # a direct alignment's pairs (inliers 0) are sampled from its affine: no curvature to learn a drag from;
+        # drag_pair_gate 0 fits the inliers alone, whatever near pairs drag_reselect keeps
+        inliers_only = self.gate_mm > 0 and self.drag_pair_gates <= 0
         evidence = [
-            DragEvidence(e.i, e.j, e.pairs if e.drag_pairs is None else e.drag_pairs, e.relative.a)
+            DragEvidence(e.i, e.j, e.pairs if e.drag_pairs is None or inliers_only else e.drag_pairs, e.relative.a)
             for e in edges
             if e.pairs is not None and e.inliers
         ]

@@ -177,3 +177,14 @@ def test_the_drag_fitted_on_pairs_reselected_about_the_undragged_skin_is_the_ski
     # skin undragged by that first fit, 0.89 (1.25 gates: 0.97)
     assert gains[0] < 0.75
     assert 0.82 < gains[1] < 1.1
+
+
+def test_drag_pair_gate_zero_fits_the_inliers_alone_whatever_near_pairs_are_kept() -> None:
+    evidence, loads, _, truth = dragged_serpentine(0.1, seed=3)
+    poses = truth["poses"]
+    edges = _measured_on_gated_inliers(evidence, 0.1, 3.0)
+    inliers_only = [Edge(e.i, e.j, e.relative, 0.05, inliers=e.inliers, pairs=e.pairs) for e in edges]
+    kept_near = EdgeCorrections(loads=loads, gate_mm=0.1, drag_pair_gates=0.0).fit_drag(edges, sorted(poses), poses)
+    alone = EdgeCorrections(loads=loads).fit_drag(inliers_only, sorted(poses), poses)
+    assert kept_near is not None and alone is not None
+    assert kept_near.drag_mm == alone.drag_mm  # the same evidence, the same fit
