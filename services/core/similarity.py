@@ -1,5 +1,5 @@
 """The 2-D similarity transform every pose, relative measurement and mosaic placement is expressed in, and the
-least-squares affine of point pairs (a match's full affine, the drag's correction of it)."""
+least-squares similarity and affine of point pairs (a match's full affine, the drag's correction of them)."""
 
 from __future__ import annotations
 
@@ -59,3 +59,11 @@ def fit_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
     design = np.hstack([np.asarray(src, np.float64), np.ones((len(src), 1))])
     solution, _, rank, _ = np.linalg.lstsq(design, np.asarray(dst, np.float64), rcond=None)
     return solution.T if rank == 3 else None
+
+
+def lsq_similarity(src: np.ndarray, dst: np.ndarray) -> Similarity:
+    """Return the least-squares similarity dst ~ a src + t of complex point sets (t in their units)."""
+    ms, md = src.mean(), dst.mean()
+    s, d = src - ms, dst - md
+    a = complex(np.vdot(s, d) / max(np.vdot(s, s).real, 1e-12))
+    return Similarity(a, complex(md - a * ms))

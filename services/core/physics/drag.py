@@ -32,7 +32,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import spsolve
 
-from services.core.similarity import Similarity, fit_affine
+from services.core.similarity import Similarity, fit_affine, lsq_similarity
 
 WIDTHS_MM = (8.0, 11.0, 15.0, 20.0, 27.0)  # the profile widths tried (the shared scans' window: ~78 x 58 mm)
 PRIOR_SIGMA_MM = 0.6  # a frame's drag about the prior g F u (1 sigma): stick-slip swings it by about this
@@ -248,13 +248,14 @@ def fit_drag(
     directions: Mapping[int, complex],
     widths_mm: Sequence[float] = WIDTHS_MM,
     reselect_gate_mm: float = 0.0,
+    reselect_rounds: int = RESELECT_ROUNDS,
 ) -> DragFit | None:
     """Return the scan's drag fitted to the matches' inlier pairs (module docstring), or None on too little
     evidence. loads_n: each frame's load (N); directions: its unit direction of travel in its own axes (0: still).
 
     reselect_gate_mm > 0: the evidence holds each match's near pairs (a wider gate than its RANSAC's); the pairs
     fitted are those within this gate of their similarity, first as measured, then with the first fit's drags
-    undone (RESELECT_ROUNDS): a gate about the similarity keeps the pairs the drag moved least, one about the
+    undone (reselect_rounds times): a gate about the similarity keeps the pairs the drag moved least, one about the
     undragged skin does not.
     """
     usable = [ev for ev in evidence if ev.pairs is not None and len(ev.pairs) >= MIN_PAIRS]
@@ -263,7 +264,7 @@ def fit_drag(
     if reselect_gate_mm <= 0:
         return _fit(usable, loads_n, directions, widths_mm)
     fit = _fit(_reselected(usable, None, reselect_gate_mm), loads_n, directions, widths_mm)
-    for _ in range(RESELECT_ROUNDS):
+    for _ in range(reselect_rounds):
         if fit is None or not fit.kept:
             break
         fit = _fit(_reselected(usable, fit, reselect_gate_mm), loads_n, directions, widths_mm)
@@ -292,7 +293,7 @@ def _within_gate(pj: np.ndarray, pi: np.ndarray, gate_mm: float) -> np.ndarray |
     for _ in range(REGATE_ROUNDS):
         if keep.sum() < MIN_PAIRS:
             return None
-        fit = _lsq_similarity(pj[keep], pi[keep])
+        fit = lsq_similarity(pj[keep], pi[keep])
         keep = np.abs(fit.a * pj + fit.t - pi) < gate_mm
     return keep if keep.sum() >= MIN_PAIRS else None
 
@@ -358,7 +359,7 @@ def undragged_transforms(
         keep = _within_gate(nj, ni, gate_mm)
         if keep is not None:
             qj, qi = nj[keep], ni[keep]
-    moved = _lsq_similarity(qj, qi).compose(_lsq_similarity(pj, pi).inverse()).compose(relative)
+    moved = lsq_similarity(qj, qi).compose(lsq_similarity(pj, pi).inverse()).compose(relative)
     raw, fixed = fit_affine(_xy(pj), _xy(pi)), fit_affine(_xy(qj), _xy(qi))
     if raw is None or fixed is None:  # degenerate pairs (collinear): the affines as measured
         return moved, list(affines)
@@ -372,11 +373,3 @@ def _xy(points: np.ndarray) -> np.ndarray:
 
 def _homogeneous(affine: np.ndarray) -> np.ndarray:
     return np.vstack([np.asarray(affine, np.float64), [0.0, 0.0, 1.0]])
-
-
-def _lsq_similarity(src: np.ndarray, dst: np.ndarray) -> Similarity:
-    """Return the least-squares similarity dst ~ a src + t of complex point sets."""
-    ms, md = src.mean(), dst.mean()
-    s, d = src - ms, dst - md
-    a = complex(np.vdot(s, d) / max(np.vdot(s, s).real, 1e-12))
-    return Similarity(a, md - a * ms)

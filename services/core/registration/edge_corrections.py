@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from services.core.physics.drag import DragEvidence, DragFit, fit_drag, undragged_transforms
+from services.core.physics.drag import RESELECT_ROUNDS, DragEvidence, DragFit, fit_drag, undragged_transforms
 from services.core.physics.tissue_model import (
     AffineEvidence,
     HookeFit,
@@ -134,10 +134,12 @@ class EdgeCorrections:
     def drag_evident(self, edges: list[Edge], order: list[int], poses: dict[int, Similarity]) -> bool:
         """Return whether the edges so far show the skin dragged (physics.drag keeps a fit), keeping nothing: while
         the scan goes on the drag is only detected, and undone at the end (fit_drag)."""
-        fit = self._drag(edges, order, poses)
+        fit = self._drag(edges, order, poses, reselect_rounds=0)  # detection alone: the first pass decides
         return fit is not None and fit.kept
 
-    def _drag(self, edges: list[Edge], order: list[int], poses: dict[int, Similarity]) -> DragFit | None:
+    def _drag(
+        self, edges: list[Edge], order: list[int], poses: dict[int, Similarity], reselect_rounds: int = RESELECT_ROUNDS
+    ) -> DragFit | None:
         # a direct alignment's pairs (inliers 0) are sampled from its affine: no curvature to learn a drag from;
         # drag_pair_gate 0 fits the inliers alone, whatever near pairs drag_reselect keeps
         inliers_only = self.gate_mm > 0 and self.drag_pair_gates <= 0
@@ -151,6 +153,7 @@ class EdgeCorrections:
             self.loads,
             directions_of_travel(order, poses),
             reselect_gate_mm=self.drag_pair_gates * self.gate_mm,
+            reselect_rounds=reselect_rounds,
         )
 
     def dragged(self) -> bool:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from services.core.physics.drag import DragEvidence, profile
-from services.core.similarity import Similarity
+from services.core.similarity import Similarity, lsq_similarity
 
 WIDTH_MM = 15.0  # the true profile's width (one of the widths the fit tries)
 STEP_MM = 4.0  # frames 4 mm apart along a row, as the shared rasters' 3.8 mm
@@ -51,3 +51,16 @@ def dragged_serpentine(
             pairs = np.stack([pj.real, pj.imag, pi.real, pi.imag], axis=1).astype(np.float32)
             evidence.append(DragEvidence(i, j, pairs, poses[j].a / poses[i].a))
     return evidence, loads, directions, {"poses": poses, "drags": drags}
+
+
+def gated(ev: DragEvidence, gate_mm: float, near_gates: float) -> tuple[Similarity, np.ndarray, np.ndarray] | None:
+    """Return a match as a RANSAC gate measures it: the least-squares similarity of its inliers (the pairs within
+    gate_mm of the similarity of them all), the inliers, and the pairs within near_gates gates (none at 0); None
+    below 8 inliers."""
+    pj, pi = ev.pairs[:, 0] + 1j * ev.pairs[:, 1], ev.pairs[:, 2] + 1j * ev.pairs[:, 3]
+    whole = lsq_similarity(pj, pi)
+    off = np.abs(whole.a * pj + whole.t - pi)
+    inliers = off < gate_mm
+    if inliers.sum() < 8:
+        return None
+    return lsq_similarity(pj[inliers], pi[inliers]), ev.pairs[inliers], ev.pairs[off < near_gates * gate_mm]

@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.core.physics import drag
 from services.core.physics.drag import DragEvidence, DragFit
 from services.core.registration.edge_corrections import (
     DIRECTION_GAP,
@@ -17,7 +16,7 @@ from services.core.registration.edge_corrections import (
 )
 from services.core.registration.pose_graph import Edge
 from services.core.similarity import IDENTITY, Similarity
-from tests.services.core.physics.dragged_serpentine import WIDTH_MM, dragged_serpentine
+from tests.services.core.physics.dragged_serpentine import WIDTH_MM, dragged_serpentine, gated
 
 # matched points of frame j and frame i (mm): a spread of pairs, frame j 2 mm along x of frame i
 PAIRS = np.array([[x, y, x + 2.0, y] for x in (-8.0, 0.0, 8.0) for y in (-6.0, 0.0, 6.0)])
@@ -76,24 +75,16 @@ def test_the_drag_is_detected_while_the_scan_goes_on_without_being_kept(gain_mm_
     assert corrections.drag_fit is None  # detected only: the drag is undone at the end (fit_drag)
 
 
-def _gated_edges(
-    evidence: list[DragEvidence], poses: dict[int, Similarity], gate_mm: float, drag_pairs: bool
-) -> list[Edge]:
-    """Return the serpentine's matches as edges whose inliers are the pairs within gate_mm of their least-squares
-    similarity (a RANSAC gate) and, if drag_pairs, whose drag pairs are those within two gates."""
+def _gated_edges(evidence: list[DragEvidence], gate_mm: float, near_gates: float) -> list[Edge]:
+    """Return the serpentine's matches as edges measured behind a RANSAC gate of gate_mm (dragged_serpentine.gated),
+    their drag pairs those within near_gates gates (None at 0)."""
     edges = []
     for ev in evidence:
-        pj, pi = ev.pairs[:, 0] + 1j * ev.pairs[:, 1], ev.pairs[:, 2] + 1j * ev.pairs[:, 3]
-        d = pj - pj.mean()
-        a = np.vdot(d, pi - pi.mean()) / np.vdot(d, d).real
-        off = np.abs(a * d + pi.mean() - pi)
-        inliers = off < gate_mm
-        if inliers.sum() >= 8:
-            relative = poses[ev.i].inverse().compose(poses[ev.j])
-            near = ev.pairs[off < 2 * gate_mm] if drag_pairs else None
-            edges.append(
-                Edge(ev.i, ev.j, relative, 0.05, inliers=int(inliers.sum()), pairs=ev.pairs[inliers], drag_pairs=near)
-            )
+        measured = gated(ev, gate_mm, near_gates)
+        if measured is not None:
+            relative, inliers, near = measured
+            drag_pairs = near if near_gates > 0 else None
+            edges.append(Edge(ev.i, ev.j, relative, 0.05, inliers=len(inliers), pairs=inliers, drag_pairs=drag_pairs))
     return edges
 
 
@@ -101,46 +92,22 @@ def test_a_gate_shrinks_the_drag_its_inliers_show_and_the_drag_pairs_restore_it(
     evidence, loads, _, truth = dragged_serpentine(0.1, seed=3)  # drags of 0.24-1.6 mm, flipping between rows
     poses, true = truth["poses"], np.array(list(truth["drags"].values()))
     gains = []
-    for drag_pairs in (False, True):
+    for near_gates in (0.0, 2.0):  # the inliers; the pairs within two gates
         corrections = EdgeCorrections(loads=loads)
-        fit = corrections.fit_drag(_gated_edges(evidence, poses, 0.1, drag_pairs), sorted(poses), poses)
+        fit = corrections.fit_drag(_gated_edges(evidence, 0.1, near_gates), sorted(poses), poses)
         assert fit is not None and fit.kept
         found = np.array([fit.of(k) for k in truth["drags"]])
         gains.append(np.vdot(true, found).real / np.vdot(true, true).real)  # the fitted drags against the true
-    # a 0.1 mm gate keeps the pairs the drags moved least: the fit finds 0.62 of the drags (the simulated dragged
+    # a 0.1 mm gate keeps the pairs the drags moved least: the fit finds 0.63 of the drags (the simulated dragged
     # raster's fit, at 2 px, 0.69), the pairs within two gates 0.92
     assert gains[0] < 0.75
     assert 0.85 < gains[1] < 1.1
 
 
-def _measured_on_gated_inliers(evidence: list[DragEvidence], gate_mm: float, near_gates: float) -> list[Edge]:
-    """Return the serpentine's matches as edges measured as RANSAC would: the least-squares similarity of the pairs
-    within gate_mm of the similarity of them all, those inliers as pairs, the pairs within near_gates gates as
-    drag pairs (the near pairs MethodOptions.drag_reselect keeps)."""
-    edges = []
-    for ev in evidence:
-        pj, pi = ev.pairs[:, 0] + 1j * ev.pairs[:, 1], ev.pairs[:, 2] + 1j * ev.pairs[:, 3]
-        off = np.abs(_lsq(pj, pi).a * pj + _lsq(pj, pi).t - pi)
-        inliers = off < gate_mm
-        if inliers.sum() >= 8:
-            near = ev.pairs[off < near_gates * gate_mm]
-            relative = _lsq(pj[inliers], pi[inliers])
-            edges.append(
-                Edge(ev.i, ev.j, relative, 0.05, inliers=int(inliers.sum()), pairs=ev.pairs[inliers], drag_pairs=near)
-            )
-    return edges
-
-
-def _lsq(pj: np.ndarray, pi: np.ndarray) -> Similarity:
-    d = pj - pj.mean()
-    a = complex(np.vdot(d, pi - pi.mean()) / np.vdot(d, d).real)
-    return Similarity(a, complex(pi.mean() - a * pj.mean()))
-
-
 def test_edges_undragged_over_their_gated_inliers_stay_off_and_reselected_about_the_undragged_skin_do_not() -> None:
     evidence, loads, _, truth = dragged_serpentine(0.1, seed=3)  # drags of 0.24-1.6 mm, flipping between rows
     poses = truth["poses"]
-    edges = _measured_on_gated_inliers(evidence, 0.1, 3.0)
+    edges = _gated_edges(evidence, 0.1, 3.0)
     grid = np.array([x + 1j * y for x in (-10.0, 0.0, 10.0) for y in (-8.0, 0.0, 8.0)])  # over a window (mm)
     errors = []
     for gate_mm in (0.0, 0.1):  # the undragged inliers; the near pairs within one gate of the undragged skin
@@ -159,30 +126,10 @@ def test_edges_undragged_over_their_gated_inliers_stay_off_and_reselected_about_
     assert errors[1] < 0.6 * errors[0]
 
 
-def test_the_drag_fitted_on_pairs_reselected_about_the_undragged_skin_is_the_skins(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    evidence, loads, _, truth = dragged_serpentine(0.1, seed=3)
-    poses, true = truth["poses"], np.array(list(truth["drags"].values()))
-    edges = _measured_on_gated_inliers(evidence, 0.1, 3.0)
-    gains = []
-    for rounds in (0, drag.RESELECT_ROUNDS):  # the near pairs within one gate: of the similarity; of the skin
-        monkeypatch.setattr(drag, "RESELECT_ROUNDS", rounds)
-        corrections = EdgeCorrections(loads=loads, gate_mm=0.1, drag_pair_gates=1.0)
-        fit = corrections.fit_drag(edges, sorted(poses), poses)
-        assert fit is not None and fit.kept
-        found = np.array([fit.of(k) for k in truth["drags"]])
-        gains.append(np.vdot(true, found).real / np.vdot(true, true).real)
-    # one gate about the similarity as measured keeps the pairs the drag moved least: 0.63 of the drags; about the
-    # skin undragged by that first fit, 0.89 (1.25 gates: 0.97)
-    assert gains[0] < 0.75
-    assert 0.82 < gains[1] < 1.1
-
-
 def test_drag_pair_gate_zero_fits_the_inliers_alone_whatever_near_pairs_are_kept() -> None:
     evidence, loads, _, truth = dragged_serpentine(0.1, seed=3)
     poses = truth["poses"]
-    edges = _measured_on_gated_inliers(evidence, 0.1, 3.0)
+    edges = _gated_edges(evidence, 0.1, 3.0)
     inliers_only = [Edge(e.i, e.j, e.relative, 0.05, inliers=e.inliers, pairs=e.pairs) for e in edges]
     kept_near = EdgeCorrections(loads=loads, gate_mm=0.1, drag_pair_gates=0.0).fit_drag(edges, sorted(poses), poses)
     alone = EdgeCorrections(loads=loads).fit_drag(inliers_only, sorted(poses), poses)
