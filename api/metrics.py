@@ -35,6 +35,13 @@ KNOWN_COUNTERS: dict[str, str] = {
     "process_restarts_total": "API and worker processes restarted by the `veinmosaic serve` supervisor.",
     "reconciled_frames_total": "Stored frames with no job and no result that the reconciler enqueued again.",
     "reconcile_runs_total": "Runs of the reconciler (at worker start-up, after a Redis restart, periodically).",
+    "prepare_cpu_seconds_total": "CPU seconds the workers spent preparing frames (rectification, vein map).",
+    "frames_keyframe_total": "Live frames placed by their features (keyframes).",
+    "frames_tracked_total": "Live frames placed by tracking on a keyframe, without features (track_overlap).",
+    "frames_unplaced_total": "Live frames registration could not place (lost, rejected, or on a fragment).",
+    "register_keyframe_cpu_seconds_total": "CPU seconds the workers spent registering and pasting keyframes.",
+    "register_tracked_cpu_seconds_total": "CPU seconds the workers spent registering and pasting tracked frames.",
+    "register_unplaced_cpu_seconds_total": "CPU seconds the workers spent on frames they could not place.",
 }
 SUMMARIES = {"job_seconds": "Wall time of finished reprocess jobs, seconds."}
 LIVE_WINDOW_S = 60.0  # a session is live for the lag gauges while frames of it were placed this recently

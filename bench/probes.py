@@ -9,9 +9,13 @@ with bench/live.py's client (forces interleaved ahead of each frame, every uploa
 polled). Per N it prints, per session and in total: processed frames/s, lag p50/p95 from each upload's 2xx to a
 poll seeing it processed, the time from the last upload to status done, and the CPU seconds per frame and peak
 resident memory of the API, of each worker process, of the embedded Redis and of this bench's own client over the
-run (psutil): the client shares the two cores here, as a clinic's probes on their own network would not. The
-first N (1 by default) is the baseline the others are compared with in the same run. Targets (issue 15): 3
-probes, every session done within 5 s of its last upload and lag p95 <= 2 s.
+run (psutil): the client shares the two cores here, as a clinic's probes on their own network would not. Then,
+from the service's own counters (GET /metrics), the share of frames placed as keyframes and the workers' CPU per
+frame: preparing it, and registering it (with the paste and refinements it brings) split into keyframes (described
+and matched) and tracked frames (aligned on a keyframe: --worker-config '{"method_options": {"track_overlap":
+0.85}}'). The first N (1 by default) is the baseline the others are compared with in the same run. Targets (issue
+15): 3 probes, every session done within 5 s of its last upload and lag p95 <= 2 s; --rate 30 is one probe at 30
+frames/s (issue 32).
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import secrets
 import signal
@@ -26,12 +31,14 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import psutil
 import redis
+from prometheus_client.parser import text_string_to_metric_families
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -46,6 +53,38 @@ from services.store.scan_folder import write_scan_folder
 
 DONE_TARGET_S = 5.0
 LAG_P95_TARGET_S = 2.0
+KINDS = ("keyframe", "tracked")  # SessionReconstruction.frame_kind of placed frames
+
+
+def service_counters(service: Service) -> dict[str, float]:
+    """Return the service's counters as GET /metrics exposes them, by metrics-hash field (frames_keyframe_total,
+    prepare_cpu_seconds_total, ...)."""
+    with urllib.request.urlopen(f"{service.base_url}/metrics", timeout=10) as answer:
+        text = answer.read().decode()
+    return {
+        sample.name.removeprefix("veinmosaic_"): float(sample.value)
+        for family in text_string_to_metric_families(text)
+        for sample in family.samples
+        if sample.name.endswith("_total")
+    }
+
+
+def cost_line(n: int, before: dict[str, float], after: dict[str, float]) -> str:
+    """Return a table row: the keyframe share and the workers' CPU ms per frame, prepared and registered by kind."""
+    delta = {k: after.get(k, 0.0) - before.get(k, 0.0) for k in after}
+    frames = {kind: delta.get(f"frames_{kind}_total", 0.0) for kind in KINDS}
+    placed = sum(frames.values())
+    prepared = delta.get("frames_prepared_total", 0.0)
+    prepare_ms = 1000 * delta.get("prepare_cpu_seconds_total", 0.0) / prepared if prepared else math.nan
+    register_ms = {
+        kind: 1000 * delta.get(f"register_{kind}_cpu_seconds_total", 0.0) / frames[kind] if frames[kind] else math.nan
+        for kind in KINDS
+    }
+    share = 100 * frames["keyframe"] / placed if placed else math.nan
+    return (
+        f"| {n} | {share:.1f} | {prepare_ms:.1f} | {register_ms['keyframe']:.1f} | {register_ms['tracked']:.1f} "
+        f"| {prepare_ms + register_ms['keyframe']:.1f} | {prepare_ms + register_ms['tracked']:.1f} |"
+    )
 
 
 class Usage:
@@ -118,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.worker_config:
         env["VEINMOSAIC_WORKER_CONFIG"] = args.worker_config
     results: list[tuple[int, list[Row], dict[str, tuple[float, float]]]] = []
+    costs: list[str] = []
     with tempfile.TemporaryDirectory(prefix="vm-probes-", ignore_cleanup_errors=True) as tmp:
         scans = []
         for seed in range(1, max(counts) + 1):
@@ -132,9 +172,10 @@ def main(argv: list[str] | None = None) -> int:
         try:
             service.start()
             for n in counts:
-                usage = Usage(service)
+                usage, before = Usage(service), service_counters(service)
                 rows = run_probes(service, key, scans[:n], args)
                 results.append((n, rows, usage.stop()))
+                costs.append(cost_line(n, before, service_counters(service)))
                 time.sleep(2.0)  # let the workers go idle between runs
         finally:
             service.stop()
@@ -168,6 +209,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {n} | all workers | {workers / frames:.3f} | |")
         served = sum(cpu for name, (cpu, _) in use.items() if name != "bench client")
         print(f"| {n} | the service (API, workers, Redis) | {served / frames:.3f} | |")
+    print("\nthe workers' CPU ms by frame (GET /metrics): a keyframe is described (SIFT) and matched, a tracked frame")
+    print("aligned on a keyframe (`track_overlap`); registering counts the paste and refinements it brings\n")
+    head = ["probes", "keyframes %", "prepare", "register a keyframe", "register a tracked one", "keyframe", "tracked"]
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    print("\n".join(costs))
     last = results[-1][1]
     done_ok = all(r.done_s <= DONE_TARGET_S for r in last)
     lag_ok = all(r.lag.size and np.percentile(r.lag, 95) <= LAG_P95_TARGET_S for r in last)

@@ -152,6 +152,17 @@ class Publisher:
         if lost_counted:
             queue.incr_metric(ctx.r, "frames_lost_total", lost_counted, prefix=ctx.prefix)
 
+    def count_register_cost(self, v: int, frames: Mapping[str, int], cpu_s: Mapping[str, float]) -> None:
+        """Add the live version's registered frames and the register stage's CPU seconds on them, by kind
+        (SessionReconstruction.frame_kind), to frames_<kind>_total and register_<kind>_cpu_seconds_total."""
+        if v != LIVE_VERSION or not frames:
+            return
+        pipe = self.ctx.r.pipeline(transaction=False)  # one round trip
+        for kind, count in frames.items():
+            queue.incr_metric(pipe, f"frames_{kind}_total", count, prefix=self.ctx.prefix)
+            queue.incr_metric(pipe, f"register_{kind}_cpu_seconds_total", cpu_s[kind], prefix=self.ctx.prefix)
+        pipe.execute()
+
     def event(self, sid: str, kind: str, data: dict[str, Any]) -> None:
         """XADD an event {"type", "data": json} to the session's event stream (capped near EVENTS_MAXLEN)."""
         queue.add_event(

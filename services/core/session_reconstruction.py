@@ -48,6 +48,7 @@ from services.core.similarity import Similarity
 # The newest frames whose paste planes a live session keeps (~5 MB each at 640 x 480): each new frame is pasted
 # from its prepared image directly, and half of the re-pastes a refinement asks for are of frames this recent
 # (measured on a simulated raster: 116 of 268 within 8 frames); older ones are decoded from what was kept.
+FRAME_KINDS = ("keyframe", "tracked", "unplaced")  # SessionReconstruction.frame_kind
 RECENT_LAYERS = 12
 # While a live scan goes on, a refined frame is re-pasted only when some point of its window moved by this many
 # mosaic pixels or more since it was pasted: smaller moves are invisible, and re-pasting every frame a local pass
@@ -122,6 +123,15 @@ class SessionReconstruction:
     def registrar(self) -> Registrar:
         """Return the main map: every placed frame's pose, in the first contact frame's coordinates."""
         return self.atlas.main
+
+    def frame_kind(self, index: int) -> str:
+        """Return how a handled frame was placed, one of FRAME_KINDS: "keyframe" (registered by its features),
+        "tracked" (aligned on a keyframe without features: MethodOptions.track_overlap) or "unplaced" (lost,
+        rejected or waiting on a fragment)."""
+        result = self.results.get(index)
+        if result is None or result.status != STATUS_OK:
+            return "unplaced"
+        return "keyframe" if any(index in m.features for m in self.atlas.maps) else "tracked"
 
     def add(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:
         """Return the result of a frame (in index order: contact, then registration) and the canvas tiles changed."""

@@ -86,6 +86,12 @@ def metric(backend: Backend, name: str) -> int:
     return int(float(v)) if v is not None else 0
 
 
+def cpu_metric(backend: Backend, name: str) -> float:
+    """Return a float metric (CPU seconds; 0 when unset)."""
+    v = backend.r.hget(queue.metrics_key(backend.prefix), name)
+    return float(v) if v is not None else 0.0
+
+
 def test_two_workers_out_of_order_equal_offline_then_reprocess(
     backend: Backend, spawn_worker: Callable[..., Any]
 ) -> None:
@@ -104,6 +110,11 @@ def test_two_workers_out_of_order_equal_offline_then_reprocess(
     # every frame prepared once and counted once
     assert queue.session_counters(backend.r, sid, backend.prefix) == {"processed": 40, "lost": 0}
     assert metric(backend, "frames_prepared_total") == 40 and metric(backend, "frames_processed_total") == 40
+    # without tracking every frame is a keyframe; the CPU each stage spent on them is counted (bench/probes.py)
+    assert metric(backend, "frames_keyframe_total") == 40 and metric(backend, "frames_tracked_total") == 0
+    # (two-sided: a frame's SIFT alone takes over 10 ms here, and nothing takes a second)
+    assert 0.01 * 40 < cpu_metric(backend, "prepare_cpu_seconds_total") < 1.0 * 40
+    assert 0.002 * 40 < cpu_metric(backend, "register_keyframe_cpu_seconds_total") < 1.0 * 40
     # one holder registered the frames, in seq order, each once
     log = order_log(backend, sid)
     assert [seq for _, seq, _ in log] == list(range(40)) and len({t for t, _, _ in log}) == 1

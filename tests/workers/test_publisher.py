@@ -1,4 +1,5 @@
-"""The publisher's tile writes: a durable batch is made durable by one sync of the filesystem, not a fsync per file."""
+"""The publisher: a durable batch of tiles made durable by one sync of the filesystem, not a fsync per file; the
+register stage's frames and CPU counted by kind."""
 
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ import pytest
 
 from services.core.mosaic.canvas import PLANES, TILE_PX, SparseCanvas
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
+from services.jobs import queue
 from services.store import durable, results_store
-from services.store.results_store import ResultsStore
+from services.store.results_store import LIVE_VERSION, ResultsStore
 from tests.workers.conftest import Backend
 from workers.publisher import Publisher
 
@@ -58,3 +60,19 @@ def test_sync_filesystem_flushes_the_filesystem_of_a_path(tmp_path: Path) -> Non
     with pytest.raises(OSError):
         durable.sync_filesystem(tmp_path / "missing")
     assert os.path.exists(tmp_path / "tile.png")
+
+
+def test_register_cost_is_counted_by_kind_for_the_live_version_only(backend: Backend) -> None:
+    publisher = Publisher(SimpleNamespace(results=None, r=backend.r, prefix=backend.prefix))  # type: ignore[arg-type]
+    publisher.count_register_cost(LIVE_VERSION, {"keyframe": 3, "tracked": 5}, {"keyframe": 0.15, "tracked": 0.05})
+    publisher.count_register_cost(LIVE_VERSION, {"keyframe": 1}, {"keyframe": 0.05})
+    publisher.count_register_cost(LIVE_VERSION + 1, {"keyframe": 7}, {"keyframe": 9.0})  # a reprocess: not counted
+    counters = {k.decode(): float(v) for k, v in backend.r.hgetall(queue.metrics_key(backend.prefix)).items()}
+    assert counters == pytest.approx(
+        {
+            "frames_keyframe_total": 4,
+            "frames_tracked_total": 5,
+            "register_keyframe_cpu_seconds_total": 0.20,
+            "register_tracked_cpu_seconds_total": 0.05,
+        }
+    )

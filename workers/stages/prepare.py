@@ -95,6 +95,7 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
     calib = sv.calibration
     raw = ctx.store.load_frame(sid, seq, expected_size=calib.image_size)
     mask, flat = setup
+    started = time.process_time()
     pf = prepare_frame(
         raw,
         index=seq,
@@ -107,8 +108,12 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
         flat=flat,
         options=sv.method_options,
     )
+    cpu_s = time.process_time() - started
+    counters = ctx.r.pipeline(transaction=False)  # one round trip
     if ctx.results.write_prepared(sid, sv.v, pf):
-        queue.incr_metric(ctx.r, "frames_prepared_total", prefix=ctx.prefix)
+        queue.incr_metric(counters, "frames_prepared_total", prefix=ctx.prefix)
+    queue.incr_metric(counters, "prepare_cpu_seconds_total", cpu_s, prefix=ctx.prefix)
+    counters.execute()
     queue.mark_frame_handled(ctx.r, sid, seq, ctx.prefix)
     queue.enqueue_register(ctx.r, sid, sv.v, ctx.prefix)
     return DONE

@@ -255,3 +255,24 @@ def test_each_map_reselects_the_drags_pairs_at_the_ransac_gate_only_when_asked(r
     corrections = session.registrar.corrections
     assert corrections.gate_mm == pytest.approx(gate_px / calib.px_per_mm)  # the RANSAC gate, in mm; 0: off
     assert corrections.drag_pair_gates == options.drag_pair_gate
+
+
+def test_frame_kind_tells_keyframes_from_tracked_and_unplaced_frames(live_run: LiveRun) -> None:
+    # without tracking (best's default) every placed frame is registered by its features
+    live = live_run.live
+    placed = [pf.index for pf in live_run.frames if live.results[pf.index].status == "ok"]
+    assert placed and {live.frame_kind(i) for i in placed} == {"keyframe"}
+    assert live.frame_kind(max(live.results) + 1) == "unplaced"  # not handled yet
+    # tracking on keyframes: the frames aligned on a keyframe are "tracked", exactly those without features
+    scan = simulated("short", 1)
+    options = method_options("best").with_overrides({"track_overlap": 0.85})
+    frames, radius_mm = first_prepared(scan, options, 30)
+    session = SessionReconstruction(scan.calibration, options, radius_mm)
+    kinds = {}
+    for pf in frames:
+        result, _ = session.add(pf)
+        kinds[pf.index] = session.frame_kind(pf.index)
+        assert (kinds[pf.index] == "unplaced") == (result.status != "ok")
+    described = set(session.registrar.features)
+    assert {i for i, k in kinds.items() if k == "keyframe"} == described & set(kinds)
+    assert list(kinds.values()).count("tracked") >= 5  # most frames of a slow short scan overlap their keyframe

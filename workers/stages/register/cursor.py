@@ -121,8 +121,10 @@ class Cursor:
 
     def _add(self, held: HeldSession, pf: PreparedFrame, replay: bool = False) -> None:
         self._log_order(held, pf.seq, "add")
+        started = time.process_time()  # the process's: a re-paste warps on helper threads
         result, touched = held.recon.add(pf)
         if not replay:
+            held.pending.cost.add(held.recon.frame_kind(pf.index), time.process_time() - started)
             held.pending.touched |= touched
             held.pending.seqs.append(pf.seq)
             if result.moved:

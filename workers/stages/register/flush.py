@@ -22,7 +22,7 @@ from services.store.results_store import LIVE_VERSION
 from services.store.version_state import VersionState
 from workers.config import Context
 from workers.publisher import Publisher
-from workers.stages.register.held import HeldSession
+from workers.stages.register.held import HeldSession, RegisterCost
 from workers.stages.register.lease import LeaseKeeper
 
 
@@ -133,6 +133,8 @@ class Flusher:
         pub.write_state(sid, v, VersionState(held.cursor, fence, final, lost=held.lost, rejected=held.rejected))
         parts.lap("documents")
         self.record_counters(held, pending.seqs)
+        self.publisher.count_register_cost(v, pending.cost.frames, pending.cost.cpu_s)
+        pending.cost = RegisterCost()
         lags = self.record_lags(held, pending.seqs)
         if before_event is not None:
             before_event()

@@ -17,6 +17,20 @@ from services.store.session_version import SessionVersion
 
 
 @dataclass
+class RegisterCost:
+    """The register stage's CPU seconds on the frames it handled since the last flush, and their count, by kind
+    (SessionReconstruction.frame_kind)."""
+
+    cpu_s: dict[str, float] = field(default_factory=dict)
+    frames: dict[str, int] = field(default_factory=dict)
+
+    def add(self, kind: str, cpu_s: float) -> None:
+        """Count one frame of `kind` that took cpu_s CPU seconds."""
+        self.cpu_s[kind] = self.cpu_s.get(kind, 0.0) + cpu_s
+        self.frames[kind] = self.frames.get(kind, 0) + 1
+
+
+@dataclass
 class Pending:
     """What changed since the last flush: the next flush writes it and announces it in one event."""
 
@@ -25,6 +39,7 @@ class Pending:
     seqs: list[int] = field(default_factory=list)  # frames handled (added, lost or rejected)
     path_reset: bool = False  # an earlier frame moved (refinement): clients should re-read the path
     dirty: bool = False  # the cursor moved: state.json is behind
+    cost: RegisterCost = field(default_factory=RegisterCost)  # of the frames in seqs
 
 
 @dataclass
