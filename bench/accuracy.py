@@ -14,7 +14,8 @@ registered frames only: read it with the registered %), final drift mm, error ra
 whole offline pipeline), and the worse axis's tilt RMS error in degrees where the reference has tilts (the shared
 scans, the tissue-* cells), and where
 the error lies (evaluation.GlobalError): the path's scale % (+ too large) and turn deg about frame 0, and the RMSE
-left after that similarity (the path's shape), and `air placed`: frames placed that the reference has no row for
+left after that similarity (the path's shape), `lead mm`: its mean along each frame's direction of travel (+ ahead
+of the reference: a skin drag not undone in full), and `air placed`: frames placed that the reference has no row for
 (taken in the air: none should be), `tracked %`: placed frames tracked without features (best-track), and
 `closures`: the loop-closure edges of the final pose graph (rows tied to rows: a dragged skin breaks them).
 Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe, tissue-saturating: a patient as on the shared
@@ -187,6 +188,7 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
             scale_pct=report.global_error.scale_pct,
             turn_deg=report.global_error.turn_deg,
             after_similarity_mm=report.global_error.after_similarity_mm,
+            lead_mm=report.global_error.lead_mm,
         )
     if scan.reference_angles_deg is not None:
         angles = evaluate_angles(path_angles_deg(recon.rows), recon.registered, scan.by_seq(scan.reference_angles_deg))
@@ -197,7 +199,8 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
 HEADER = (
     f"{'source':<6} | {'scan / cell':<28} | {'method':<13} | {'registered %':>12} | {'RMSE mm':>8} |"
     f" {'final drift mm':>14} | {'error ratio %':>13} | {'s/frame':>7} | {'tilt RMS deg':>12} |"
-    f" {'scale %':>7} | {'turn deg':>8} | {'after sim. mm':>13} | {'air placed':>10} | {'tracked %':>9} |"
+    f" {'scale %':>7} | {'turn deg':>8} | {'after sim. mm':>13} | {'lead mm':>7} | {'air placed':>10} |"
+    f" {'tracked %':>9} |"
     f" {'closures':>8}"
 )
 
@@ -219,7 +222,8 @@ def table_line(row: dict[str, Any]) -> str:
         f" {fmt(row['final_drift_mm'], '14.3f')} | {fmt(row['error_ratio_pct'], '13.4f')} |"
         f" {fmt(row['s_per_frame'], '7.3f')} | {fmt(row.get('tilt_rmse_deg'), '12.2f')} |"
         f" {fmt(row.get('scale_pct'), '+7.2f')} | {fmt(row.get('turn_deg'), '+8.3f')} |"
-        f" {fmt(row.get('after_similarity_mm'), '13.3f')} | {fmt(row.get('air_placed'), '10d')} |"
+        f" {fmt(row.get('after_similarity_mm'), '13.3f')} | {fmt(row.get('lead_mm'), '+7.3f')} |"
+        f" {fmt(row.get('air_placed'), '10d')} |"
         f" {fmt(row.get('tracked_pct'), '9.1f')} | {fmt(row.get('closures'), '8d')}"
     )
 

@@ -93,6 +93,9 @@ class AccuracyReport:
         }
 
 
+LEAD_STEP_MM = (0.05, 10.0)  # a compared row moves (GlobalError.lead_mm) when both its steps are within these
+
+
 @dataclass(frozen=True)
 class GlobalError:
     """How much of a path's error is one global map about frame 0 (issue 14's decomposition).
@@ -104,24 +107,30 @@ class GlobalError:
     in the reference's millimetres; after_linear_mm: that left after the best 2x2 linear map of the estimate onto
     the reference (reference ~ M estimate: scale, turn, stretch and shear; NaN for a straight path, which does not
     determine one). A small after_similarity_mm against the RMSE means the path's shape is right and its level or
-    turn is not.
+    turn is not. lead_mm: the mean, over the frames that move, of what the similarity leaves along each one's
+    direction of travel (the reference's, between its neighbours; + = the path runs ahead of the reference): a
+    skin drag that is not undone in full leaves the path ahead by what remains of it, whichever way each stroke
+    goes (NaN when no frame moves).
     """
 
     scale_pct: float
     turn_deg: float
     after_similarity_mm: float
     after_linear_mm: float
+    lead_mm: float = math.nan
 
     def summary(self) -> str:
         """Return a one-line human summary: the path's scale and turn about frame 0 and the RMSE left after them."""
+        lead = f", its mean along the travel {self.lead_mm:+.3f} mm (+ = ahead)" if math.isfinite(self.lead_mm) else ""
         return (
             f"where the error lies: the path {self.scale_pct:+.2f} % in scale (+ = too large) and turned"
             f" {self.turn_deg:+.3f} deg about frame 0; {self.after_similarity_mm:.3f} mm left after that (its shape)"
+            f"{lead}"
         )
 
     def to_dict(self) -> dict[str, float | None]:
-        """Return the four figures as a JSON-able dict (%, deg, mm, mm; None where not defined)."""
-        fields = ("scale_pct", "turn_deg", "after_similarity_mm", "after_linear_mm")
+        """Return the five figures as a JSON-able dict (%, deg, mm, mm, mm; None where not defined)."""
+        fields = ("scale_pct", "turn_deg", "after_similarity_mm", "after_linear_mm", "lead_mm")
         return {name: (v if math.isfinite(v := float(getattr(self, name))) else None) for name in fields}
 
 
@@ -137,10 +146,25 @@ def global_error(estimate_mm: np.ndarray, reference_mm: np.ndarray) -> GlobalErr
     b = complex(np.vdot(r, e) / spread)  # least squares of e ~ b r
     if abs(b) < 1e-12:
         return None
-    after_similarity = float(np.sqrt(np.mean(np.abs(r - e / b) ** 2)))
+    left = e / b - r
+    after_similarity = float(np.sqrt(np.mean(np.abs(left) ** 2)))
     linear, _, rank, _ = np.linalg.lstsq(est, ref, rcond=None)  # ref ~ est @ linear
     after_linear = float(np.sqrt(np.mean(np.sum((ref - est @ linear) ** 2, axis=1)))) if rank == 2 else math.nan
-    return GlobalError(100.0 * (abs(b) - 1.0), math.degrees(math.atan2(b.imag, b.real)), after_similarity, after_linear)
+    turn = math.degrees(math.atan2(b.imag, b.real))
+    return GlobalError(100.0 * (abs(b) - 1.0), turn, after_similarity, after_linear, _lead_mm(left, r))
+
+
+def _lead_mm(left: np.ndarray, reference: np.ndarray) -> float:
+    """Return the mean of complex errors `left` (mm) along the reference's direction of travel at each row, taken
+    between its neighbours where both steps are LEAD_STEP_MM long (a lift's jump or a still probe has none)."""
+    if len(reference) < 3:
+        return math.nan
+    before, after = reference[1:-1] - reference[:-2], reference[2:] - reference[1:-1]
+    moving = np.all([(LEAD_STEP_MM[0] < np.abs(d)) & (np.abs(d) < LEAD_STEP_MM[1]) for d in (before, after)], axis=0)
+    if not np.any(moving):
+        return math.nan
+    step = (before + after)[moving]
+    return float(np.mean((left[1:-1][moving] * np.conj(step / np.abs(step))).real))
 
 
 def _as_path(name: str, value: np.ndarray) -> np.ndarray:

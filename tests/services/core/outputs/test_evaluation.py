@@ -155,6 +155,23 @@ def test_a_global_scale_and_turn_is_recovered_and_leaves_nothing() -> None:
     doc = json.loads(json.dumps(report.to_dict(), allow_nan=False))  # as report.json is written
     assert doc["global_error"]["turn_deg"] == pytest.approx(0.3, abs=1e-9)
     assert "+1.00 % in scale" in g.summary() and "turned +0.300 deg" in g.summary()
+    assert abs(g.lead_mm) < 1e-9  # nothing left along the travel either
+
+
+def test_a_path_ahead_along_its_travel_shows_as_its_lead() -> None:
+    # each frame 0.1 mm ahead of the reference along its own direction of travel (a drag not undone in full):
+    # +x on one row, -x on the next, so no similarity about frame 0 takes it; the lead finds it whichever way a row
+    # goes, up to what the similarity's small fit takes (1 % of it) and the row ends (their steps ~25 mm: left out)
+    reference = _raster()
+    c = reference[:, 0] + 1j * reference[:, 1]
+    travel = np.gradient(np.round(c / 4.0).real)  # the serpentine's rows: +1 or -1 in x (0 at a row's turn)
+    ahead = c + 0.1 * np.sign(travel)
+    g = evaluate_path(np.c_[ahead.real, ahead.imag], np.ones(len(c), bool), reference).global_error
+    assert g is not None and g.lead_mm == pytest.approx(0.1, abs=0.003)
+    behind = c - 0.1 * np.sign(travel)
+    g = evaluate_path(np.c_[behind.real, behind.imag], np.ones(len(c), bool), reference).global_error
+    assert g is not None and g.lead_mm == pytest.approx(-0.1, abs=0.003)
+    assert f"its mean along the travel {g.lead_mm:+.3f} mm (+ = ahead)" in g.summary()
 
 
 def test_a_shape_error_is_left_after_the_similarity_and_a_shear_after_it_too() -> None:
@@ -168,6 +185,7 @@ def test_a_shape_error_is_left_after_the_similarity_and_a_shear_after_it_too() -
     # most, a few times the fit's standard error), and the similarity leaves the RMSE within 5 %
     assert abs(g.scale_pct) < 0.05 and abs(g.turn_deg) < 0.05
     assert g.after_similarity_mm == pytest.approx(report.rmse_mm, rel=0.05)
+    assert abs(g.lead_mm) < 0.02  # the noise is across the rows' travel (x): little of it along
     sheared = reference @ np.array([[1.0, 0.0], [0.01, 1.0]])  # x += 0.01 y: not a similarity, but linear
     g2 = evaluate_path(sheared, np.ones(len(reference), bool), reference).global_error
     assert g2 is not None and g2.after_similarity_mm > 0.1 and g2.after_linear_mm < 1e-9
@@ -179,4 +197,5 @@ def test_a_straight_path_has_no_linear_map_and_stays_json() -> None:
     doc = evaluate_path(estimate, np.ones(10, bool), reference).to_dict()
     g = json.loads(json.dumps(doc, allow_nan=False))["global_error"]
     assert g["after_linear_mm"] is None
+    assert g["lead_mm"] == pytest.approx(0.0, abs=1e-9)  # along a line the similarity takes every error
     assert g["scale_pct"] == pytest.approx(0.2, abs=1e-9) and g["after_similarity_mm"] < 1e-9
