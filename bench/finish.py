@@ -25,6 +25,7 @@ import time
 import uuid
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 PARTS = ("finish", "pyramid", "tiles", "images")
@@ -113,8 +114,32 @@ def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | 
         lap("images")
         out["tiles_written"] = len(changed)
         out["pasted_again"] = sum(1 for i, a in recon.pasted.items() if i not in pasted or (a != pasted[i]).any())
+        out["moved_px"], out["moved_after_affine_px"] = moves_px(recon, pasted)
         out.update({f"finish_{k}": v for k, v in getattr(recon, "finish_seconds", {}).items()})
     return out
+
+
+def moves_px(recon: Any, pasted: dict[int, Any]) -> tuple[float, float]:
+    """Return the median move (mosaic px, the farthest corner) of the frames pasted live to their final places, and
+    what is left of it after the best affine map of the whole canvas: whether one warp could stand for the restitch."""
+    import numpy as np
+
+    calib = recon.calibration
+    w, h = calib.image_size
+    corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float).T
+
+    def on_canvas(affine: Any) -> Any:
+        return (recon.canvas.pixels_to_canvas(affine, calib.principal_point, calib.px_per_mm) @ corners).T
+
+    kept = [i for i in recon.pasted if i in pasted]
+    if not kept:
+        return float("nan"), float("nan")
+    before = np.concatenate([on_canvas(pasted[i]) for i in kept])
+    after = np.concatenate([on_canvas(recon.pasted[i]) for i in kept])
+    moved = np.hypot(*(after - before).T).reshape(-1, 4).max(axis=1)
+    x = np.column_stack([before, np.ones(len(before))])
+    left = np.hypot(*(x @ np.linalg.lstsq(x, after, rcond=None)[0] - after).T).reshape(-1, 4).max(axis=1)
+    return float(np.median(moved)), float(np.median(left))
 
 
 def run_child(args: argparse.Namespace, scan: str, repo: Path) -> dict[str, float | int]:
@@ -140,8 +165,10 @@ def main() -> int:
         print(json.dumps(measure(scans[0], args.frames, flush_every=5)))
         return 0
     repos = args.repo or [REPO]
-    print("a live session's finish and final flush; wall s (CPU s); frames pasted again at the finish, tiles written\n")
+    print("a live session's finish and final flush; wall s (CPU s); frames pasted again at the finish, tiles written;")
+    print("how far the finish moves a pasted frame (median, px), and what one affine map of the canvas leaves of it\n")
     head = ["scan", "tree", "frames", *PARTS, "done after the last frame", "vs first", "pasted again", "tiles"]
+    head += ["moved px", "after one affine"]
     print("| " + " | ".join(head) + " |")
     print("|---|---|" + "---:|" * (len(head) - 2))
     for scan in scans:
@@ -155,7 +182,8 @@ def main() -> int:
             split = ", ".join(f"{k[7:]} {v:.2f}" for k, v in got.items() if k.startswith("finish_") and k[7:] != "cpu")
             print(
                 f"| {Path(scan).name} | {repo.name} | {got['frames']} | {cells} | {total:.2f} | {total / base:.2f}x "
-                f"| {got['pasted_again']} | {got['tiles_written']} |",
+                f"| {got['pasted_again']} | {got['tiles_written']} | {got['moved_px']:.2f} "
+                f"| {got['moved_after_affine_px']:.2f} |",
                 flush=True,
             )
             if split:
