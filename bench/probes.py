@@ -46,6 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from live import Row, first_frames, run  # bench/live.py: one paced session and its figures
 
 from cli.launcher import Service, free_port
+from services.core.session_reconstruction import KEYFRAME, TRACKED, UNPLACED
 from services.core.simulation.scenarios import SCENARIOS, simulate
 from services.jobs.redis_backend import embedded_pid
 from services.settings import get_settings
@@ -53,7 +54,7 @@ from services.store.scan_folder import write_scan_folder
 
 DONE_TARGET_S = 5.0
 LAG_P95_TARGET_S = 2.0
-KINDS = ("keyframe", "tracked")  # SessionReconstruction.frame_kind of placed frames
+KINDS = (KEYFRAME, TRACKED)  # SessionReconstruction.frame_kind of placed frames
 
 
 def service_counters(service: Service) -> dict[str, float]:
@@ -81,14 +82,14 @@ def cost_line(n: int, before: dict[str, float], after: dict[str, float], workers
         kind: 1000 * delta.get(f"register_{kind}_cpu_seconds_total", 0.0) / frames[kind] if frames[kind] else math.nan
         for kind in KINDS
     }
-    share = 100 * frames["keyframe"] / placed if placed else math.nan
+    share = 100 * frames[KEYFRAME] / placed if placed else math.nan
     counted = delta.get("prepare_cpu_seconds_total", 0.0) + sum(
-        delta.get(f"register_{kind}_cpu_seconds_total", 0.0) for kind in (*KINDS, "unplaced")
+        delta.get(f"register_{kind}_cpu_seconds_total", 0.0) for kind in (*KINDS, UNPLACED)
     )
     rest_ms = 1000 * (workers_cpu_s - counted) / frames_in if frames_in else math.nan
     return (
-        f"| {n} | {share:.1f} | {prepare_ms:.1f} | {register_ms['keyframe']:.1f} | {register_ms['tracked']:.1f} "
-        f"| {prepare_ms + register_ms['keyframe']:.1f} | {prepare_ms + register_ms['tracked']:.1f} | {rest_ms:.1f} |"
+        f"| {n} | {share:.1f} | {prepare_ms:.1f} | {register_ms[KEYFRAME]:.1f} | {register_ms[TRACKED]:.1f} "
+        f"| {prepare_ms + register_ms[KEYFRAME]:.1f} | {prepare_ms + register_ms[TRACKED]:.1f} | {rest_ms:.1f} |"
     )
 
 

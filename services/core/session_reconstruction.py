@@ -48,7 +48,7 @@ from services.core.similarity import Similarity
 # The newest frames whose paste planes a live session keeps (~5 MB each at 640 x 480): each new frame is pasted
 # from its prepared image directly, and half of the re-pastes a refinement asks for are of frames this recent
 # (measured on a simulated raster: 116 of 268 within 8 frames); older ones are decoded from what was kept.
-FRAME_KINDS = ("keyframe", "tracked", "unplaced")  # SessionReconstruction.frame_kind
+KEYFRAME, TRACKED, UNPLACED = FRAME_KINDS = ("keyframe", "tracked", "unplaced")  # SessionReconstruction.frame_kind
 RECENT_LAYERS = 12
 # While a live scan goes on, a refined frame is re-pasted only when some point of its window moved by this many
 # mosaic pixels or more since it was pasted: smaller moves are invisible, and re-pasting every frame a local pass
@@ -130,8 +130,8 @@ class SessionReconstruction:
         rejected or waiting on a fragment)."""
         result = self.results.get(index)
         if result is None or result.status != STATUS_OK:
-            return "unplaced"
-        return "keyframe" if any(index in m.features for m in self.atlas.maps) else "tracked"
+            return UNPLACED
+        return KEYFRAME if any(index in m.features for m in self.atlas.maps) else TRACKED
 
     def add(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:
         """Return the result of a frame (in index order: contact, then registration) and the canvas tiles changed."""
