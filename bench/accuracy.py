@@ -16,8 +16,9 @@ scans, the tissue-* cells), and where
 the error lies (evaluation.GlobalError): the path's scale % (+ too large) and turn deg about frame 0, and the RMSE
 left after that similarity (the path's shape), `lead mm`: its mean along each frame's direction of travel (+ ahead
 of the reference: a skin drag not undone in full), and `air placed`: frames placed that the reference has no row for
-(taken in the air: none should be), `tracked %`: placed frames tracked without features (best-track), and
-`closures`: the loop-closure edges of the final pose graph (rows tied to rows: a dragged skin breaks them).
+(taken in the air: none should be), `tracked %`: placed frames tracked without features (best-track),
+`closures`: the loop-closure edges of the final pose graph (rows tied to rows: a dragged skin breaks them), and
+`drag fit` on the drag cells: the share of the simulator's true drags that the fitted ones make up (1: in full).
 Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe, tissue-saturating: a patient as on the shared
 scans (a hand's tilt, a tissue law of that shape with anisotropy: along the frame's x or y, or for saturating fixed
 in the tissue at any angle while the probe yaws +-15 deg), not an imaging look. Cell drag: that patient (linear
@@ -56,6 +57,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import numpy as np
 from tqdm import tqdm
 
 from services.core.inputs.scan import Scan
@@ -70,6 +72,7 @@ from services.store.scan_folder import read_scan_folder
 from services.store.texture_photo import read_texture_photo
 
 DEFAULT_SHARED = Path(__file__).resolve().parents[2] / "shared" / "scans"
+DRAG_FIT_MIN_MM = 0.2  # frames the simulator drags by more than this count in the drag-fit share (drag_fit_share)
 ALL_METHODS = ("best", "paper", "sift-chain")
 
 # one knob at a time away from the scenario's own realistic look (see services/core/simulation/variants.py)
@@ -190,18 +193,36 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
             after_similarity_mm=report.global_error.after_similarity_mm,
             lead_mm=report.global_error.lead_mm,
         )
+    if "drag_mm" in scan.truth:  # the simulator's skin drag: how much of it the fit finds
+        row["drag_fit"] = drag_fit_share(recon.rows, scan)
     if scan.reference_angles_deg is not None:
         angles = evaluate_angles(path_angles_deg(recon.rows), recon.registered, scan.by_seq(scan.reference_angles_deg))
         row["tilt_rmse_deg"] = max(angles.get("tilt_x_rmse_deg", math.nan), angles.get("tilt_y_rmse_deg", math.nan))
     return row
 
 
+def drag_fit_share(rows: list[Any], scan: Scan) -> float:
+    """Return the share of the simulator's true drags (each frame's, its axes) that the fitted ones (path.csv's,
+    the path's axes, turned by the frame's yaw into its own) make up: the least-squares ratio over the placed frames
+    dragged by more than DRAG_FIT_MIN_MM (1: the drag found in full; NaN without such frames)."""
+    true = scan.by_seq(np.asarray(scan.truth["drag_mm"], np.float64))
+    assert true is not None
+    fit = np.full(len(true), np.nan, complex)
+    for r in rows:
+        if r.seq < len(fit) and r.status == "ok":
+            fit[r.seq] = complex(r.drag_x_mm, r.drag_y_mm) * np.exp(-1j * np.radians(r.yaw_deg))
+    t = true[:, 0] + 1j * true[:, 1]
+    use = np.isfinite(fit) & np.isfinite(t) & (np.abs(t) > DRAG_FIT_MIN_MM)
+    if not np.any(use):
+        return math.nan
+    return float((np.vdot(t[use], fit[use]) / np.vdot(t[use], t[use])).real)
+
+
 HEADER = (
     f"{'source':<6} | {'scan / cell':<28} | {'method':<13} | {'registered %':>12} | {'RMSE mm':>8} |"
     f" {'final drift mm':>14} | {'error ratio %':>13} | {'s/frame':>7} | {'tilt RMS deg':>12} |"
     f" {'scale %':>7} | {'turn deg':>8} | {'after sim. mm':>13} | {'lead mm':>7} | {'air placed':>10} |"
-    f" {'tracked %':>9} |"
-    f" {'closures':>8}"
+    f" {'tracked %':>9} | {'closures':>8} | {'drag fit':>8}"
 )
 
 
@@ -223,8 +244,8 @@ def table_line(row: dict[str, Any]) -> str:
         f" {fmt(row['s_per_frame'], '7.3f')} | {fmt(row.get('tilt_rmse_deg'), '12.2f')} |"
         f" {fmt(row.get('scale_pct'), '+7.2f')} | {fmt(row.get('turn_deg'), '+8.3f')} |"
         f" {fmt(row.get('after_similarity_mm'), '13.3f')} | {fmt(row.get('lead_mm'), '+7.3f')} |"
-        f" {fmt(row.get('air_placed'), '10d')} |"
-        f" {fmt(row.get('tracked_pct'), '9.1f')} | {fmt(row.get('closures'), '8d')}"
+        f" {fmt(row.get('air_placed'), '10d')} | {fmt(row.get('tracked_pct'), '9.1f')} |"
+        f" {fmt(row.get('closures'), '8d')} | {fmt(row.get('drag_fit'), '8.2f')}"
     )
 
 
