@@ -39,7 +39,7 @@ class Pending:
     seqs: list[int] = field(default_factory=list)  # frames handled (added, lost or rejected)
     path_reset: bool = False  # an earlier frame moved (refinement): clients should re-read the path
     dirty: bool = False  # the cursor moved: state.json is behind
-    cost: RegisterCost = field(default_factory=RegisterCost)  # of the frames in seqs
+    cost: RegisterCost = field(default_factory=RegisterCost)  # of the frames added (not replayed) since the flush
 
 
 @dataclass
