@@ -98,6 +98,8 @@ ABLATIONS = {
     "best-noloopgate": ("best", {"loop_ransac_px": 0.0}),  # no looser gate for the closures a dragged skin breaks
     "best-nodragpairs": ("best", {"drag_pair_gate": 0.0}),  # the drag learned from the matches' inliers alone
     "best-reselect": ("best", {"drag_reselect": True}),  # pairs chosen about the undragged skin (opt-in)
+    # closures gated about one similarity alone and the chain's scale left free (before issue 31's drag match)
+    "best-nodragmatch": ("best", {"loop_drag_match": False, "chain_scale_band": 0.0}),
 }
 DRAG_CELLS = {"drag": "linear"}  # a patient (linear law, a hand's tilt) whose skin the sliding window drags
 QUICK_LOOKS = ("default", "faint", "noise4", "heavy-blur", "16bit", *TISSUE_CELLS, *DRAG_CELLS)

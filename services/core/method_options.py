@@ -33,6 +33,7 @@ _BOUNDS: dict[str, dict[str, float]] = {
     "blur_ratio": {"ge": 0, "le": 1},  # a fraction of the running median
     "contrast_threshold": {"ge": 0, "le": 1},  # SIFT's (0.03 by default)
     "scale_prior": {"ge": 0, "le": 1},  # a relative sigma
+    "chain_scale_band": {"ge": 0, "le": 1},  # log of a scale
     "ransac_px": {"ge": 0, "le": 50},  # pixels of a rectified frame
     "loop_ransac_px": {"ge": 0, "le": 50},  # pixels of a rectified frame
     "drag_pair_gate": {"ge": 0, "le": 10},  # RANSAC gates

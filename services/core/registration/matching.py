@@ -178,17 +178,17 @@ def estimate_similarity(
     a_rms = _affine_rms(view_affine, src[chosen], dst[chosen]) if view_affine is not None else rms
     affine_sigma = a_rms / (math.sqrt(int(chosen.sum())) * spread) if spread > 0 else math.inf
     centre, lever = centroid_and_spread(src[inl])
-    pairs = _pairs(src, dst, np.flatnonzero(inl))
+    pairs = kept_pairs(src, dst, np.flatnonzero(inl))
     drag_pairs = None
     if drag_gate > 0:
         near = np.flatnonzero(np.hypot(*(transform.apply(src) - dst).T) < drag_gate * threshold)
         if dedupe_radius > 0 and len(near) > 1:
             near = near[unique_pairs(src[near], dst[near], dedupe_radius)]
-        drag_pairs = _pairs(src, dst, near)
+        drag_pairs = kept_pairs(src, dst, near)
     return SimilarityFit(transform, n, rms, inl, affine, affine_sigma, view_affine, centre, lever, pairs, drag_pairs)
 
 
-def _pairs(src: np.ndarray, dst: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+def kept_pairs(src: np.ndarray, dst: np.ndarray, chosen: np.ndarray) -> np.ndarray:
     """Return float32 (n, 4) pairs (src x, y then dst x, y) of at most PAIRS_KEPT of `chosen`, spread over it."""
     kept = chosen[np.linspace(0, len(chosen) - 1, min(len(chosen), PAIRS_KEPT)).astype(int)]
     return np.hstack([src[kept], dst[kept]]).astype(np.float32)

@@ -21,6 +21,7 @@ from services.core.registration.direct_alignment import (
     correlation,
     overlap_pairs,
 )
+from services.core.registration.drag_match import estimate_dragged_match
 from services.core.registration.edge_corrections import EdgeCorrections, step_of_travel, view_evidence
 from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame, describe_frame, tracks_frames
@@ -50,6 +51,7 @@ from services.core.similarity import IDENTITY, Similarity
 # and the simulated raster, revisit and short cells unchanged). False matches land tens of mm away, and the pose
 # graph's robust weights take the rest.
 LOOP_GATE_MM = 6.0
+DRAG_MATCH_WIDTH_MM = 15.0  # the drag profile's width a closure assumes before the scan's own is fitted
 MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the placed frame's window
 DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
 DIRECT_SIGMA_PER_DECORRELATION_MM = 1.0  # ... growing by this per unit of (1 - correlation)
@@ -188,6 +190,18 @@ class Registrar:
             loose = self._verify(pf, matched, min_inliers, self.options.loop_ransac_px)
             if loose is not None and loose.inliers >= full:
                 return feature_match(loose)
+        if self.options.loop_drag_match and (fit is None or fit.inliers < full) and self._opposite(other):
+            drag = self.corrections.drag_fit
+            dragged = estimate_dragged_match(
+                *matched,
+                self.options.ransac_px / self.px_per_mm,
+                drag.width_mm if drag is not None and drag.kept else DRAG_MATCH_WIDTH_MM,
+                seed=pf.index,
+                min_inliers=full,
+                dedupe_radius=SAME_PLACE_PX / self.px_per_mm,
+            )
+            if dragged is not None:
+                return feature_match(dragged)
         return None if fit is None else feature_match(fit)
 
     def _opposite(self, other: int) -> bool:
@@ -500,6 +514,8 @@ class Registrar:
     def _accept(
         self, pf: PreparedFrame, pose: Similarity, edges: list[Edge], inliers: int, blurred: bool
     ) -> FrameResult:
+        if self.order:  # not frame 0, the map's origin and scale
+            pose = banded_scale(pose, self.options.chain_scale_band)
         self.poses[pf.index] = pose
         if pf.features is not None:  # a keyframe (tracked frames are matched through their keyframe)
             self.features[pf.index] = pf.features
@@ -521,3 +537,13 @@ class Registrar:
 
     def _reject(self, pf: PreparedFrame, status: str, blurred: bool, reason: str) -> FrameResult:
         return FrameResult(pf.index, status, None, 0, blurred, reason=reason)
+
+
+def banded_scale(pose: Similarity, band: float) -> Similarity:
+    """Return the pose with its scale |a| brought within exp(+-band) of 1 (its turn and translation kept), or the
+    pose itself when it is within or band is 0 (MethodOptions.chain_scale_band)."""
+    scale = abs(pose.a)
+    if band <= 0 or scale <= 0:
+        return pose
+    held = float(np.clip(scale, np.exp(-band), np.exp(band)))
+    return pose if held == scale else Similarity(pose.a * (held / scale), pose.t)

@@ -31,7 +31,7 @@ from services.core.registration.outcome import (
 )
 from services.core.registration.pose_graph import Edge
 from services.core.registration.refinement import VIEW_REFIT_GROWTH
-from services.core.registration.registrar import FIRST_KEYFRAMES, MAX_TRACKED_RUN, Registrar
+from services.core.registration.registrar import FIRST_KEYFRAMES, MAX_TRACKED_RUN, Registrar, banded_scale
 from services.core.similarity import IDENTITY, Similarity
 from tests.services.core.physics.dragged_serpentine import dragged_serpentine
 from tests.sim_cache import simulated
@@ -348,12 +348,15 @@ def _keypoint_pair(drag_mm: float) -> tuple[Features, SimpleNamespace]:
     return older, SimpleNamespace(index=40, features=seen, stretch=1.0)
 
 
-def _older_match(drag_mm: float, loop_ransac_px: float, against: bool = True, evident: bool = True) -> Match | None:
+def _older_match(
+    drag_mm: float, loop_ransac_px: float, against: bool = True, evident: bool = True, drag_match: bool = False
+) -> Match | None:
     """Return the newest frame's match to keyframe 0 on a raster: row 1 stroked along +x (frames 0, 1), row 2 20 mm
     on (frames 2, 3) back along -x (`against`) or along +x again, the newest frame seeing frame 0's skin dragged;
-    `evident`: the global refinements so far found the skin dragged."""
+    `evident`: the global refinements so far found the skin dragged; `drag_match`: MethodOptions.loop_drag_match."""
     older, frame = _keypoint_pair(drag_mm)
-    options = method_options("best").with_overrides({"loop_ransac_px": loop_ransac_px})
+    overrides = {"loop_ransac_px": loop_ransac_px, "loop_drag_match": drag_match}
+    options = method_options("best").with_overrides(overrides)
     registrar = Registrar(options, 8.0, 40.0, centre_px=(320.0, 240.0))  # 2 px = 0.25 mm gate
     row_2 = (24 + 20j, 20 + 20j) if against else (20 + 20j, 24 + 20j)
     for index, t in enumerate((0j, 4 + 0j, *row_2)):
@@ -382,6 +385,29 @@ def test_the_loop_gate_leaves_a_match_that_holds_at_the_ransac_gate() -> None:
     tight, loose = _older_match(0.0, 0.0), _older_match(0.0, 4.0)
     assert tight is not None and loose is not None
     assert (loose.inliers, loose.relative) == (tight.inliers, tight.relative)
+
+
+def test_the_drag_model_recovers_the_closure_before_any_drag_is_evident() -> None:
+    # registration.drag_match: the pairs gated about each frame's drag fitted, at the RANSAC gate, from the start
+    found = _older_match(2.5, 0.0, evident=False, drag_match=True)
+    assert found is not None and found.inliers >= method_options("best").min_inliers
+    assert _older_match(2.5, 0.0, against=False, drag_match=True) is None  # rows stroked the same way: not tried
+
+
+def test_the_drag_model_leaves_a_match_that_holds_at_the_ransac_gate() -> None:
+    tight, modelled = _older_match(0.0, 0.0), _older_match(0.0, 0.0, drag_match=True)
+    assert tight is not None and modelled is not None
+    assert (modelled.inliers, modelled.relative) == (tight.inliers, tight.relative)
+
+
+def test_a_placed_frames_scale_is_held_within_its_band_of_the_laws() -> None:
+    pose = Similarity(0.5 * np.exp(0.3j), 4 + 2j)
+    held = banded_scale(pose, 0.05)
+    assert abs(held.a) == pytest.approx(np.exp(-0.05)) and np.angle(held.a) == pytest.approx(0.3)
+    assert held.t == pose.t
+    assert abs(banded_scale(Similarity(1.2 + 0j, 0j), 0.05).a) == pytest.approx(np.exp(0.05))
+    within = Similarity(0.97 * np.exp(0.3j), 4 + 2j)
+    assert banded_scale(within, 0.05) is within and banded_scale(pose, 0.0) is pose
 
 
 @pytest.mark.parametrize(
