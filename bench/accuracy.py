@@ -207,7 +207,8 @@ def drag_fit_share(rows: list[Any], scan: Scan) -> float:
     """Return the share of the simulator's true drags (each frame's, its axes) that the fitted ones (path.csv's,
     the path's axes, turned by the frame's yaw into its own) make up: the least-squares ratio over the placed frames
     dragged by more than DRAG_FIT_MIN_MM (1: the drag found in full; NaN without such frames)."""
-    true = scan.by_seq(np.asarray(scan.truth["drag_mm"], np.float64))
+    drags = np.asarray(scan.truth["drag_mm"], np.float64)  # per simulated frame: dropped seqs' too (strokes)
+    true = drags if len(drags) == scan.n_seqs else scan.by_seq(drags)
     assert true is not None
     fit = np.full(len(true), np.nan, complex)
     for r in rows:

@@ -15,6 +15,7 @@ affines of the raw inlier pairs): the drag is undone by the final drag fit, from
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -35,6 +36,16 @@ REGATE_ROUNDS = 3  # least squares on the drag model, re-gated at the usual gate
 MAX_DRAG_MM = 4.0  # a fitted drag beyond this is no skin's: the match is refused
 
 
+@dataclass(frozen=True)
+class DraggedMatch:
+    """A match gated about the drag model: the fit of its raw pairs (src -> dst), and the two frames' drags fitted
+    with it (complex mm, each frame's own axes: D_p of src, D_q of dst)."""
+
+    fit: SimilarityFit
+    drag_src_mm: complex
+    drag_dst_mm: complex
+
+
 def estimate_dragged_match(
     src: np.ndarray,
     dst: np.ndarray,
@@ -43,8 +54,8 @@ def estimate_dragged_match(
     seed: int = 0,
     min_inliers: int = 8,
     dedupe_radius: float = 0.0,
-) -> SimilarityFit | None:
-    """Return the fit src -> dst (mm) of the raw pairs the drag model keeps within `threshold` (mm), or None.
+) -> DraggedMatch | None:
+    """Return the match src -> dst (mm) of the raw pairs the drag model keeps within `threshold` (mm), or None.
 
     None when the wide proposal fails, fewer than min_inliers unique pairs stay, or a fitted drag exceeds
     MAX_DRAG_MM. width_mm: the drag profile's width (physics.drag.profile).
@@ -79,7 +90,8 @@ def estimate_dragged_match(
     affine_sigma = rms / (math.sqrt(int(chosen.sum())) * spread) if spread > 0 else math.inf
     centre, lever = centroid_and_spread(src[idx])
     pairs = kept_pairs(src, dst, idx)
-    return SimilarityFit(transform, len(idx), rms, inl, affine, affine_sigma, view_affine, centre, lever, pairs, pairs)
+    fit = SimilarityFit(transform, len(idx), rms, inl, affine, affine_sigma, view_affine, centre, lever, pairs, pairs)
+    return DraggedMatch(fit, complex(e / a), complex(drag_q))
 
 
 def _predict(unknowns: np.ndarray, p: np.ndarray, fp: np.ndarray, fq: np.ndarray) -> np.ndarray:

@@ -39,8 +39,11 @@ def test_opposite_drags_break_one_similarity_and_the_drag_model_keeps_the_pairs(
     src, dst, truth = _dragged_pairs(1.5, -1.5)
     plain = estimate_similarity(src, dst, GATE_MM, min_inliers=MIN_INLIERS)
     assert plain is None or plain.inliers < 0.6 * truth.sum()  # the premise: the usual gate loses the closure
-    fit = estimate_dragged_match(src, dst, GATE_MM, WIDTH_MM, min_inliers=MIN_INLIERS)
-    assert fit is not None
+    match = estimate_dragged_match(src, dst, GATE_MM, WIDTH_MM, min_inliers=MIN_INLIERS)
+    assert match is not None
+    # the drags it fits with the pairs (each frame's axes); 0.3 mm: the ridge toward 0 and the overlap's half window
+    assert abs(match.drag_src_mm - 1.5) < 0.3 and abs(match.drag_dst_mm + 1.5) < 0.3, match
+    fit = match.fit
     kept = fit.inlier_mask
     assert kept[truth].mean() > 0.9  # nearly every true pair
     assert not kept[~truth].any()  # and no random one
@@ -52,8 +55,10 @@ def test_opposite_drags_break_one_similarity_and_the_drag_model_keeps_the_pairs(
 
 def test_without_a_drag_it_is_the_similarity() -> None:
     src, dst, truth = _dragged_pairs(0j, 0j)
-    fit = estimate_dragged_match(src, dst, GATE_MM, WIDTH_MM, min_inliers=MIN_INLIERS)
-    assert fit is not None and fit.inlier_mask[truth].mean() > 0.95
+    match = estimate_dragged_match(src, dst, GATE_MM, WIDTH_MM, min_inliers=MIN_INLIERS)
+    assert match is not None and match.fit.inlier_mask[truth].mean() > 0.95
+    assert abs(match.drag_src_mm) < 0.3 and abs(match.drag_dst_mm) < 0.3
+    fit = match.fit
     probe = np.array([[0.0, 0.0], [20.0, 10.0]])
     assert np.allclose(fit.transform.apply(probe), REST.apply(probe), atol=0.01)  # 0.02 mm noise over 120 pairs
 
