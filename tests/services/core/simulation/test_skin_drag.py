@@ -52,3 +52,14 @@ def test_best_learns_the_drag_back() -> None:
     assert rmse[0] < 0.9 * rmse[1], rmse  # learning the drag pays
     drag_x = np.array([row.drag_x_mm for row in learned.rows])
     assert np.all(np.isfinite(drag_x)) and np.median(np.abs(drag_x)) > 0.2  # reported per frame (path.csv)
+
+
+@pytest.mark.slow
+def test_a_strong_drag_no_longer_breaks_a_raster() -> None:
+    # rows dragged opposite ways: closures gated about the drag model (registration.drag_match), the chain's scale
+    # held in its band while the scan goes on (MethodOptions.chain_scale_band)
+    scan = simulate("raster", 3, tissue="linear", drag=True)
+    recon = reconstruct(scan, method_options("best"))
+    rmse = evaluate_path(recon.estimate_mm, recon.registered, scan.reference_mm).rmse_mm
+    assert TOL.sim_raster_strong_drag_rmse_mm[0] <= rmse <= TOL.sim_raster_strong_drag_rmse_mm[1], rmse
+    assert recon.closures >= 40, recon.closures  # 72 measured; 9 when the drag broke them
