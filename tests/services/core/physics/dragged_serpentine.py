@@ -23,10 +23,10 @@ def rest_to_frame(rest: np.ndarray, pose: Similarity, drag: complex) -> np.ndarr
 
 
 def dragged_serpentine(
-    gain_mm_per_n: float, seed: int
+    gain_mm_per_n: float, seed: int, turn_deg: float = 0.0
 ) -> tuple[list[DragEvidence], dict[int, float], dict[int, complex], dict]:
     """Return matches between 3 rows of 12 frames (a serpentine: the drag flips with the stroke), the loads, the
-    directions of travel, and the truth (poses and drags)."""
+    directions of travel, and the truth (poses and drags); turn_deg turns every drag from the travel (0: along)."""
     rng = np.random.default_rng(seed)
     poses, drags, loads, directions = {}, {}, {}, {}
     k = 0
@@ -37,7 +37,7 @@ def dragged_serpentine(
             poses[k] = Similarity(np.exp(1j * rng.normal(0, 0.01)), complex(x, 20.0 * row))
             loads[k] = float(rng.uniform(4.0, 16.0))
             directions[k] = complex(way, 0.0)
-            drags[k] = gain_mm_per_n * loads[k] * way * rng.uniform(0.6, 1.0)  # stick-slip
+            drags[k] = gain_mm_per_n * loads[k] * way * rng.uniform(0.6, 1.0) * np.exp(1j * np.radians(turn_deg))
             k += 1
     evidence = []
     for i in poses:

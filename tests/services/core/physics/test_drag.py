@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from services.core.physics.drag import (
+    MAX_GAIN_ANGLE_DEG,
     RESELECT_ROUNDS,
     DragEvidence,
     DragFit,
@@ -64,6 +65,17 @@ def test_no_drag_is_kept_where_there_is_none() -> None:
     fit = fit_drag(evidence, loads, directions)
     assert fit is not None and not fit.kept
     assert all(fit.of(k) == 0 for k in loads)
+
+
+def test_a_drag_across_the_strokes_is_not_kept() -> None:
+    # the same skin deformation turned 90 deg from the travel: it explains the pairs as well, but a window's friction
+    # drags along its stroke (a simulated hard scan without drag kept one at -100 deg, its path 1.34 -> 2.55 mm)
+    evidence, loads, directions, _ = dragged_serpentine(0.1, seed=3, turn_deg=90.0)
+    fit = fit_drag(evidence, loads, directions)
+    assert fit is not None and fit.cost_with < 0.5 * fit.cost_without  # the model explains it ...
+    assert abs(np.degrees(np.angle(fit.gain_mm_per_n))) > MAX_GAIN_ANGLE_DEG and not fit.kept  # ... and drops it
+    along = fit_drag(*dragged_serpentine(0.1, seed=3, turn_deg=30.0)[:3])
+    assert along is not None and along.kept  # a drag 30 deg off the travel (a slanted stroke) is kept
 
 
 def test_too_little_evidence_fits_nothing() -> None:

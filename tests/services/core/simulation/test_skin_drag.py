@@ -62,4 +62,4 @@ def test_a_strong_drag_no_longer_breaks_a_raster() -> None:
     recon = reconstruct(scan, method_options("best"))
     rmse = evaluate_path(recon.estimate_mm, recon.registered, scan.reference_mm).rmse_mm
     assert TOL.sim_raster_strong_drag_rmse_mm[0] <= rmse <= TOL.sim_raster_strong_drag_rmse_mm[1], rmse
-    assert recon.closures >= 40, recon.closures  # 72 measured; 9 when the drag broke them
+    assert recon.closures >= 40, recon.closures  # 67 measured; 9 when the drag broke them
