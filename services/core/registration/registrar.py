@@ -42,6 +42,7 @@ from services.core.registration.outcome import (
 )
 from services.core.registration.pose_graph import Edge, optimise_poses, place_node
 from services.core.registration.refinement import VIEW_REFIT_GROWTH, is_global, local_pass, moved_frames, scale_pass
+from services.core.registration.sparse_alignment import SparseTemplate, sparse_align, sparse_template
 from services.core.similarity import IDENTITY, Similarity
 
 # A match to an older frame that places the new frame farther than this from where the match to the latest frame
@@ -100,6 +101,7 @@ class Registrar:
     # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
+    _template: tuple[int, SparseTemplate] | None = None  # the keyframe frames are tracked on, as a sparse template
 
     def predict(self, t_s: float) -> Similarity | None:
         """Return the constant-velocity prediction of the pose at time t_s, or None before any frame."""
@@ -315,8 +317,10 @@ class Registrar:
     def _tracking_match(self, pf: PreparedFrame, other: int, start: Similarity) -> Match | None:
         """Return the direct alignment of a frame on placed frame `other` from `start` (frame mm -> other mm) as a
         match with its affine and overlap pairs, or None below options.track_correlation or options.track_overlap."""
-        fixed, moving = self._alignment(other), self._alignment(pf.index, pf)
-        fit = align(fixed, moving, start, recentre=False)
+        if self._template is None or self._template[0] != other:  # built once per keyframe
+            self._template = (other, sparse_template(self._alignment(other)))
+        fixed, template, moving = self._template[1].image, self._template[1], self._alignment(pf.index, pf)
+        fit = sparse_align(template, moving, start)
         if fit is None or fit.affine is None:
             return None
         if fit.correlation < self.options.track_correlation or fit.overlap < self.options.track_overlap:
