@@ -29,6 +29,7 @@ _BOUNDS: dict[str, dict[str, float]] = {
     "min_correlation": {"ge": 0, "le": 1},  # ECC correlation
     "track_overlap": {"ge": 0, "le": 1},  # a share of the keyframe's window
     "track_correlation": {"ge": 0, "le": 1},  # ECC correlation
+    "track_closures": {"ge": 0, "le": 20},  # direct alignments per tracked frame
     "confirmed_inlier_share": {"ge": 0, "le": 1},  # a share
     "blur_ratio": {"ge": 0, "le": 1},  # a fraction of the running median
     "contrast_threshold": {"ge": 0, "le": 1},  # SIFT's (0.03 by default)

@@ -30,6 +30,7 @@ class MethodOptions:
     # it covers at least this share of the keyframe's window; below it, it becomes a keyframe (0: every frame is one)
     track_overlap: float = 0.0
     track_correlation: float = 0.6  # ... and while the tracking alignment's vein-map correlation reaches this
+    track_closures: int = 2  # a tracked frame's loop closures, by direct alignment on older keyframes (0: none)
     rigid_stitch: bool = False  # stitch with yaw + x/y only (the paper's correction) instead of the similarity
     refine: bool = True  # global pose-graph refinement on loop closures (beyond the paper)
     self_calibrate: bool = True  # fit the tissue compliance from registration scales (beyond the paper)

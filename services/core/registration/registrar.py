@@ -69,6 +69,8 @@ DRAG_CHECK_EDGES = 600  # the newest edges a global refinement checks for a drag
 # second row): a long examination's checks cost no more than a short one's
 SAME_PLACE_PX = 2.0  # keypoints matched within this of each other (rectified pixels) are one place (A-SIFT's views)
 NEAR_PAIR_GATES = 3.0  # MethodOptions.drag_reselect: the pairs a match keeps, within this many RANSAC gates
+TEMPLATE_CACHE = 16  # placed frames kept as sparse templates: the keyframe tracked on and the closures' last ones
+TRACK_CLOSURE_OVERLAP = 0.5  # a tracked frame's closure must overlap this share of the older keyframe's window
 MAX_TRACKED_RUN = 8  # frames after a keyframe: the next one is a keyframe however well it tracks (loops, drag)
 
 
@@ -101,7 +103,7 @@ class Registrar:
     # placed frames: vein map, its window mask bit-packed (np.packbits of mask > 0: 8x smaller), vein scale
     veins: dict[int, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
     _pyramids: dict[int, AlignmentImage] = field(default_factory=dict)
-    _template: tuple[int, SparseTemplate] | None = None  # the keyframe frames are tracked on, as a sparse template
+    _templates: dict[int, SparseTemplate] = field(default_factory=dict)  # keyframes as sparse templates (newest used)
 
     def predict(self, t_s: float) -> Similarity | None:
         """Return the constant-velocity prediction of the pose at time t_s, or None before any frame."""
@@ -310,23 +312,63 @@ class Registrar:
         if found is None or not self._plausible(self.poses[kf].compose(found.relative), predicted, 0):
             return None
         self.corrections.record(pf)
-        edges = [self._edge(pf, kf, found)]
+        edges = [self._edge(pf, kf, found), *self._tracked_closures(pf, self.poses[kf].compose(found.relative), kf)]
         pose = place_node(self.poses, self.corrections.undeformed(edges, self.poses), pf.index)
-        return self._accept(pf, pose, edges, 0, False)
+        result = self._accept(pf, pose, edges, 0, False)
+        if any(e.loop for e in edges):
+            self.loops_since_refine += 1
+        if self.options.refine and self.loops_since_refine >= self.options.refine_every:
+            return FrameResult(pf.index, result.status, result.pose, 0, False, self.refine())
+        return result
 
     def _tracking_match(self, pf: PreparedFrame, other: int, start: Similarity) -> Match | None:
         """Return the direct alignment of a frame on placed frame `other` from `start` (frame mm -> other mm) as a
         match with its affine and overlap pairs, or None below options.track_correlation or options.track_overlap."""
-        if self._template is None or self._template[0] != other:  # built once per keyframe
-            self._template = (other, sparse_template(self._alignment(other)))
-        fixed, template, moving = self._template[1].image, self._template[1], self._alignment(pf.index, pf)
+        return self._sparse_match(pf, other, start, self.options.track_correlation, self.options.track_overlap)
+
+    def _sparse_match(
+        self, pf: PreparedFrame, other: int, start: Similarity, min_correlation: float, min_overlap: float
+    ) -> Match | None:
+        """Return the sparse alignment of a frame on placed frame `other` from `start` (frame mm -> other mm) as a
+        match with its affine and overlap pairs, or None below min_correlation or min_overlap (a share of other's
+        window)."""
+        template = self._template(other)
+        fixed, moving = template.image, self._alignment(pf.index, pf)
         fit = sparse_align(template, moving, start)
-        if fit is None or fit.affine is None:
-            return None
-        if fit.correlation < self.options.track_correlation or fit.overlap < self.options.track_overlap:
+        if fit is None or fit.affine is None or fit.correlation < min_correlation or fit.overlap < min_overlap:
             return None
         pairs = overlap_pairs(fixed, moving, fit.affine, TRACK_PAIR_STEP_PX)
         return Match(fit.transform, 0, self._direct_rms(fit), fit.affine, pairs=pairs)
+
+    def _template(self, index: int) -> SparseTemplate:
+        """Return a placed frame's sparse template (the newest TEMPLATE_CACHE used are kept)."""
+        template = self._templates.pop(index, None)
+        if template is None:
+            template = sparse_template(self._alignment(index))
+        self._templates[index] = template  # re-inserted: the dict's order is the order of use
+        while len(self._templates) > TEMPLATE_CACHE:
+            del self._templates[next(iter(self._templates))]
+        return template
+
+    def _tracked_closures(self, pf: PreparedFrame, pose: Similarity, kf: int) -> list[Edge]:
+        """Return a tracked frame's loop closures: its sparse alignments, from its tracked pose, on the older
+        keyframes around it (more than loop_gap frames before its keyframe; at most options.track_closures), each
+        agreeing with the tracked pose within LOOP_GATE_MM and overlapping TRACK_CLOSURE_OVERLAP of their window."""
+        edges: list[Edge] = []
+        if self.options.track_closures <= 0:
+            return edges
+        radius = 1.6 * self.window_radius_mm
+        for other in self._candidates(pose, self.options.neighbours, radius, kf)[1:]:
+            if kf - other <= self.options.loop_gap:
+                continue  # the keyframe's own neighbours: no loop
+            start = self.poses[other].inverse().compose(pose)
+            found = self._sparse_match(pf, other, start, self.options.min_correlation, TRACK_CLOSURE_OVERLAP)
+            if found is None or abs(self.poses[other].compose(found.relative).t - pose.t) > LOOP_GATE_MM:
+                continue
+            edges.append(self._edge(pf, other, found))
+            if len(edges) >= self.options.track_closures:
+                break
+        return edges
 
     def _alignment(self, index: int, pf: PreparedFrame | None = None) -> AlignmentImage:
         """Return the direct-alignment pyramid of a frame (placed ones cached, the latest few only)."""
