@@ -43,9 +43,18 @@ NOISE_FLOOR_MM = 0.02  # an edge's point noise is at least this (a perfect-looki
 REGATE_ROUNDS = 3  # a gate about a least-squares similarity, refitted on what it keeps this many times
 RESELECT_ROUNDS = 1  # fit_drag's evidence re-selected about the undragged skin this many times (2 overshot the drag)
 AIC_FACTOR = 2.0  # the drag is kept when it lowers the weighted residual by more than this per effective parameter
-# ... and when its gain turns at most this far from the direction of travel (the shared clinical scan's: -3 deg; a
-# simulated hard scan without drag kept one at -100 deg, which took its path from 1.34 to 2.55 mm)
-MAX_GAIN_ANGLE_DEG = 45.0
+# a window's friction drags the skin along its stroke: a drag turned further than this from the direction of travel
+# is some other deformation's doing (the shared clinical scan's gain: -3 deg; a simulated hard scan without drag
+# kept one at -100 deg, which took its path from 1.34 to 2.55 mm)
+MAX_ALONG_TRAVEL_DEG = 45.0
+
+
+def along_travel(drag: complex, direction: complex) -> bool:
+    """Return whether a drag (complex, any units) lies within MAX_ALONG_TRAVEL_DEG of a direction of travel
+    (complex, the same axes); False when either is zero."""
+    if drag == 0 or direction == 0:
+        return False
+    return bool(abs(np.degrees(np.angle(drag * np.conj(direction)))) <= MAX_ALONG_TRAVEL_DEG)
 
 
 @dataclass(frozen=True)
@@ -322,9 +331,8 @@ def _fit(
     assert best is not None
     cost, width, drags, gain = best
     # effective parameters: 2 per frame shrunk by the prior, counted as the frames the evidence pins (a bound); and
-    # a friction drag lies along the strokes: a gain turned far from them is some other deformation's doing
-    along = bool(abs(np.degrees(np.angle(gain))) <= MAX_GAIN_ANGLE_DEG)
-    kept = without - cost > AIC_FACTOR * 2.0 * (len(frames) + 2) and along
+    # the gain is the drag's ratio to each frame's direction of travel: it must lie along it
+    kept = without - cost > AIC_FACTOR * 2.0 * (len(frames) + 2) and along_travel(complex(gain), 1 + 0j)
     return DragFit(
         width,
         dict(zip(frames, (complex(d) for d in drags), strict=True)),

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.core.methods import MethodOptions
+from services.core.physics.drag import along_travel
 from services.core.registration.direct_alignment import (
     AlignmentImage,
     DirectFit,
@@ -53,11 +54,10 @@ from services.core.similarity import IDENTITY, Similarity
 # graph's robust weights take the rest.
 LOOP_GATE_MM = 6.0
 # before a global refinement finds the skin dragged, a closure gated about the drag model is kept only when both
-# drags it fitted are at least this long and within 60 deg of their frame's travel (cosine): a tissue's own
+# drags it fitted are at least this long and along their frame's travel (physics.drag.along_travel): a tissue's own
 # deformation between rows also fits the model (on a simulated linear-law raster it turned the path: 0.153 ->
 # 0.184 mm), a window's drag lies along its stroke
 DRAG_MATCH_MIN_MM = 0.2
-DRAG_ALONG_COS = 0.5
 DRAG_MATCH_WIDTH_MM = 15.0  # the drag profile's width a closure assumes before the scan's own is fitted
 MIN_DIRECT_OVERLAP = 0.15  # a direct alignment must overlap this share of the placed frame's window
 DIRECT_SIGMA_MM = 0.05  # a direct edge's sigma at perfect correlation (about twice a feature edge's)
@@ -215,14 +215,13 @@ class Registrar:
         return None if fit is None else feature_match(fit)
 
     def _dragged_along_travel(self, match: DraggedMatch, other: int) -> bool:
-        """Return whether both drags a match fitted lie along their frame's travel (DRAG_ALONG_COS) by at least
-        DRAG_MATCH_MIN_MM: a skin dragged by the window, not a tissue's own deformation the model also absorbs."""
+        """Return whether both drags a match fitted lie along their frame's travel (physics.drag.along_travel) by at
+        least DRAG_MATCH_MIN_MM: a skin dragged by the window, not a tissue's own deformation the model also
+        absorbs."""
         newest = self.order[-1]
         for drag, frame in ((match.drag_src_mm, newest), (match.drag_dst_mm, other)):
             step = step_of_travel(self.order, self.poses, self.order.index(frame)) / self.poses[frame].a
-            if abs(drag) < DRAG_MATCH_MIN_MM or step == 0:
-                return False
-            if (drag * np.conj(step)).real < DRAG_ALONG_COS * abs(drag) * abs(step):
+            if abs(drag) < DRAG_MATCH_MIN_MM or not along_travel(drag, step):
                 return False
         return True
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from services.core.physics.drag import (
-    MAX_GAIN_ANGLE_DEG,
+    MAX_ALONG_TRAVEL_DEG,
     RESELECT_ROUNDS,
     DragEvidence,
     DragFit,
@@ -73,7 +73,7 @@ def test_a_drag_across_the_strokes_is_not_kept() -> None:
     evidence, loads, directions, _ = dragged_serpentine(0.1, seed=3, turn_deg=90.0)
     fit = fit_drag(evidence, loads, directions)
     assert fit is not None and fit.cost_with < 0.5 * fit.cost_without  # the model explains it ...
-    assert abs(np.degrees(np.angle(fit.gain_mm_per_n))) > MAX_GAIN_ANGLE_DEG and not fit.kept  # ... and drops it
+    assert abs(np.degrees(np.angle(fit.gain_mm_per_n))) > MAX_ALONG_TRAVEL_DEG and not fit.kept  # ... and drops it
     along = fit_drag(*dragged_serpentine(0.1, seed=3, turn_deg=30.0)[:3])
     assert along is not None and along.kept  # a drag 30 deg off the travel (a slanted stroke) is kept
 
