@@ -72,7 +72,7 @@ def _level_frame(img: AlignmentImage, level: int) -> tuple[float, np.ndarray]:
     return img.px_per_mm * scale, np.asarray(img.centre_px, np.float64) * scale
 
 
-def _to_px(s: Similarity, img: AlignmentImage, level: int) -> np.ndarray:
+def level_matrix_px(s: Similarity, img: AlignmentImage, level: int) -> np.ndarray:
     """Return the 2x3 matrix of a mm similarity (moving -> fixed) in one level's pixels."""
     k, centre = _level_frame(img, level)
     c = complex(*centre)
@@ -80,7 +80,7 @@ def _to_px(s: Similarity, img: AlignmentImage, level: int) -> np.ndarray:
     return np.array([[a.real, -a.imag, t.real], [a.imag, a.real, t.imag]], np.float32)
 
 
-def _to_mm(m: np.ndarray, img: AlignmentImage, level: int) -> Similarity:
+def level_similarity_mm(m: np.ndarray, img: AlignmentImage, level: int) -> Similarity:
     """Return the nearest mm similarity (moving -> fixed) of a 2x3 pixel matrix at one level."""
     a = complex((m[0, 0] + m[1, 1]) / 2.0, (m[1, 0] - m[0, 1]) / 2.0)
     k, centre = _level_frame(img, level)
@@ -89,7 +89,7 @@ def _to_mm(m: np.ndarray, img: AlignmentImage, level: int) -> Similarity:
     return Similarity(a, (t - c + a * c) / k)
 
 
-def _affine_mm(m: np.ndarray, img: AlignmentImage, level: int) -> np.ndarray:
+def level_affine_mm(m: np.ndarray, img: AlignmentImage, level: int) -> np.ndarray:
     """Return the 2x3 mm affine (moving -> fixed) of a 2x3 pixel matrix at one level (_affine_px's inverse)."""
     k, c = _level_frame(img, level)
     a = np.asarray(m[:, :2], np.float64)
@@ -97,7 +97,7 @@ def _affine_mm(m: np.ndarray, img: AlignmentImage, level: int) -> np.ndarray:
 
 
 def _affine_px(affine_mm: np.ndarray, img: AlignmentImage, level: int) -> np.ndarray:
-    """Return the 2x3 pixel matrix at one level of a mm affine (moving -> fixed) (_affine_mm's inverse)."""
+    """Return the 2x3 pixel matrix at one level of a mm affine (moving -> fixed) (level_affine_mm's inverse)."""
     k, c = _level_frame(img, level)
     a, t = np.asarray(affine_mm, np.float64)[:, :2], np.asarray(affine_mm, np.float64)[:, 2]
     return np.hstack([a, (k * t + c - a @ c)[:, None]])
@@ -144,7 +144,7 @@ def overlap_pairs(fixed: AlignmentImage, moving: AlignmentImage, affine_mm: np.n
 
 def correlation(fixed: AlignmentImage, moving: AlignmentImage, transform: Similarity) -> tuple[float, float]:
     """Return (normalised correlation, overlap share of the fixed window) of two vein maps under a transform."""
-    m = _to_px(transform, fixed, 0)
+    m = level_matrix_px(transform, fixed, 0)
     both = _overlap(fixed, moving, m, 0) > 0
     share = float(np.count_nonzero(both)) / max(float(np.count_nonzero(fixed.masks[0])), 1.0)
     if np.count_nonzero(both) < 100:
@@ -166,7 +166,7 @@ def align(
     None when the windows do not overlap under the estimate or ECC diverges.
     """
     top = LEVELS - 1
-    m = _to_px(initial, fixed, top)
+    m = level_matrix_px(initial, fixed, top)
     if recentre:
         overlap = _overlap(fixed, moving, m, top)
         if np.count_nonzero(overlap) < 50:
@@ -177,16 +177,16 @@ def align(
             m = m.copy()
             m[0, 2] += dx
             m[1, 2] += dy
-    estimate = _to_mm(m, fixed, top)
+    estimate = level_similarity_mm(m, fixed, top)
     affine = None
     for level in range(top, finest - 1, -1):
-        m = _to_px(estimate, fixed, level)
+        m = level_matrix_px(estimate, fixed, level)
         if np.count_nonzero(_overlap(fixed, moving, m, level)) < 50:
             return None
         try:
             m = _ecc(fixed.levels[level], fixed.masks[level], moving.levels[level], moving.masks[level], m)
         except cv2.error:
             return None
-        estimate, affine = _to_mm(m, fixed, level), _affine_mm(m, fixed, level)
+        estimate, affine = level_similarity_mm(m, fixed, level), level_affine_mm(m, fixed, level)
     corr, share = correlation(fixed, moving, estimate)
     return DirectFit(estimate, corr, share, affine)

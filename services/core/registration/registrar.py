@@ -313,12 +313,7 @@ class Registrar:
         self.corrections.record(pf)
         edges = [self._edge(pf, kf, found), *self._tracked_closures(pf, self.poses[kf].compose(found.relative), kf)]
         pose = place_node(self.poses, self.corrections.undeformed(edges, self.poses), pf.index)
-        result = self._accept(pf, pose, edges, 0, False)
-        if any(e.loop for e in edges):
-            self.loops_since_refine += 1
-        if self.options.refine and self.loops_since_refine >= self.options.refine_every:
-            return FrameResult(pf.index, result.status, result.pose, 0, False, self.refine())
-        return result
+        return self._refined(self._accept(pf, pose, edges, 0, False), edges)
 
     def _tracking_match(self, pf: PreparedFrame, other: int, start: Similarity) -> Match | None:
         """Return the direct alignment of a frame on placed frame `other` from `start` (frame mm -> other mm) as a
@@ -461,12 +456,15 @@ class Registrar:
         if not edges:
             return self._fail(pf, blurred, self._why_not(pf))
         pose = place_node(self.poses, self.corrections.undeformed(edges, self.poses), pf.index)
-        total = sum(e.inliers for e in edges)
-        result = self._accept(pf, pose, edges, total, blurred)
+        return self._refined(self._accept(pf, pose, edges, sum(e.inliers for e in edges), blurred), edges)
+
+    def _refined(self, result: FrameResult, edges: list[Edge]) -> FrameResult:
+        """Return a placed frame's result, with the frames a refinement moved when its edges' loops make one due
+        (options.refine_every loop-closing frames since the last)."""
         if any(e.loop for e in edges):
             self.loops_since_refine += 1
         if self.options.refine and self.loops_since_refine >= self.options.refine_every:
-            return FrameResult(pf.index, result.status, result.pose, total, blurred, self.refine())
+            return FrameResult(result.index, result.status, result.pose, result.inliers, result.blurred, self.refine())
         return result
 
     def _fallback(self, pf: PreparedFrame, latest: int, predicted: Similarity) -> Match | None:

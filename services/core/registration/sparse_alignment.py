@@ -20,10 +20,10 @@ import numpy as np
 from services.core.registration.direct_alignment import (
     AlignmentImage,
     DirectFit,
-    _affine_mm,
-    _to_mm,
-    _to_px,
     correlation,
+    level_affine_mm,
+    level_matrix_px,
+    level_similarity_mm,
 )
 from services.core.similarity import Similarity
 
@@ -132,12 +132,12 @@ def sparse_align(template: SparseTemplate, moving: AlignmentImage, initial: Simi
         chosen = template.levels[level]
         if chosen is None:
             continue
-        to_moving = cv2.invertAffineTransform(_to_px(estimate, fixed, level)).astype(np.float64)
+        to_moving = cv2.invertAffineTransform(level_matrix_px(estimate, fixed, level)).astype(np.float64)
         refined = _refine(chosen, moving.levels[level], moving.masks[level], to_moving)
         if refined is None:
             return None
         m = cv2.invertAffineTransform(refined)
-        estimate, affine = _to_mm(m, fixed, level), _affine_mm(m, fixed, level)
+        estimate, affine = level_similarity_mm(m, fixed, level), level_affine_mm(m, fixed, level)
     if affine is None:
         return None
     corr, share = correlation(fixed, moving, estimate)

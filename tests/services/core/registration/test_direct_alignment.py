@@ -12,10 +12,10 @@ from services.core.methods import MethodOptions
 from services.core.registration.direct_alignment import (
     AlignmentImage,
     DirectFit,
-    _to_px,
     align,
     alignment_image,
     correlation,
+    level_matrix_px,
     overlap_pairs,
 )
 from services.core.registration.vein_enhancement import enhance_veins
@@ -69,7 +69,7 @@ def test_pixel_convention_matches_the_synthetic_warp() -> None:
     # the test's mm -> px matrix (p_px = centre + px_per_mm p_mm) is the module's at full resolution
     truth = _similarity(7.0, -3.0, 4.0, 1.02)
     img = AlignmentImage((), (), sv.CENTRE_PX, sv.PX_PER_MM)
-    full = _to_px(truth, img, 0).astype(np.float64)  # WORK_SCALE pixels: scale back to full resolution
+    full = level_matrix_px(truth, img, 0).astype(np.float64)  # WORK_SCALE pixels: scale back to full resolution
     expected = sv.similarity_px(truth, sv.CENTRE_PX, sv.PX_PER_MM)
     assert np.allclose(full[:, :2], expected[:, :2], atol=1e-6)
     assert np.allclose(full[:, 2] * 2, expected[:, 2], atol=1e-3)  # float32 of ~300 px
