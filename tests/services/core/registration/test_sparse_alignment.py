@@ -2,21 +2,14 @@
 
 from __future__ import annotations
 
-import cmath
-import math
-
 import numpy as np
 import pytest
 
 from services.core.registration.direct_alignment import align
 from services.core.registration.sparse_alignment import MAX_POINTS, sparse_align, sparse_template
 from services.core.similarity import Similarity
-from tests.services.core.registration.test_direct_alignment import CASES, _assert_recovers, _pair
+from tests.services.core.registration.test_direct_alignment import CASES, _assert_recovers, _pair, _similarity
 from tests.tolerances import TOL
-
-
-def _similarity(dx_mm: float, dy_mm: float, yaw_deg: float, scale: float) -> Similarity:
-    return Similarity(scale * cmath.exp(1j * math.radians(yaw_deg)), complex(dx_mm, dy_mm))
 
 
 @pytest.mark.parametrize(("motion", "seed"), CASES)
