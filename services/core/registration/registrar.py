@@ -72,6 +72,9 @@ NEAR_PAIR_GATES = 3.0  # MethodOptions.drag_reselect: the pairs a match keeps, w
 TEMPLATE_CACHE = 16  # placed frames kept as sparse templates: the keyframe tracked on and the closures' last ones
 TRACK_CLOSURE_OVERLAP = 0.5  # a tracked frame's closure must overlap this share of the older keyframe's window
 MAX_TRACKED_RUN = 8  # frames after a keyframe: the next one is a keyframe however well it tracks (loops, drag)
+# placed frames whose centres lie within this many window radii of a frame's (predicted) centre are matched with it;
+# each frame lost since the last placed one widens the search by as much again (Registrar._search_radius_mm)
+SEARCH_RADIUS_WINDOWS = 1.6
 
 
 def _vein_scale(pf: PreparedFrame) -> float:
@@ -232,7 +235,7 @@ class Registrar:
 
     def _mosaic_match(self, pf: PreparedFrame, predicted: Similarity, lost_for: int) -> tuple[Similarity, int] | None:
         """Match against the mosaic's features around the prediction (the paper's registration)."""
-        near = self._candidates(predicted, 6, 1.6 * self.window_radius_mm * (1 + lost_for))
+        near = self._candidates(predicted, 6, self._search_radius_mm(lost_for))
         pts = [self.poses[i].apply(self.features[i].points) for i in near]
         desc = [self.features[i].descriptors for i in near]
         if not pts:
@@ -240,6 +243,11 @@ class Registrar:
         train = Features(np.concatenate(pts), np.concatenate(desc), np.zeros(sum(len(p) for p in pts)))
         fit = self._match(pf, train)
         return None if fit is None else (fit.transform, fit.inliers)
+
+    def _search_radius_mm(self, lost_for: int = 0) -> float:
+        """Return how far (mm) from a frame's centre placed frames are searched for a match, `lost_for` frames
+        after the last placed one (SEARCH_RADIUS_WINDOWS)."""
+        return SEARCH_RADIUS_WINDOWS * self.window_radius_mm * (1 + lost_for)
 
     def _plausible(self, pose: Similarity, predicted: Similarity, lost_for: int) -> bool:
         if len(self.order) < 2:  # no velocity yet: anything the window could still overlap
@@ -351,8 +359,7 @@ class Registrar:
         edges: list[Edge] = []
         if self.options.track_closures <= 0:
             return edges
-        radius = 1.6 * self.window_radius_mm
-        for other in self._candidates(pose, self.options.neighbours, radius, kf)[1:]:
+        for other in self._candidates(pose, self.options.neighbours, self._search_radius_mm(), kf)[1:]:
             if kf - other <= self.options.loop_gap:
                 continue  # the keyframe's own neighbours: no loop
             start = self.poses[other].inverse().compose(pose)
@@ -432,7 +439,7 @@ class Registrar:
                 anchor = pose
                 edges.append(self._edge(pf, latest, found))
         centre = anchor if anchor is not None else predicted
-        radius = 1.6 * self.window_radius_mm * (1 + (lost_for if anchor is None else 0))
+        radius = self._search_radius_mm(lost_for if anchor is None else 0)
         count = self.options.neighbours + (4 if anchor is None else 0)
         weak: list[Edge] = []
         for other in self._candidates(centre, count, radius, latest)[1:]:

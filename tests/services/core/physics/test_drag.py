@@ -111,6 +111,21 @@ def test_undrag_maps_restore_the_skin_at_rest() -> None:
     assert np.max(np.abs(imaged[inner] - at_rest[inner])) > 0.2
 
 
+def test_undrag_maps_are_each_pixel_shifted_by_the_drag_times_the_profile() -> None:
+    """The separable maps are the pixel grid plus D phi(|q|) px_per_mm, as undrag defines it, within float32's
+    resolution at 640 pixels (6e-5 px; remap resolves 1/32 px)."""
+    h, w, px_per_mm, centre = 480, 640, 8.0, (320.3, 239.8)
+    drag = -0.7 + 1.1j
+    map_x, map_y = undrag_maps((h, w), centre, px_per_mm, drag, WIDTH_MM)
+    gy, gx = np.mgrid[0:h, 0:w].astype(np.float64)
+    q = (gx - centre[0]) / px_per_mm + 1j * (gy - centre[1]) / px_per_mm
+    source = (q - undrag(q, drag, WIDTH_MM)) * px_per_mm  # D phi(|q|) in pixels
+    assert map_x.dtype == map_y.dtype == np.float32
+    assert np.max(np.abs(map_x - (gx + source.real))) < 1e-4
+    assert np.max(np.abs(map_y - (gy + source.imag))) < 1e-4
+    assert np.max(np.abs(source)) > 0.9 * abs(drag) * px_per_mm  # the centre moves by the whole drag
+
+
 def test_frames_without_evidence_take_their_neighbours_drag() -> None:
     # a tracked frame (no feature edge of its own) between two fitted keyframes takes the drag interpolated
     # between theirs; one with a fitted frame on one side only within reach takes that one's; beyond reach none
