@@ -76,3 +76,56 @@ def test_register_cost_is_counted_by_kind_for_the_live_version_only(backend: Bac
             "register_tracked_cpu_seconds_total": 0.05,
         }
     )
+
+
+def _canvas_and_pyramid() -> tuple[SparseCanvas, TilePyramid, set[tuple[int, int, int]]]:
+    """Return a small canvas of a smooth pattern, its pyramid and the tiles that changed."""
+    canvas = SparseCanvas(8.0)
+    ramp = np.linspace(0.1, 0.9, TILE_PX, dtype=np.float32)
+    for key in ((0, 0), (1, 0), (0, -1)):
+        tile = np.zeros((TILE_PX, TILE_PX, PLANES), np.float32)
+        tile[..., 0], tile[..., 1], tile[..., 2], tile[..., 3] = ramp[None, :], 1.0, 5.0, 1.0
+        canvas.tiles[key] = tile
+    pyramid = TilePyramid(DziGeometry.for_mosaic(8.0, 100.0))
+    return canvas, pyramid, pyramid.update(canvas, set(canvas.tiles))
+
+
+def test_tiles_and_images_side_by_side_write_what_one_after_the_other_writes(backend: Backend) -> None:
+    """The final flush's tiles and whole images, written on two threads, are byte for byte those written in turn."""
+    results = ResultsStore(backend.data_dir)
+    publisher = Publisher(SimpleNamespace(results=results, r=backend.r, prefix=backend.prefix))  # type: ignore[arg-type]
+    canvas, pyramid, changed = _canvas_and_pyramid()
+    sids = [uuid.uuid4().hex for _ in range(2)]
+    for sid in sids:
+        (backend.data_dir / "sessions" / sid).mkdir(parents=True)
+    publisher.write_tiles(sids[0], 1, pyramid, changed, 1, {}, durable=True)
+    meta = publisher.write_images(sids[0], 1, canvas.render(), raw_layers=True)
+    written, meta_side = publisher.write_tiles_and_images(sids[1], 1, pyramid, changed, 1, {}, canvas, durable=True)
+    assert meta_side == meta and {len(names) for names in written.values()} == {len(changed)}
+    files = [
+        sorted(p.relative_to(results.version_dir(sid, 1)) for p in results.version_dir(sid, 1).rglob("*.*"))
+        for sid in sids
+    ]
+    assert files[0] == files[1] and any(p.name == "layers.npz" for p in files[0]) and len(files[0]) > 2 * len(changed)
+    for rel in files[0]:
+        assert (results.version_dir(sids[0], 1) / rel).read_bytes() == (
+            results.version_dir(sids[1], 1) / rel
+        ).read_bytes()
+
+
+def test_an_error_writing_the_images_is_raised_once_the_tiles_are_written(
+    backend: Backend, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    results = ResultsStore(backend.data_dir)
+    publisher = Publisher(SimpleNamespace(results=results, r=backend.r, prefix=backend.prefix))  # type: ignore[arg-type]
+    canvas, pyramid, changed = _canvas_and_pyramid()
+    sid = uuid.uuid4().hex
+    (backend.data_dir / "sessions" / sid).mkdir(parents=True)
+
+    def full_disk(*_: object, **__: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(results, "write_mosaic_images", full_disk)
+    with pytest.raises(OSError, match="No space"):
+        publisher.write_tiles_and_images(sid, 1, pyramid, changed, 1, {}, canvas, durable=True)
+    assert len(list(results.version_dir(sid, 1).rglob("*.png"))) == 2 * len(changed)  # the tiles went on
