@@ -8,10 +8,9 @@ prepared file (services.store), added in order to a live SessionReconstruction w
 those files, with a live flush's tile work every 5 frames (pyramid, tiles written without fsync). Then it times
 what the completion does (workers/stages/register/completion.py): the reconstruction's finish (final refinement,
 self-calibration, the restitch), then the final flush's pyramid update, the tiles written durably through the
-publisher beside the whole images with the raw layers (Publisher.write_tiles_and_images). Wall seconds (the
-session waits for them) and the process's CPU seconds. A --scan is a simulated scenario's name (seed 1) or a scan
-folder. The first --repo (default: this tree) is the baseline of the ratio column; another tree is e.g.
-`git archive <commit> | tar -x -C /tmp/old`.
+publisher and the whole images with the raw layers. Wall seconds (the session waits for them) and the process's
+CPU seconds. A --scan is a simulated scenario's name (seed 1) or a scan folder. The first --repo (default: this
+tree) is the baseline of the ratio column; another tree is e.g. `git archive <commit> | tar -x -C /tmp/old`.
 """
 
 from __future__ import annotations
@@ -29,7 +28,7 @@ from types import SimpleNamespace
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
-PARTS = ("finish", "pyramid", "tiles and images")
+PARTS = ("finish", "pyramid", "tiles", "images")
 
 
 class _Counters:
@@ -109,12 +108,10 @@ def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | 
         lap("finish")
         changed = pyramid.update(recon.canvas, touched)
         lap("pyramid")
-        if hasattr(publisher, "write_tiles_and_images"):  # side by side, as the final flush writes them
-            publisher.write_tiles_and_images(sid, 1, pyramid, changed, n, revisions, recon.canvas, durable=True)
-        else:  # a tree from before: one after the other
-            publisher.write_tiles(sid, 1, pyramid, changed, n, revisions, durable=True)
-            publisher.write_images(sid, 1, recon.canvas.render(), raw_layers=True)
-        lap("tiles and images")
+        publisher.write_tiles(sid, 1, pyramid, changed, n, revisions, durable=True)
+        lap("tiles")
+        publisher.write_images(sid, 1, recon.canvas.render(), raw_layers=True)
+        lap("images")
         out["tiles_written"] = len(changed)
         out["pasted_again"] = sum(1 for i, a in recon.pasted.items() if i not in pasted or (a != pasted[i]).any())
         out["moved_px"], out["moved_after_affine_px"] = moves_px(recon, pasted)

@@ -2,9 +2,8 @@
 
 The live register stage and the reprocess stage decide WHAT to publish (which tiles changed, whether the
 images are due, the status); this module is the one place that writes it, in the one order readers rely on:
-path.json, tiles and images (side by side: write_tiles_and_images), mosaic.json
-(services.core.outputs.documents.mosaic_json), state.json; then the frame counters and the event on the session's
-stream. Fencing (the lease check before a write) stays with the
+path.json, tiles, images, mosaic.json (services.core.outputs.documents.mosaic_json), state.json; then the frame
+counters and the event on the session's stream. Fencing (the lease check before a write) stays with the
 register stage, which calls the publisher only while it holds the session.
 """
 
@@ -13,10 +12,9 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from services.core.mosaic.canvas import MosaicImage, SparseCanvas
+from services.core.mosaic.canvas import MosaicImage
 from services.core.mosaic.deepzoom import TilePyramid
 from services.core.outputs.documents import LAYERS, mosaic_json
 from services.core.path_rows import PathRow, path_tail
@@ -112,34 +110,6 @@ class Publisher:
         if keys:
             queue.incr_metric(self.ctx.r, "tile_renders_total", 2 * len(keys), prefix=self.ctx.prefix)
         return changed
-
-    def write_tiles_and_images(
-        self,
-        sid: str,
-        v: int,
-        pyramid: TilePyramid,
-        tiles: Iterable[TileKey],
-        revision: int,
-        revisions: Revisions,
-        canvas: SparseCanvas,
-        *,
-        durable: bool = True,
-        raw_layers: bool = True,
-        heartbeat: Callable[[], None] = lambda: None,
-    ) -> tuple[Revisions, dict[str, Any]]:
-        """Return what write_tiles changed and write_images' image meta: the whole images are rendered from `canvas`
-        and written on a second thread while this one writes the tiles.
-
-        Both are mostly zlib and numpy, which release the GIL: on an idle core a final flush takes the longer of the
-        two instead of their sum. The canvas and the pyramid are only read. Either's error is raised here, after
-        both have stopped.
-        """
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="images") as pool:
-            images = pool.submit(lambda: self.write_images(sid, v, canvas.render(), raw_layers=raw_layers))
-            changed = self.write_tiles(
-                sid, v, pyramid, tiles, revision, revisions, durable=durable, heartbeat=heartbeat
-            )
-            return changed, images.result()
 
     def write_images(self, sid: str, v: int, mosaic: MosaicImage, raw_layers: bool = True) -> dict[str, Any]:
         """Return the image meta, writing mosaic.png, force.png, coverage.png (and raw_layers: layers.npz)."""

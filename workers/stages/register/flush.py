@@ -106,26 +106,13 @@ class Flusher:
         # a flush after a global refinement re-renders much of the pyramid: keep the lease while it does
         renew = lambda: self.leases.renew_if_due(held)  # noqa: E731
         parts.lap("pyramid")
+        tiles_event = pub.write_tiles(sid, v, held.pyramid, changed, version, revisions, durable=final, heartbeat=renew)
+        parts.lap("tiles")
         image = image_meta(doc, held.calib.px_per_mm)
-        if with_images:  # the whole images (+ coverage, and the raw layers at the end) beside the tiles
-            tiles_event, image = pub.write_tiles_and_images(
-                sid,
-                v,
-                held.pyramid,
-                changed,
-                version,
-                revisions,
-                held.recon.canvas,
-                durable=final,
-                raw_layers=final,
-                heartbeat=renew,
-            )
+        if with_images:
+            image = pub.write_images(sid, v, held.recon.canvas.render(), raw_layers=final)  # + coverage, layers
             held.clocks.images = now
-        else:
-            tiles_event = pub.write_tiles(
-                sid, v, held.pyramid, changed, version, revisions, durable=final, heartbeat=renew
-            )
-        parts.lap("tiles_and_images" if with_images else "tiles")
+        parts.lap("images")
         finished = ctx.store.get_meta(sid).finished_at is not None
         status = "done" if final else ("processing" if finished else "receiving")
         doc = pub.write_mosaic_json(
