@@ -1,4 +1,5 @@
-"""Format versions of the files a results version keeps (prepared frames, state.json), and their npz encoding.
+"""Format versions of the files a results version keeps (prepared frames, state.json); their npz encoding is
+services.core.npz.
 
 Every such file records the format it was written in; a reader accepts the formats it knows and refuses any
 other with UnknownFormatError, naming the file and the formats it reads (as OpenSfM versions its feature
@@ -7,13 +8,10 @@ files). A file written before formats were recorded reads as format 0: the same 
 
 from __future__ import annotations
 
-import io
-import zipfile
 from collections.abc import Collection
 
 import numpy as np
 
-NPZ_COMPRESS_LEVEL = 1  # deflate level of prepared frames: level 6 (numpy's) cost 33 ms a frame, 1 costs 8 (+7 %)
 # A prepared frame's rectified image, vein map and descriptors are stored, not deflated: deflate halved the image
 # only (151 of 307 kB) and cost 5.5 of a frame's 7 ms to write and 2 ms to read (a simulated raster frame)
 PREPARED_STORED = ("image", "vein", "descriptors")
@@ -32,20 +30,3 @@ def check_format(what: str, found: object, readable: Collection[int]) -> int:
             "it was written by a newer veinmosaic or is damaged"
         )
     return int(found)
-
-
-def npz_bytes(stored: Collection[str] = (), **arrays: np.ndarray) -> bytes:
-    """Return arrays as .npz bytes (np.load reads them), deflated at NPZ_COMPRESS_LEVEL except those named in
-    `stored`, kept as they are (arrays that deflate barely shrinks cost more time to deflate than they save)."""
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as archive:
-        for name, value in arrays.items():
-            member = io.BytesIO()
-            np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
-            if name in stored:
-                archive.writestr(f"{name}.npy", member.getvalue(), compress_type=zipfile.ZIP_STORED)
-            else:
-                archive.writestr(
-                    f"{name}.npy", member.getvalue(), zipfile.ZIP_DEFLATED, compresslevel=NPZ_COMPRESS_LEVEL
-                )
-    return buf.getvalue()

@@ -10,10 +10,11 @@ import math
 
 import numpy as np
 
+from services.core.npz import npz_bytes
 from services.core.physics.force_model import LoadState
 from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
-from services.store.file_formats import PREPARED_STORED, check_format, npz_bytes
+from services.store.file_formats import PREPARED_STORED, check_format
 
 # 2: the IMU's tilts at the frame time (array "imu_tilt_deg", absent without an IMU); 3: the focus measure
 # (array "focus"; NaN, unknown, when read from an older file); 4: the features optional (no "points": none yet)

@@ -37,6 +37,7 @@ import numpy as np
 
 from services.core.mosaic.canvas import MosaicImage
 from services.core.mosaic.layer_images import layers_from_bytes, mosaic_image_files
+from services.core.npz import npz_bytes
 from services.core.outputs.documents import LAYERS
 from services.core.path_rows import PathRow, path_rows_json
 from services.core.registration.frame_prep import PreparedFrame
@@ -48,7 +49,6 @@ from services.store.durable import (
     sync_filesystem,
     write_once,
 )
-from services.store.file_formats import npz_bytes
 from services.store.prepared_file import prepared_from_bytes, prepared_pixels_from_bytes, prepared_to_bytes
 from services.store.version_state import VersionState
 

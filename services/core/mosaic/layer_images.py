@@ -16,37 +16,45 @@ import cv2
 import numpy as np
 
 from services.core.mosaic.canvas import MosaicImage, force_to_color
+from services.core.npz import npz_bytes
 
 COVERAGE_FULL_SCALE = 10  # frames: the top of the colour scale (more saturates)
 FORCE_QUANTUM_N = 0.01  # the force plane's resolution in the raw layers (1 cN)
 _MAX_U16 = 65535
+# deflate level of layers.npz, written at a live session's end: numpy's 6 took twice the time for a quarter less
+# (the clinical scan's 2015 x 2170 mosaic: 282 against 141 ms, 1.96 against 2.64 MB)
+LAYERS_COMPRESS_LEVEL = 3
 
 
 def coverage_to_color(coverage: np.ndarray, full_scale: int = COVERAGE_FULL_SCALE) -> np.ndarray:
     """Return a BGRA uint8 image of the coverage (VIRIDIS over 1..full_scale frames, alpha 0 where none)."""
     cov = np.nan_to_num(np.asarray(coverage, np.float32))
     seen = cov >= 0.5
-    level = np.clip((cov - 1.0) / max(full_scale - 1, 1), 0.0, 1.0) * 255.0
-    bgr = cv2.applyColorMap(np.rint(level).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
-    bgr[~seen] = 0
-    alpha = np.where(seen, 255, 0).astype(np.uint8)
-    return np.dstack([bgr, alpha])
+    level = cov - np.float32(1.0)  # then / (full_scale - 1), clipped to 0..1, x 255, rounded: in place
+    level /= np.float32(max(full_scale - 1, 1))
+    np.clip(level, 0.0, 1.0, out=level)
+    level *= np.float32(255.0)
+    bgr = cv2.applyColorMap(np.rint(level, out=level).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
+    alpha = seen.view(np.uint8) * np.uint8(255)
+    bgra = cv2.merge([*cv2.split(bgr), alpha])
+    bgra[~seen] = 0
+    return bgra
 
 
 def layers_to_bytes(mosaic: MosaicImage) -> bytes:
-    """Return the mosaic's force (cN) and coverage planes and geometry as .npz bytes."""
+    """Return the mosaic's force (cN) and coverage planes and geometry as .npz bytes (LAYERS_COMPRESS_LEVEL)."""
     cov = np.clip(np.rint(np.nan_to_num(mosaic.coverage)), 0, _MAX_U16).astype(np.uint16)
-    force = np.nan_to_num(np.asarray(mosaic.force_n, np.float64), nan=0.0) / FORCE_QUANTUM_N
-    force_cn = np.where(cov > 0, np.clip(np.rint(force), 0, _MAX_U16), 0).astype(np.uint16)
-    buf = io.BytesIO()
-    np.savez_compressed(
-        buf,
+    covered = cov > 0
+    force_cn = np.zeros(cov.shape, np.uint16)  # 0 where uncovered: only the covered pixels are converted
+    force = np.nan_to_num(np.asarray(mosaic.force_n[covered], np.float64), nan=0.0) / FORCE_QUANTUM_N
+    force_cn[covered] = np.clip(np.rint(force), 0, _MAX_U16)
+    return npz_bytes(
+        compress_level=LAYERS_COMPRESS_LEVEL,
         force_cn=force_cn,
         coverage=cov,
         px_per_mm=np.float64(mosaic.px_per_mm),
         origin_px=np.asarray(mosaic.origin_px, np.float64),
     )
-    return buf.getvalue()
 
 
 def layers_from_bytes(data: bytes, vein: np.ndarray) -> MosaicImage:

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from services.core.inputs.calibration import default_calibration
-from services.store.file_formats import UnknownFormatError, npz_bytes
+from services.core.npz import npz_bytes
+from services.store.file_formats import UnknownFormatError
 from services.store.prepared_file import PREPARED_FORMAT, prepared_from_bytes, prepared_to_bytes
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore

@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import io
+
 import cv2
 import numpy as np
 
 from services.core.mosaic.canvas import MosaicImage
-from services.core.mosaic.layer_images import layers_from_bytes, mosaic_image_files
+from services.core.mosaic.layer_images import (
+    COVERAGE_FULL_SCALE,
+    coverage_to_color,
+    layers_from_bytes,
+    layers_to_bytes,
+    mosaic_image_files,
+)
 
 
 def _mosaic() -> MosaicImage:
@@ -37,3 +45,27 @@ def test_the_files_decode_to_the_layers_and_carry_their_units() -> None:
 
 def test_without_raw_layers_only_the_images() -> None:
     assert set(mosaic_image_files(_mosaic(), raw_layers=False)) == {"mosaic.png", "force.png", "coverage.png"}
+
+
+def test_coverage_colours_and_raw_layers_follow_their_definitions_pixel_for_pixel() -> None:
+    """On fractional coverage and forces at every centinewton's half (the rims of pasted windows), the colour image
+    is VIRIDIS of round(clip((c - 1) / (full - 1)) x 255) with alpha where c >= 0.5, and the raw force is round(F /
+    1 cN) where covered, 0 elsewhere: the in-place arithmetic changes no value."""
+    rng = np.random.default_rng(7)
+    coverage = rng.uniform(0.0, 14.0, (60, 70)).astype(np.float32)
+    coverage[:5] = 0.0
+    force = (rng.integers(0, 3000, (60, 70)) + 0.5).astype(np.float32) * np.float32(0.01)
+    force[coverage < 0.5] = np.nan
+    mosaic = MosaicImage(np.zeros((60, 70), np.uint8), force, coverage, px_per_mm=8.0, origin_px=(0.0, 0.0))
+    level = np.rint(np.clip((coverage.astype(np.float64) - 1.0) / (COVERAGE_FULL_SCALE - 1), 0, 1) * 255.0)
+    expected = cv2.applyColorMap(level.astype(np.uint8), cv2.COLORMAP_VIRIDIS)
+    seen = coverage >= 0.5
+    colour = coverage_to_color(coverage)
+    assert np.array_equal(colour[..., :3][seen], expected[seen]) and np.all(colour[..., 3][seen] == 255)
+    assert not colour[~seen].any()
+    with np.load(io.BytesIO(layers_to_bytes(mosaic))) as z:
+        counts, force_cn = z["coverage"], z["force_cn"]
+    assert np.array_equal(counts, np.rint(coverage).astype(np.uint16))
+    covered = counts > 0
+    assert np.array_equal(force_cn[covered], np.rint(force[covered].astype(np.float64) / 0.01).astype(np.uint16))
+    assert not force_cn[~covered].any()
