@@ -311,7 +311,10 @@ class SparseCanvas:
 def force_to_color(force_n: np.ndarray, full_scale_n: float = FORCE_FULL_SCALE_N) -> np.ndarray:
     """Return a BGR uint8 image of the force layer (TURBO colour map over 0..full_scale N, black uncovered)."""
     valid = np.isfinite(force_n)
-    level = np.clip(np.nan_to_num(force_n) / full_scale_n, 0, 1) * 255.0
+    level = np.nan_to_num(np.asarray(force_n, np.float32))  # then / full scale, clipped to 0..1, x 255: in place
+    level /= np.float32(full_scale_n)
+    np.clip(level, 0, 1, out=level)
+    level *= np.float32(255.0)
     color = cv2.applyColorMap(level.astype(np.uint8), cv2.COLORMAP_TURBO)
     color[~valid] = 0
     return color
