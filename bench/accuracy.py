@@ -17,8 +17,11 @@ the error lies (evaluation.GlobalError): the path's scale % (+ too large) and tu
 left after that similarity (the path's shape), `lead mm`: its mean along each frame's direction of travel (+ ahead
 of the reference: a skin drag not undone in full), and `air placed`: frames placed that the reference has no row for
 (taken in the air: none should be), `tracked %`: placed frames tracked without features (best-track),
-`closures`: the loop-closure edges of the final pose graph (rows tied to rows: a dragged skin breaks them), and
-`drag fit` on the drag cells: the share of the simulator's true drags that the fitted ones make up (1: in full).
+`closures`: the loop-closure edges of the final pose graph (rows tied to rows: a dragged skin breaks them),
+`drag fit` on the drag cells: the share of the simulator's true drags that the fitted ones make up (1: in full), and
+where the reference has yaws, `loop yaw bias deg` and `other yaw bias deg`: the mean of what the final graph's loop
+closures, and its other edges, measure of the relative yaw minus the tracker's (evaluation.edge_yaw_bias): a bias
+that hundreds of edges share is not averaged out and turns the path.
 Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe, tissue-saturating: a patient as on the shared
 scans (a hand's tilt, a tissue law of that shape with anisotropy: along the frame's x or y, or for saturating fixed
 in the tissue at any angle while the probe yaws +-15 deg), not an imaging look. Cell drag: that patient (linear
@@ -34,7 +37,7 @@ Usage: python bench/accuracy.py [--quick] [--methods best,sift-chain,paper] [--s
        [--cells default,faint,...] [--seeds 1,2] [--shared DIR | --no-shared] [--texture PHOTO] [--json OUT]
 `paper` costs about 1 s/frame: leave it out of --methods for a fast run. best-nodrag: best without the skin drag
 model (fit_drag=false), to show what learning the drag is worth. best-track: best tracking frames on keyframes
-(track_overlap=0.85), to show what it costs in accuracy and saves in time. best-noloopgate: best without
+(track_overlap=0.92), to show what it costs in accuracy and saves in time. best-noloopgate: best without
 the looser loop gate for the closures a dragged skin breaks (loop_ransac_px=0). best-nodragpairs: the skin drag learned
 from the matches' inliers alone, not their pairs within 1.25 RANSAC gates of the similarity (drag_pair_gate=0).
 best-reselect: the drag's pairs and the undragged edges' chosen about the undragged skin (drag_reselect=true).
@@ -62,7 +65,7 @@ from tqdm import tqdm
 
 from services.core.inputs.scan import Scan
 from services.core.methods import method_options
-from services.core.outputs.evaluation import evaluate_angles, evaluate_path
+from services.core.outputs.evaluation import edge_yaw_bias, evaluate_angles, evaluate_path
 from services.core.outputs.session_report import path_angles_deg
 from services.core.pipeline import reconstruct
 from services.core.simulation.renderer import TISSUE_LAWS
@@ -200,6 +203,8 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
     if scan.reference_angles_deg is not None:
         angles = evaluate_angles(path_angles_deg(recon.rows), recon.registered, scan.by_seq(scan.reference_angles_deg))
         row["tilt_rmse_deg"] = max(angles.get("tilt_x_rmse_deg", math.nan), angles.get("tilt_y_rmse_deg", math.nan))
+        yaws = edge_yaw_bias(recon.edge_yaws, scan.by_seq(scan.reference_angles_deg)[:, 0])
+        row.update(loop_yaw_bias_deg=yaws["loop_yaw_bias_deg"], other_yaw_bias_deg=yaws["other_yaw_bias_deg"])
     return row
 
 
@@ -225,7 +230,7 @@ HEADER = (
     f"{'source':<6} | {'scan / cell':<28} | {'method':<13} | {'registered %':>12} | {'RMSE mm':>8} |"
     f" {'final drift mm':>14} | {'error ratio %':>13} | {'s/frame':>7} | {'tilt RMS deg':>12} |"
     f" {'scale %':>7} | {'turn deg':>8} | {'after sim. mm':>13} | {'lead mm':>7} | {'air placed':>10} |"
-    f" {'tracked %':>9} | {'closures':>8} | {'drag fit':>8}"
+    f" {'tracked %':>9} | {'closures':>8} | {'drag fit':>8} | {'loop yaw bias deg':>17} | {'other yaw bias deg':>18}"
 )
 
 
@@ -248,7 +253,8 @@ def table_line(row: dict[str, Any]) -> str:
         f" {fmt(row.get('scale_pct'), '+7.2f')} | {fmt(row.get('turn_deg'), '+8.3f')} |"
         f" {fmt(row.get('after_similarity_mm'), '13.3f')} | {fmt(row.get('lead_mm'), '+7.3f')} |"
         f" {fmt(row.get('air_placed'), '10d')} | {fmt(row.get('tracked_pct'), '9.1f')} |"
-        f" {fmt(row.get('closures'), '8d')} | {fmt(row.get('drag_fit'), '8.2f')}"
+        f" {fmt(row.get('closures'), '8d')} | {fmt(row.get('drag_fit'), '8.2f')} |"
+        f" {fmt(row.get('loop_yaw_bias_deg'), '+17.4f')} | {fmt(row.get('other_yaw_bias_deg'), '+18.4f')}"
     )
 
 

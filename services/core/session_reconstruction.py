@@ -525,6 +525,15 @@ class SessionReconstruction:
         forces = np.array([k.forces_n for k in kept], np.float64)
         return np.degrees(tilt_angles_rad(forces, fit.kappa_n_per_mm, self.calibration.sensor_separation_mm))
 
+    def edge_yaws(self) -> np.ndarray:
+        """Return the main map's pose-graph edges as (E, 4) float64 rows: frame i, frame j, the relative yaw (deg) the
+        edge measures between the undeformed frames (as the graph uses it: view and drag corrections applied), and
+        1 for a loop closure (0 otherwise): what a tracker's yaw can check edge by edge (outputs.evaluation)."""
+        reg = self.registrar
+        edges = reg.corrections.undeformed(reg.edges, reg.poses)
+        rows = [(e.i, e.j, math.degrees(np.angle(e.relative.a)), float(e.loop)) for e in edges]
+        return np.array(rows, np.float64).reshape(-1, 4)
+
     def path_rows(self) -> list[PathRow]:
         """Return one PathRow per frame seen so far (spec §4), in index order."""
         poses = self.final_poses() if self.finished else self.registrar.poses

@@ -276,3 +276,14 @@ def test_frame_kind_tells_keyframes_from_tracked_and_unplaced_frames(live_run: L
     described = set(session.registrar.features)
     assert {i for i, k in kinds.items() if k == "keyframe"} == described & set(kinds)
     assert list(kinds.values()).count("tracked") >= 5  # most frames of a slow short scan overlap their keyframe
+
+
+def test_edge_yaws_are_the_graphs_edges_as_it_uses_them(live_run: LiveRun) -> None:
+    """One row per edge of the main map: its frames, the yaw its undeformed measurement gives, and its loop flag."""
+    reg = live_run.live.registrar
+    rows = live_run.live.edge_yaws()
+    edges = reg.corrections.undeformed(reg.edges, reg.poses)
+    assert rows.shape == (len(reg.edges), 4) and len(reg.edges) > live_run.frames[-1].index  # more than a chain
+    assert [(int(i), int(j)) for i, j in rows[:, :2]] == [(e.i, e.j) for e in edges]
+    assert np.allclose(rows[:, 2], [np.degrees(np.angle(e.relative.a)) for e in edges], atol=1e-12)
+    assert rows[:, 3].tolist() == [float(e.loop) for e in edges] and rows[:, 3].sum() > 0  # row 2 closes loops

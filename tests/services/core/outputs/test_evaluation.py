@@ -8,7 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from services.core.outputs.evaluation import evaluate_angles, evaluate_path, reference_path_length_mm
+from services.core.outputs.evaluation import (
+    edge_yaw_bias,
+    evaluate_angles,
+    evaluate_path,
+    reference_path_length_mm,
+)
 
 NAN = float("nan")
 
@@ -199,3 +204,25 @@ def test_a_straight_path_has_no_linear_map_and_stays_json() -> None:
     assert g["after_linear_mm"] is None
     assert g["lead_mm"] == pytest.approx(0.0, abs=1e-9)  # along a line the similarity takes every error
     assert g["scale_pct"] == pytest.approx(0.2, abs=1e-9) and g["after_similarity_mm"] < 1e-9
+
+
+def test_edge_yaw_bias_known_answer_per_edge_kind() -> None:
+    # the tracker's yaw per frame (one frame unknown, and a turn across +-180 deg); loop closures measure 0.02 deg
+    # less than it, the other edges 0.01 more: the two biases come back apart, the unknown frame's edges left out
+    ref = np.array([0.0, 1.5, 3.0, 179.5, -179.0, math.nan, 10.0])
+    edges = []
+    for i, j in ((0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 6)):  # consecutive: "other"
+        edges.append(
+            (i, j, (ref[j] - ref[i] + 0.01 + 180.0) % 360.0 - 180.0 if np.isfinite(ref[j] - ref[i]) else 0.0, 0)
+        )
+    for i, j in ((0, 3), (1, 4), (0, 6), (2, 5)):  # loops
+        edges.append(
+            (i, j, (ref[j] - ref[i] - 0.02 + 180.0) % 360.0 - 180.0 if np.isfinite(ref[j] - ref[i]) else 0.0, 1)
+        )
+    got = edge_yaw_bias(np.array(edges, float), ref)
+    assert got["other_edges"] == 4 and got["loop_edges"] == 3  # the edges of frame 5 are not compared
+    assert got["other_yaw_bias_deg"] == pytest.approx(0.01, abs=1e-9)
+    assert got["loop_yaw_bias_deg"] == pytest.approx(-0.02, abs=1e-9)
+    assert got["other_yaw_sd_deg"] == pytest.approx(0.0, abs=1e-9)
+    empty = edge_yaw_bias(np.zeros((0, 4)), ref)
+    assert empty["loop_edges"] == 0 and math.isnan(empty["loop_yaw_bias_deg"])
