@@ -413,7 +413,8 @@ def test_frames_are_checked_whole_without_decoding(client: TestClient, session_i
     assert upload(client, session_id, 0, good[:-12]).status_code == 422  # IEND cut off
     header = good[:33]  # signature + IHDR of a valid 640x480 frame, then a flood of empty chunks
     flood = header + (struct.pack(">I", 0) + b"tEXt" + struct.pack(">I", zlib.crc32(b"tEXt"))) * 200_000
-    started = time.perf_counter()
+    # the bound is on the work a flood costs, so CPU time, not wall (wall took 2.7 s beside another suite's run)
+    started = time.process_time()
     assert upload(client, session_id, 0, flood).status_code == 422
-    assert time.perf_counter() - started < 2.0
+    assert time.process_time() - started < 2.0
     assert upload(client, session_id, 0, good).status_code == 202
