@@ -47,9 +47,13 @@ class Reconstruction:
     seconds: float
     learned: dict[str, Any] = field(default_factory=dict)  # SessionReconstruction.learned_model()
     keyframes: int = 0  # placed frames registered by their features (the rest tracked: MethodOptions.track_overlap)
-    closures: int = 0  # loop-closure edges in the final pose graph (spanning more than MethodOptions.loop_gap frames)
     # the final graph's edges: frame i, frame j, measured relative yaw (deg), loop 0/1 (SessionReconstruction.edge_yaws)
     edge_yaws: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+
+    @property
+    def closures(self) -> int:
+        """Return the loop-closure edges in the final pose graph (spanning more than MethodOptions.loop_gap frames)."""
+        return int(np.count_nonzero(self.edge_yaws[:, 3]))
 
     @property
     def estimate_mm(self) -> np.ndarray:
@@ -157,6 +161,5 @@ def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = 
         time.perf_counter() - started,
         session.learned_model(),
         len(session.registrar.features),
-        sum(e.loop for e in session.registrar.edges),
         session.edge_yaws(),
     )
