@@ -18,6 +18,7 @@ from services.core import pipeline
 from services.core.inputs.scan import Scan
 from services.core.methods import MethodOptions, method_options
 from services.core.physics.drag import profile
+from services.core.registration import registrar as registrar_module
 from services.core.registration.edge_corrections import EdgeCorrections, view_evidence
 from services.core.registration.features import Features
 from services.core.registration.frame_prep import PreparedFrame
@@ -326,6 +327,39 @@ def test_without_tracking_every_frame_is_a_keyframe(tracking) -> None:
         results, registrar, tracked = tracking[overlap]
         assert not tracked and set(registrar.features) == {r.index for r in results}
     assert [r.pose for r in tracking[0.0][0]] == [r.pose for r in tracking[0.999][0]]  # the same registration
+
+
+def test_tracked_frames_are_aligned_sparsely_not_by_ecc(scan: Scan, monkeypatch: pytest.MonkeyPatch) -> None:
+    # tracking is SVO's sparse image alignment (sparse_alignment.sparse_align, a few ms a frame); the ECC aligner
+    # (direct_alignment.align) is for the frames features miss and costs several times more: a tracker gone back
+    # to it would place the same frames, so only the calls tell (each still runs the real aligner)
+    calls: Counter[tuple[str, bool]] = Counter()
+    tracking_now = [False]
+
+    def counting(name: str) -> object:
+        real = getattr(registrar_module, name)
+
+        def counted(*args: object, **kwargs: object) -> object:
+            calls[(name, tracking_now[0])] += 1
+            return real(*args, **kwargs)
+
+        return counted
+
+    for name in ("sparse_align", "align"):
+        monkeypatch.setattr(registrar_module, name, counting(name))
+    real_track = Registrar.track
+
+    def track(self: Registrar, pf: PreparedFrame) -> FrameResult | None:
+        tracking_now[0] = True
+        try:
+            return real_track(self, pf)
+        finally:
+            tracking_now[0] = False
+
+    monkeypatch.setattr(Registrar, "track", track)
+    _, _, tracked = _tracked(scan, {"track_overlap": 0.7, "track_closures": 0})
+    assert len(tracked) >= 15  # measured 26 of 40
+    assert calls[("sparse_align", True)] >= len(tracked) and calls[("align", True)] == 0
 
 
 def _tracked(scan: Scan, overrides: dict[str, float]) -> tuple[list[FrameResult], Registrar, set[int]]:
