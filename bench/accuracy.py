@@ -38,9 +38,9 @@ Usage: python bench/accuracy.py [--quick] [--methods best,sift-chain,paper] [--s
 `paper` costs about 1 s/frame: leave it out of --methods for a fast run. best-nodrag: best without the skin drag
 model (fit_drag=false), to show what learning the drag is worth. best-track: best tracking frames on keyframes
 (track_overlap=0.92), to show what it costs in accuracy and saves in time; best-track85 at 0.85, as bench/probes.py's
-tracking rows run. best-noloopgate: best without
-the looser loop gate for the closures a dragged skin breaks (loop_ransac_px=0). best-nodragpairs: the skin drag learned
-from the matches' inliers alone, not their pairs within 1.25 RANSAC gates of the similarity (drag_pair_gate=0).
+tracking rows run. best-noloopgate: best without the looser loop gate for the closures a dragged skin breaks
+(loop_ransac_px=0). best-nodragpairs: the skin drag learned from the matches' inliers alone, not their pairs
+within 1.25 RANSAC gates of the similarity (drag_pair_gate=0).
 best-reselect: the drag's pairs and the undragged edges' chosen about the undragged skin (drag_reselect=true).
 --quick: the shared scans and five cells of the 40-frame `short` scenario, seed 1 (a few minutes without `paper`).
 """

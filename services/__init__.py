@@ -15,8 +15,8 @@ os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(1 << 26))
 # and a worker's per-frame CPU 1.6x (bench/worker_cost.py). An operator's value wins. The variable is read when a
 # BLAS library loads: where numpy came first (cv2 loads it: `python -m workers.main` imports cv2 before this
 # package, as docker-compose.yml starts the workers; a bench that imports numpy first), the loaded BLAS is limited
-# here at run time instead (threadpoolctl); on the shared raster such a process took 14.4 s of wall and 27 s of
-# CPU offline against 10.3 and 18.5 s.
+# here at run time instead (threadpoolctl): `python bench/accuracy.py --no-sim --methods best`, which imports numpy
+# first, took 0.039-0.045 s a frame on the shared scans without this and 0.026-0.032 with it.
 _BLAS_THREADS = os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 if "numpy" in sys.modules and _BLAS_THREADS.isdigit():
     from threadpoolctl import threadpool_limits
