@@ -14,6 +14,11 @@ class Tolerances:
     # differs, a few ulps of O(1..100) values, so 1e-12 is loose enough and still catches any real slip.
     float64_abs: float = 1e-12
 
+    # Two direct factorizations of the same symmetric positive definite normal equations (the pose graph's, its
+    # 1e-9 ridge allowing conditions up to ~1e9): only rounding differs, measured <= 2e-12 on the shared scans' and
+    # a 2400-frame examination's final passes (bench/pose_graph_solve.py); 1e-9 catches any wrong solve.
+    linear_solve_abs: float = 1e-9
+
     # `best` on the realistic simulated short scan (seed 1), two-sided (OpenSfM-style band): >= 0.02 mm
     # (0.16 px: below the pose noise expected from keypoints on smooth vein maps chained over 40 frames, i.e.
     # a suspiciously perfect answer, e.g. truth leaking into the pipeline) and <= 0.35 mm (measured 0.24 mm
