@@ -267,8 +267,13 @@ def fit_view_model(
     if len(usable) < MIN_AFFINE_EDGES:
         return None
     affines = np.stack([e.affine for e in usable])
-    f_i = np.stack([forces_n[e.i] for e in usable])
-    f_j = np.stack([forces_n[e.j] for e in usable])
+    # each frame's view is computed once per evaluation (a frame ends many edges: 2400 frames, 9300 edges on an
+    # examination), then read at both ends of every edge
+    frames = sorted({e.i for e in usable} | {e.j for e in usable})
+    row = {f: k for k, f in enumerate(frames)}
+    ends_i = np.array([row[e.i] for e in usable])
+    ends_j = np.array([row[e.j] for e in usable])
+    f_frames = np.stack([forces_n[f] for f in frames])
     sigma = np.sqrt(np.array([e.sigma for e in usable]) ** 2 + AFFINE_FLOOR**2)
     prior = math.log(reference.hooke_n_per_mm if reference is not None else kappa_prior_n_per_mm)
     prior_sigma = max(reference.log_sigma, REFERENCE_LOG_SIGMA_FLOOR) if reference is not None else PRIOR_LOG_SIGMA
@@ -283,14 +288,16 @@ def fit_view_model(
         float(np.degrees(np.ptp(np.angle(turns * np.conj(np.mean(turns)))))) if np.all(np.isfinite(yaws)) else 0.0
     )
     with_yaw = spread_deg >= TISSUE_AXIS_MIN_YAW_DEG
-    yaw_i, yaw_j = (yaws[: len(usable)], yaws[len(usable) :]) if with_yaw else (np.zeros(len(usable)),) * 2
+    yaw_frames = np.zeros(len(frames))
+    if with_yaw and yaw_rad is not None:  # with_yaw: every end's yaw is known
+        yaw_frames = np.array([yaw_rad[f] for f in frames])
 
     def model(x: np.ndarray, axis: str) -> ViewModel:
         return ViewModel(math.exp(x[0]), complex(x[1], x[2]), compliance_per_n, sep, axis)  # probe: x[2] stays 0
 
     def residuals(x: np.ndarray, axis: str) -> np.ndarray:
-        m = model(x, axis)
-        c = corrected_affine(affines, m.views(f_i, yaw_i), m.views(f_j, yaw_j))
+        views = model(x, axis).views(f_frames, yaw_frames)
+        c = corrected_affine(affines, views[ends_i], views[ends_j])
         return np.linalg.norm(_non_similarity(c), axis=1) / sigma
 
     def objective(x: np.ndarray, axis: str) -> float:
