@@ -103,6 +103,7 @@ ABLATIONS = {
     "best-noloopgate": ("best", {"loop_ransac_px": 0.0}),  # no looser gate for the closures a dragged skin breaks
     "best-nodragpairs": ("best", {"drag_pair_gate": 0.0}),  # the drag learned from the matches' inliers alone
     "best-reselect": ("best", {"drag_reselect": True}),  # pairs chosen about the undragged skin (opt-in)
+    "best-tissueaxis": ("best", {"tissue_axis": True}),  # the anisotropy's axis may be fixed in the tissue (opt-in)
     # closures gated about one similarity alone and the chain's scale left free (before issue 31's drag match)
     "best-nodragmatch": ("best", {"loop_drag_match": False, "chain_scale_band": 0.0}),
 }
