@@ -28,37 +28,38 @@ sys.path.insert(0, str(REPO))
 
 
 def finish_systems(scan_name: str) -> list[tuple[object, np.ndarray]]:
-    """Return the (normal matrix, right side) of every solve the finish of a scan's offline reconstruction makes."""
-    import cv2
-
+    """Return the (normal matrix, right side) of every solve the finish of a scan's offline reconstruction makes
+    (pipeline.reconstruct with `best`, its solves recorded while SessionReconstruction.finish runs)."""
     import services.core.registration.pose_graph as pose_graph
     from services.core.methods import method_options
-    from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
+    from services.core.pipeline import reconstruct
     from services.core.session_reconstruction import SessionReconstruction
     from services.core.simulation.scenarios import simulate
     from services.store.scan_folder import read_scan_folder
 
-    cv2.setNumThreads(1)
     scan = read_scan_folder(scan_name) if os.sep in scan_name else simulate(scan_name, 1)
-    options = method_options("best")
-    mask, flat = window_setup(scan, options)
-    recon = SessionReconstruction(scan.calibration, options, window_radius_mm(mask, scan.calibration))
-    for pf in prepared_frames(scan, frame_forces(scan), mask, flat, options):
-        for dropped in range(len(recon.results), pf.index):
-            recon.lose(dropped)
-        recon.add(pf)
     systems: list[tuple[object, np.ndarray]] = []
-    solve = pose_graph.solve_normal
+    finishing = [False]
+    solve, finish = pose_graph.solve_normal, SessionReconstruction.finish
 
     def recording(normal: object, rhs: np.ndarray) -> np.ndarray:
-        systems.append((normal.copy(), rhs.copy()))  # type: ignore[attr-defined]
+        if finishing[0]:
+            systems.append((normal.copy(), rhs.copy()))  # type: ignore[attr-defined]
         return solve(normal, rhs)  # type: ignore[arg-type]
 
+    def recorded_finish(session: SessionReconstruction) -> set[tuple[int, int]]:
+        finishing[0] = True
+        try:
+            return finish(session)
+        finally:
+            finishing[0] = False
+
     pose_graph.solve_normal = recording
+    SessionReconstruction.finish = recorded_finish  # type: ignore[method-assign]
     try:
-        recon.finish()
+        reconstruct(scan, method_options("best"))
     finally:
-        pose_graph.solve_normal = solve
+        pose_graph.solve_normal, SessionReconstruction.finish = solve, finish  # type: ignore[method-assign]
     return systems
 
 

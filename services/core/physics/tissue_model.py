@@ -278,19 +278,14 @@ def fit_view_model(
     prior = math.log(reference.hooke_n_per_mm if reference is not None else kappa_prior_n_per_mm)
     prior_sigma = max(reference.log_sigma, REFERENCE_LOG_SIGMA_FLOOR) if reference is not None else PRIOR_LOG_SIGMA
     sep = (float(separation_mm[0]), float(separation_mm[1]))
-    yaws = (
-        np.array([yaw_rad.get(e.i, np.nan) for e in usable] + [yaw_rad.get(e.j, np.nan) for e in usable])
-        if (yaw_rad is not None)
-        else np.full(2 * len(usable), np.nan)
-    )
+    frame_yaws = np.array([np.nan if yaw_rad is None else yaw_rad.get(f, np.nan) for f in frames])
+    yaws = np.concatenate([frame_yaws[ends_i], frame_yaws[ends_j]])  # every edge end's, as the ends weigh the mean
     turns = np.exp(1j * yaws)  # the yaws' range about their circular mean (the probe may face any way)
     spread_deg = (
         float(np.degrees(np.ptp(np.angle(turns * np.conj(np.mean(turns)))))) if np.all(np.isfinite(yaws)) else 0.0
     )
     with_yaw = spread_deg >= TISSUE_AXIS_MIN_YAW_DEG
-    yaw_frames = np.zeros(len(frames))
-    if with_yaw and yaw_rad is not None:  # with_yaw: every end's yaw is known
-        yaw_frames = np.array([yaw_rad[f] for f in frames])
+    yaw_frames = frame_yaws if with_yaw else np.zeros(len(frames))  # with_yaw: every frame's yaw is known
 
     def model(x: np.ndarray, axis: str) -> ViewModel:
         return ViewModel(math.exp(x[0]), complex(x[1], x[2]), compliance_per_n, sep, axis)  # probe: x[2] stays 0
