@@ -277,7 +277,7 @@ class SessionReconstruction:
         """Return a frame's paste planes: its intensity, blend weight and load, with `drag` undone (_drag_state)."""
         image, mask = self._undragged(image, mask, drag)
         return FrameLayers.of(
-            intensity=image.astype(np.float32) / 255.0,
+            intensity=image,  # uint8 grey levels, read as /255
             weight=blend_weight(mask),
             force_n=load_map_n(self.calibration, kept.load),
             centre_px=self.calibration.principal_point,

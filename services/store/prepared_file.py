@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import math
+import zipfile
 
 import numpy as np
 
@@ -96,7 +97,17 @@ def prepared_from_bytes(data: bytes, what: str = "prepared frame") -> PreparedFr
 
 def prepared_pixels_from_bytes(data: bytes, what: str = "prepared frame") -> tuple[np.ndarray, np.ndarray]:
     """Return only the rectified image and window mask (H, W) uint8 of a `prepared_to_bytes` file (the rest is
-    not decompressed)."""
-    z = np.load(io.BytesIO(data), allow_pickle=False)
-    check_format(what, int(z["format"][0]) if "format" in z.files else 0, READABLE_FORMATS)
-    return z["image"], z["mask"]
+    not decompressed).
+
+    The three members are read whole from the archive (np.load's lazy members read in chunks: 1.4x the time; a
+    finish reads every frame's pixels back).
+    """
+    with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        stored = int(_member(archive, "format")[0]) if "format.npy" in archive.namelist() else 0
+        check_format(what, stored, READABLE_FORMATS)
+        return _member(archive, "image"), _member(archive, "mask")
+
+
+def _member(archive: zipfile.ZipFile, name: str) -> np.ndarray:
+    """Return the array stored as `name`.npy in an open .npz archive (no pickles)."""
+    return np.lib.format.read_array(io.BytesIO(archive.read(f"{name}.npy")), allow_pickle=False)

@@ -12,7 +12,12 @@ import pytest
 from services.core.inputs.calibration import default_calibration
 from services.core.npz import npz_bytes
 from services.store.file_formats import UnknownFormatError
-from services.store.prepared_file import PREPARED_FORMAT, prepared_from_bytes, prepared_to_bytes
+from services.store.prepared_file import (
+    PREPARED_FORMAT,
+    prepared_from_bytes,
+    prepared_pixels_from_bytes,
+    prepared_to_bytes,
+)
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
 from services.store.version_state import STATE_FORMAT, VersionState
@@ -42,6 +47,19 @@ def test_prepared_frames_carry_their_format() -> None:
         UnknownFormatError, match=r"prepared frame 7: format 5 is unknown .*reads formats 0, 1, 2, 3, 4"
     ):
         prepared_from_bytes(_with_format(data, 5), "prepared frame 7")
+
+
+def test_a_prepared_frames_pixels_are_read_alone_under_the_same_formats() -> None:
+    pf = _prepared(7, np.ones((3, 128), np.float32))
+    data = prepared_to_bytes(pf)
+    for readable in (data, _with_format(data, None), _with_format(data, 3)):  # this format, before formats, older
+        image, mask = prepared_pixels_from_bytes(readable)
+        assert image.dtype == mask.dtype == np.uint8
+        assert np.array_equal(image, pf.image) and np.array_equal(mask, pf.mask)
+    with pytest.raises(UnknownFormatError, match=r"prepared frame 7: format 5 is unknown"):
+        prepared_pixels_from_bytes(_with_format(data, 5), "prepared frame 7")
+    with pytest.raises(KeyError):  # a damaged file without its image is an error, not an empty frame
+        prepared_pixels_from_bytes(_without(data, "image"))
 
 
 def _without(data: bytes, name: str) -> bytes:
