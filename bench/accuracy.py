@@ -98,6 +98,7 @@ TISSUE_CELLS = {f"tissue-{law}": law for law in TISSUE_LAWS}
 # a method as `best` with one model left out, to show what it is worth on the same scans
 ABLATIONS = {
     "best-nodrag": ("best", {"fit_drag": False}),
+    "best-isodrag": ("best", {"drag_across_sigma_mm": 0.6}),  # the drag prior as wide across the travel as along
     "best-track": ("best", {"track_overlap": 0.92}),  # frames tracked without features on keyframes (issue 32)
     "best-track85": ("best", {"track_overlap": 0.85}),  # fewer keyframes: what bench/probes.py's tracking row runs
     "best-noloopgate": ("best", {"loop_ransac_px": 0.0}),  # no looser gate for the closures a dragged skin breaks

@@ -77,7 +77,7 @@ def main() -> int:
     """Print the table: per scan, the finish's solves timed with both solvers."""
     from scipy.sparse.linalg import spsolve
 
-    from services.core.registration.pose_graph import solve_normal
+    from services.core.normal_equations import solve_normal
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scan", action="append", default=None, help="a simulated scenario or a scan folder")

@@ -71,6 +71,11 @@ class MethodOptions:
     # near pairs within one gate of the undragged skin: the gate about the dragged similarity leaves edges turned.
     # Off by default: it tipped clinical_veins_24's compliance law to linear (0.227 -> 0.373 mm)
     drag_reselect: bool = False
+    # the skin drag's prior across each frame's travel (mm, 1 sigma; physics.drag): a window's friction drags the skin
+    # along its stroke, so a drag turned across it is held to the gain's turn more tightly than along (0.6 mm, which
+    # is isotropic). On the simulated dragged strokes the drags fitted came out turned up to 18 deg and 1.5x too large.
+    # 0.15-0.6 tried (docs/accuracy.md, "Skin drag"): tighter helps strokes and costs raster s2 and clinical_veins_24
+    drag_across_sigma_mm: float = 0.3
     ratio: float = 0.8  # Lowe ratio test
     neighbours: int = 4  # keyframes matched per frame (keyframes registration)
     loop_gap: int = 25  # an edge spanning more frames than this is a loop closure

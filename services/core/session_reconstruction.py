@@ -116,6 +116,7 @@ class SessionReconstruction:
                 compliance_per_n=self.calibration.compliance_per_n,
                 gate_mm=self.options.ransac_px / self.calibration.px_per_mm if self.options.drag_reselect else 0.0,
                 drag_pair_gates=self.options.drag_pair_gate,
+                drag_across_sigma_mm=self.options.drag_across_sigma_mm,
             ),
         )
 

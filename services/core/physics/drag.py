@@ -17,9 +17,11 @@ undone they are related by an affine (the similarity of the poses, times the vie
 is zero but for noise, P projecting out what an affine of p_j explains (so the tilt and tissue models, affine,
 are left alone) and a_ij the match's rotation and scale. What no affine explains is the profile's curvature over
 the overlap, seen at two places of the window: r is linear in the drags, so every frame's drag is one sparse
-complex least-squares solve, with a prior that grows along the motion with the load (D_k ~ g F_k u_k, g fitted, u_k
-the direction of travel in the frame's axes). The width is chosen by the evidence (the smallest weighted residual
-on a grid); the drag is kept only where it explains the residuals beyond its parameters (an AIC test).
+least-squares solve, with a prior that grows along the motion with the load (D_k ~ g F_k u_k, g fitted, u_k
+the direction of travel in the frame's axes), tighter across the travel than along it (a window's friction drags the
+skin along its stroke: what turns a drag across it is more often the pairs' noise; solved in real form). The width
+is chosen by the evidence (the smallest weighted residual on a grid); the drag is kept only where it explains the
+residuals beyond its parameters (an AIC test).
 """
 
 from __future__ import annotations
@@ -29,9 +31,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.linalg import spsolve
+from scipy.sparse import bmat, coo_matrix, csc_matrix
 
+from services.core.normal_equations import solve_normal
 from services.core.similarity import Similarity, fit_affine, lsq_similarity
 
 WIDTHS_MM = (8.0, 11.0, 15.0, 20.0, 27.0)  # the profile widths tried (the shared scans' window: ~78 x 58 mm)
@@ -229,10 +231,15 @@ def _terms(batch: _Batch, width_mm: float) -> _Terms:
 
 
 def _solve(
-    evidence: Sequence[DragEvidence], terms: _Terms, frames: Sequence[int], prior_mean: np.ndarray
+    evidence: Sequence[DragEvidence],
+    terms: _Terms,
+    frames: Sequence[int],
+    prior_mean: np.ndarray,
+    across_sigma_mm: float = PRIOR_SIGMA_MM,
 ) -> tuple[np.ndarray, complex, float]:
     """Return (each frame's drag, the gain g, the weighted cost) minimising the evidence's residuals plus the
-    prior |D_k - g m_k|^2 / PRIOR_SIGMA^2 (m_k = F_k u_k) and |g|^2 / GAIN_SIGMA^2: one Hermitian sparse solve."""
+    prior |D_k - g m_k|^2 / PRIOR_SIGMA^2 (m_k = F_k u_k), tightened to across_sigma_mm across the travel
+    (_across_prior), and |g|^2 / GAIN_SIGMA^2: one sparse solve."""
     n = len(frames)
     col = {f: k for k, f in enumerate(frames)}
     ii = np.array([col[ev.i] for ev in evidence])
@@ -255,9 +262,32 @@ def _solve(
     normal = coo_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n + 1, n + 1)
     ).tocsc()
-    z = spsolve(normal, rhs)
-    cost = float(np.sum(terms.hh) - np.real(np.vdot(z, rhs)))  # at the minimum: h.h - z^H b
+    # in real form (re then im of every unknown), where the across-travel prior, not complex-linear, can be added
+    real = bmat([[normal.real, -normal.imag], [normal.imag, normal.real]], format="csc")
+    b = np.concatenate([rhs.real, rhs.imag])
+    real = (real + _across_prior(m, n, across_sigma_mm)).tocsc()
+    x = solve_normal(real, b)  # normal equations: symmetric positive definite
+    cost = float(np.sum(terms.hh) - np.dot(x, b))  # at the minimum: h.h - x.b
+    z = x[: n + 1] + 1j * x[n + 1 :]
     return z[:n], complex(z[n]), cost
+
+
+def _across_prior(prior_mean: np.ndarray, n: int, across_sigma_mm: float) -> csc_matrix:
+    """Return the real normal matrix (2n + 2 square) that tightens the prior across each moving frame's travel from
+    PRIOR_SIGMA_MM to across_sigma_mm: (1/s_across^2 - 1/s^2) c_k^2, with c_k = Im((D_k - g m_k) conj(u_k)) =
+    Im(D_k conj(u_k)) - F_k Im(g) (u_k = m_k / F_k): the drag's part across the travel, beyond the gain's turn."""
+    moving = np.flatnonzero(np.abs(prior_mean) > 0)
+    tighter = 1.0 / across_sigma_mm**2 - 1.0 / PRIOR_SIGMA_MM**2
+    if not len(moving) or tighter <= 0:
+        return csc_matrix((2 * n + 2, 2 * n + 2))
+    load = np.abs(prior_mean[moving])
+    u = prior_mean[moving] / load
+    columns = np.stack([moving, n + 1 + moving, np.full(len(moving), 2 * n + 1)], axis=1)  # re D_k, im D_k, im g
+    coef = np.stack([-u.imag, u.real, -load], axis=1)
+    values = tighter * coef[:, :, None] * coef[:, None, :]
+    rows = np.repeat(columns, 3, axis=1).ravel()
+    cols = np.tile(columns, (1, 3)).ravel()
+    return coo_matrix((values.ravel(), (rows, cols)), shape=(2 * n + 2, 2 * n + 2)).tocsc()
 
 
 def fit_drag(
@@ -267,6 +297,7 @@ def fit_drag(
     widths_mm: Sequence[float] = WIDTHS_MM,
     reselect_gate_mm: float = 0.0,
     reselect_rounds: int = RESELECT_ROUNDS,
+    across_sigma_mm: float = PRIOR_SIGMA_MM,
 ) -> DragFit | None:
     """Return the scan's drag fitted to the matches' inlier pairs (module docstring), or None on too little
     evidence. loads_n: each frame's load (N); directions: its unit direction of travel in its own axes (0: still).
@@ -274,18 +305,18 @@ def fit_drag(
     reselect_gate_mm > 0: the evidence holds each match's near pairs (a wider gate than its RANSAC's); the pairs
     fitted are those within this gate of their similarity, first as measured, then with the first fit's drags
     undone (reselect_rounds times): a gate about the similarity keeps the pairs the drag moved least, one about the
-    undragged skin does not.
+    undragged skin does not. across_sigma_mm: the prior's sigma across the travel (PRIOR_SIGMA_MM: as along it).
     """
     usable = [ev for ev in evidence if ev.pairs is not None and len(ev.pairs) >= MIN_PAIRS]
     if len(usable) < MIN_EDGES:
         return None
     if reselect_gate_mm <= 0:
-        return _fit(usable, loads_n, directions, widths_mm)
-    fit = _fit(_reselected(usable, None, reselect_gate_mm), loads_n, directions, widths_mm)
+        return _fit(usable, loads_n, directions, widths_mm, across_sigma_mm)
+    fit = _fit(_reselected(usable, None, reselect_gate_mm), loads_n, directions, widths_mm, across_sigma_mm)
     for _ in range(reselect_rounds):
         if fit is None or not fit.kept:
             break
-        fit = _fit(_reselected(usable, fit, reselect_gate_mm), loads_n, directions, widths_mm)
+        fit = _fit(_reselected(usable, fit, reselect_gate_mm), loads_n, directions, widths_mm, across_sigma_mm)
     return fit
 
 
@@ -321,6 +352,7 @@ def _fit(
     loads_n: Mapping[int, float],
     directions: Mapping[int, complex],
     widths_mm: Sequence[float],
+    across_sigma_mm: float = PRIOR_SIGMA_MM,
 ) -> DragFit | None:
     """Return the drag fitted to the evidence's pairs (fit_drag), or None on fewer than MIN_EDGES matches."""
     if len(usable) < MIN_EDGES:
@@ -331,7 +363,7 @@ def _fit(
     batch = _batch(usable)
     without = float(np.sum(batch.weight * np.sum(np.abs(batch.h) ** 2, axis=1)))  # no drag: what no affine explains
     for width in widths_mm:
-        drags, gain, cost = _solve(usable, _terms(batch, width), frames, prior_mean)
+        drags, gain, cost = _solve(usable, _terms(batch, width), frames, prior_mean, across_sigma_mm)
         if best is None or cost < best[0]:
             best = (cost, width, drags, gain)
     assert best is not None

@@ -14,7 +14,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from services.core.physics.drag import RESELECT_ROUNDS, DragEvidence, DragFit, fit_drag, undragged_transforms
+from services.core.physics.drag import (
+    PRIOR_SIGMA_MM,
+    RESELECT_ROUNDS,
+    DragEvidence,
+    DragFit,
+    fit_drag,
+    undragged_transforms,
+)
 from services.core.physics.tissue_model import (
     AffineEvidence,
     HookeFit,
@@ -48,6 +55,7 @@ class EdgeCorrections:
     # (drag_pair_gates of it) and the undragged edges' pairs (one) are chosen within, from each edge's near pairs
     gate_mm: float = 0.0
     drag_pair_gates: float = 0.0
+    drag_across_sigma_mm: float = PRIOR_SIGMA_MM  # the drag prior's sigma across the travel (physics.drag)
     drag_fit: DragFit | None = None  # the skin's friction drag learned from the edges' inlier pairs (at the end)
     last_view_evidence: int = 0  # edges with affine evidence at the last view fit
     _views: dict[int, np.ndarray] = field(default_factory=dict)  # each frame's view D under the current fit
@@ -154,6 +162,7 @@ class EdgeCorrections:
             directions_of_travel(order, poses),
             reselect_gate_mm=self.drag_pair_gates * self.gate_mm,
             reselect_rounds=reselect_rounds,
+            across_sigma_mm=self.drag_across_sigma_mm,
         )
 
     def dragged(self) -> bool:

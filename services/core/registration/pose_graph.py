@@ -12,9 +12,9 @@ from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.sparse import csc_matrix, csr_matrix, diags, identity, vstack
-from scipy.sparse.linalg import splu, spsolve
+from scipy.sparse import csr_matrix, diags, identity, vstack
 
+from services.core.normal_equations import solve_normal
 from services.core.similarity import Similarity
 
 RIDGE = 1e-9  # relative to unit-sigma rows: far below any real constraint
@@ -236,19 +236,6 @@ def optimise_poses(
         weights = new_w
     resid = edge_residuals_mm(poses, usable, lever_mm)
     return GraphSolution(poses, weights, resid, it)
-
-
-def solve_normal(normal: csc_matrix, rhs: np.ndarray) -> np.ndarray:
-    """Return the solution of symmetric positive definite normal equations (sparse LU in SuperLU's symmetric mode:
-    a minimum-degree ordering of A + A^T and diagonal pivots: 2.2-2.6x faster than spsolve's default column
-    ordering on the final passes of the shared clinical scan, a simulated raster and a 2400-frame examination, the
-    same solution to 2e-12; bench/pose_graph_solve.py). A factor that comes out singular (no diagonal pivot will
-    do) falls back to spsolve's partial pivoting."""
-    try:
-        factor = splu(normal, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    except RuntimeError:
-        return spsolve(normal, rhs)
-    return factor.solve(rhs)
 
 
 def _with_scale_priors(

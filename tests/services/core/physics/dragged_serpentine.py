@@ -23,10 +23,11 @@ def rest_to_frame(rest: np.ndarray, pose: Similarity, drag: complex) -> np.ndarr
 
 
 def dragged_serpentine(
-    gain_mm_per_n: float, seed: int, turn_deg: float = 0.0
+    gain_mm_per_n: float, seed: int, turn_deg: float = 0.0, noise_mm: float = NOISE_MM
 ) -> tuple[list[DragEvidence], dict[int, float], dict[int, complex], dict]:
     """Return matches between 3 rows of 12 frames (a serpentine: the drag flips with the stroke), the loads, the
-    directions of travel, and the truth (poses and drags); turn_deg turns every drag from the travel (0: along)."""
+    directions of travel, and the truth (poses and drags); turn_deg turns every drag from the travel (0: along);
+    noise_mm: each pair point's localisation noise (mm, 1 sigma per axis)."""
     rng = np.random.default_rng(seed)
     poses, drags, loads, directions = {}, {}, {}, {}
     k = 0
@@ -46,8 +47,8 @@ def dragged_serpentine(
                 continue
             centre = (poses[i].t + poses[j].t) / 2
             rest = centre + rng.uniform(-14, 14, 60) + 1j * rng.uniform(-9, 9, 60)
-            pi = rest_to_frame(rest, poses[i], drags[i]) + np.array([1, 1j]) @ rng.normal(0, NOISE_MM, (2, 60))
-            pj = rest_to_frame(rest, poses[j], drags[j]) + np.array([1, 1j]) @ rng.normal(0, NOISE_MM, (2, 60))
+            pi = rest_to_frame(rest, poses[i], drags[i]) + np.array([1, 1j]) @ rng.normal(0, noise_mm, (2, 60))
+            pj = rest_to_frame(rest, poses[j], drags[j]) + np.array([1, 1j]) @ rng.normal(0, noise_mm, (2, 60))
             pairs = np.stack([pj.real, pj.imag, pi.real, pi.imag], axis=1).astype(np.float32)
             evidence.append(DragEvidence(i, j, pairs, poses[j].a / poses[i].a))
     return evidence, loads, directions, {"poses": poses, "drags": drags}
