@@ -1,7 +1,7 @@
 """The finish of a live session (issue 32): from its last frame registered to done, by part, per source tree.
 
     .venv/bin/python bench/finish.py [--scan raster] [--scan /work/scans/clinical_veins_24] [--frames N]
-                                     [--repo PATH ...]
+                                     [--repo PATH ...] [--repeat N]
 
 Each measurement runs in a child process as a live worker holds a session: every frame prepared and stored as its
 prepared file (services.store), added in order to a live SessionReconstruction whose pixels are read back from
@@ -11,6 +11,10 @@ self-calibration, the restitch), then the final flush's pyramid update, the tile
 publisher and the whole images with the raw layers. Wall seconds (the session waits for them) and the process's
 CPU seconds. A --scan is a simulated scenario's name (seed 1) or a scan folder. The first --repo (default: this
 tree) is the baseline of the ratio column; another tree is e.g. `git archive <commit> | tar -x -C /tmp/old`.
+Last, a whole restitch (every frame pasted again on an empty canvas, as the finish does when every frame moved) is
+timed RESTITCH_REPEATS times in the same process, its median in the last column: steadier than one finish's
+restitch when comparing trees. --repeat N measures each tree N times, the trees taking turns, and prints each
+figure's median (a busy or slow machine moves one run's restitch by a fifth).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 PARTS = ("finish", "pyramid", "tiles", "images")
+RESTITCH_REPEATS = 3  # whole restitches timed after the finish (the median)
 
 
 class _Counters:
@@ -44,6 +49,7 @@ class _Counters:
 def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | int]:
     """Return the wall and CPU seconds of a live session's finish and final flush, by part (this process)."""
     import cv2
+    import numpy as np
 
     from services.core.methods import method_options
     from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
@@ -116,6 +122,14 @@ def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | 
         out["pasted_again"] = sum(1 for i, a in recon.pasted.items() if i not in pasted or (a != pasted[i]).any())
         out["moved_px"], out["moved_after_affine_px"] = moves_px(recon, pasted)
         out.update({f"finish_{k}": v for k, v in getattr(recon, "finish_seconds", {}).items()})
+        # the restitch's own cost, steadier than one finish's: every frame pasted again (pixels read back from its
+        # file, planes built, warped, added) on an empty canvas, RESTITCH_REPEATS times, the median CPU and wall s
+        runs = []
+        for _ in range(RESTITCH_REPEATS):
+            c0, w0 = cpu(), wall()
+            recon._restitch()
+            runs.append((cpu() - c0, wall() - w0))
+        out["restitch_all_cpu"], out["restitch_all"] = (float(v) for v in np.median(np.array(runs), axis=0))
     return out
 
 
@@ -142,6 +156,13 @@ def moves_px(recon: Any, pasted: dict[int, Any]) -> tuple[float, float]:
     return float(np.median(moved)), float(np.median(left))
 
 
+def median_of(runs: list[dict[str, float | int]]) -> dict[str, float | int]:
+    """Return each figure's median over repeated measurements of one tree."""
+    import numpy as np
+
+    return {key: float(np.median([run[key] for run in runs])) for key in runs[0]}
+
+
 def run_child(args: argparse.Namespace, scan: str, repo: Path) -> dict[str, float | int]:
     """Return one measurement made by a child process on source tree `repo`."""
     env = {**os.environ, "PYTHONPATH": str(repo), "OPENBLAS_NUM_THREADS": "1"}
@@ -158,9 +179,11 @@ def main() -> int:
     p.add_argument("--scan", action="append", default=None, help="a simulated scenario or a scan folder")
     p.add_argument("--frames", type=int, default=100000, help="the scan's first N frames")
     p.add_argument("--repo", type=Path, action="append", default=None, help="source trees to measure")
+    p.add_argument("--repeat", type=int, default=1, help="measurements per tree (the trees taking turns): medians")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
-    scans = args.scan or ["raster"]
+    # a scan folder named relative to here: the children run in their own trees
+    scans = [str(Path(scan).resolve()) if os.sep in scan else scan for scan in args.scan or ["raster"]]
     if args.child:
         print(json.dumps(measure(scans[0], args.frames, flush_every=5)))
         return 0
@@ -168,26 +191,31 @@ def main() -> int:
     print("a live session's finish and final flush; wall s (CPU s); frames pasted again at the finish, tiles written;")
     print("how far the finish moves a pasted frame (median, px), and what one affine map of the canvas leaves of it\n")
     head = ["scan", "tree", "frames", *PARTS, "done after the last frame", "vs first", "pasted again", "tiles"]
-    head += ["moved px", "after one affine"]
+    head += ["moved px", "after one affine", f"every frame pasted again (median of {RESTITCH_REPEATS})"]
     print("| " + " | ".join(head) + " |")
     print("|---|---|" + "---:|" * (len(head) - 2))
     for scan in scans:
         base = None
+        runs: dict[Path, list[dict[str, float | int]]] = {repo: [] for repo in repos}
+        for _ in range(max(1, args.repeat)):
+            for repo in repos:
+                print(f"running {Path(scan).name} on {repo} ...", file=sys.stderr)
+                runs[repo].append(run_child(args, scan, repo))
         for repo in repos:
-            print(f"running {Path(scan).name} on {repo} ...", file=sys.stderr)
-            got = run_child(args, scan, repo)
+            got = median_of(runs[repo])
             total = sum(float(got[part]) for part in PARTS)
             base = total if base is None else base
             cells = " | ".join(f"{got[part]:.2f} ({got[part + '_cpu']:.2f})" for part in PARTS)
             split = ", ".join(f"{k[7:]} {v:.2f}" for k, v in got.items() if k.startswith("finish_") and k[7:] != "cpu")
+            name = repo.resolve().name  # "." names its folder
             print(
-                f"| {Path(scan).name} | {repo.name} | {got['frames']} | {cells} | {total:.2f} | {total / base:.2f}x "
-                f"| {got['pasted_again']} | {got['tiles_written']} | {got['moved_px']:.2f} "
-                f"| {got['moved_after_affine_px']:.2f} |",
+                f"| {Path(scan).name} | {name} | {got['frames']:.0f} | {cells} | {total:.2f} | {total / base:.2f}x "
+                f"| {got['pasted_again']:.0f} | {got['tiles_written']:.0f} | {got['moved_px']:.2f} "
+                f"| {got['moved_after_affine_px']:.2f} | {got['restitch_all']:.2f} ({got['restitch_all_cpu']:.2f}) |",
                 flush=True,
             )
             if split:
-                print(f"finish by part ({Path(scan).name}, {repo.name}): {split}", file=sys.stderr)
+                print(f"finish by part ({Path(scan).name}, {name}): {split}", file=sys.stderr)
     return 0
 
 
