@@ -127,7 +127,7 @@ def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | 
         runs = []
         for _ in range(RESTITCH_REPEATS):
             c0, w0 = cpu(), wall()
-            recon._restitch()
+            recon.restitch()
             runs.append((cpu() - c0, wall() - w0))
         out["restitch_all_cpu"], out["restitch_all"] = (float(v) for v in np.median(np.array(runs), axis=0))
     return out

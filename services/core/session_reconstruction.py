@@ -380,11 +380,12 @@ class SessionReconstruction:
     def render(self) -> MosaicImage:
         """Return the mosaic: the live canvas, or (offline) a stitch of every sharp placed frame."""
         if not self.live:
-            self._restitch()
+            self.restitch()
         return self.canvas.render()
 
-    def _restitch(self) -> set[tuple[int, int]]:
-        """Paste every frame afresh on an empty canvas; return the tiles of the old and the new canvas."""
+    def restitch(self) -> set[tuple[int, int]]:
+        """Paste every frame afresh at its place now on an empty canvas; return the tiles of the old and the new
+        canvas (what the finish does when every frame moved; offline, every render)."""
         old = set(self.canvas.tiles)
         self.canvas = SparseCanvas(self.calibration.px_per_mm)
         self.pasted = {}

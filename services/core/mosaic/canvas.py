@@ -41,14 +41,17 @@ class FrameLayers:
         centre_px: tuple[float, float],
         px_per_mm: float,
     ) -> FrameLayers:
-        """Return the layers of a frame from its intensity (0..1, or uint8 grey levels read as /255), blend weight
-        and local load (N), all (H, W).
+        """Return the layers of a frame from its intensity (0..1 floats, or uint8 grey levels read as /255), blend
+        weight and local load (N), all (H, W). Other integer intensities (e.g. 16-bit) are refused: read as 0..1
+        they would paste nearly white.
 
         Each plane is made whole and the four interleaved once (cv2.merge): writing them into the interleaved
         array one strided plane at a time cost 1.5x the time.
         """
         w = np.ascontiguousarray(weight, np.float32)
         grey = np.asarray(intensity)
+        if grey.dtype != np.uint8 and not np.issubdtype(grey.dtype, np.floating):
+            raise ValueError(f"intensity must be uint8 grey levels or 0..1 floats, not {grey.dtype}")
         scale = 1.0 / 255.0 if grey.dtype == np.uint8 else 1.0
         weighted = cv2.multiply(grey, w, scale=scale, dtype=cv2.CV_32F)
         loaded = cv2.multiply(np.asarray(force_n, np.float32), w)

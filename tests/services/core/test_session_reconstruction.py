@@ -218,7 +218,7 @@ def test_the_finish_pastes_again_only_the_frames_that_moved(live_run: LiveRun, m
     live = SessionReconstruction(live_run.calib, options, live_run.radius_mm, live=True)
     for pf in live_run.frames:
         live.add(pf)
-    live._restitch()
+    live.restitch()
     poses = live.registrar.poses
     far, near = [30, 31, 32, 33], 50
     for i in far:
@@ -240,7 +240,7 @@ def test_the_finish_pastes_again_only_the_frames_that_moved(live_run: LiveRun, m
     # ... and those it reports are all that changed: the worker re-renders only them
     assert all(np.array_equal(live.canvas.tiles[key], planes[key]) for key in planes if key not in touched)
     finished = live.canvas.render()
-    live._restitch()  # every frame afresh at its final place, the near one too
+    live.restitch()  # every frame afresh at its final place, the near one too
     assert not np.array_equal(live.pasted[near], before[near])
     whole = live.canvas.render()
     assert grey_gap(finished, whole) <= TOL.finish_restitch_grey

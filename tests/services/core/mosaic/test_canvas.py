@@ -150,6 +150,17 @@ def test_a_rendered_mosaic_read_back_into_a_canvas_renders_the_same() -> None:
     np.testing.assert_array_equal(again.coverage, image.coverage)
 
 
+def test_frame_planes_read_grey_levels_as_fractions_and_refuse_other_integers() -> None:
+    grey = np.random.default_rng(5).integers(0, 256, (H, W), dtype=np.uint8)
+    weight, force = blend_weight(_window()), np.full((H, W), 5.0, np.float32)
+    from_levels = FrameLayers.of(grey, weight, force, CENTRE, PPM)
+    from_floats = FrameLayers.of(grey.astype(np.float32) / 255.0, weight, force, CENTRE, PPM)
+    # the same planes to float32 rounding (1 ulp of a weighted intensity <= 1)
+    np.testing.assert_allclose(from_levels.planes, from_floats.planes, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="uint16"):  # 16-bit levels read as 0..1 would paste nearly white
+        FrameLayers.of(grey.astype(np.uint16) * 257, weight, force, CENTRE, PPM)
+
+
 def test_blend_weight_is_zero_outside_and_peaks_inside() -> None:
     mask = _window()
     w = blend_weight(mask)

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from services.core.methods import method_options
 from services.core.physics.drag import (
     MAX_ALONG_TRAVEL_DEG,
     PRIOR_SIGMA_MM,
@@ -81,17 +82,19 @@ def test_a_drag_across_the_strokes_is_not_kept() -> None:
 
 def test_the_prior_holds_a_drag_along_the_travel_where_the_pairs_are_noisy() -> None:
     # drags along the travel seen through noisy pairs (0.1 mm, nearly a pixel): what the fit puts across the travel
-    # is error. The prior tighter across (0.3 mm, best's) than along (PRIOR_SIGMA_MM, 0.6) takes a quarter of it off
-    # (measured 0.148 -> 0.107 mm rms) and leaves the part along the travel as it was (0.053 mm both)
+    # is error. The prior tighter across (best's drag_across_sigma_mm, 0.3 mm) than along (PRIOR_SIGMA_MM, 0.6) takes
+    # a quarter of it off (measured 0.148 -> 0.107 mm rms) and leaves the part along the travel as it was (0.053 mm)
     evidence, loads, directions, truth = dragged_serpentine(0.1, seed=3, noise_mm=0.1)
+    best_sigma = method_options("best").drag_across_sigma_mm
+    assert best_sigma < PRIOR_SIGMA_MM  # best holds the drag tighter across the travel than along it
     errors = {}
-    for across_sigma in (PRIOR_SIGMA_MM, 0.3):
+    for across_sigma in (PRIOR_SIGMA_MM, best_sigma):
         fit = fit_drag(evidence, loads, directions, across_sigma_mm=across_sigma)
         assert fit is not None and fit.kept
         # each drag's error in its frame's travel axes: along (real), across (imaginary)
         error = np.array([(fit.of(k) - true) * np.conj(directions[k]) for k, true in truth["drags"].items()])
         errors[across_sigma] = (np.sqrt(np.mean(error.real**2)), np.sqrt(np.mean(error.imag**2)))
-    (along_iso, across_iso), (along, across) = errors[PRIOR_SIGMA_MM], errors[0.3]
+    (along_iso, across_iso), (along, across) = errors[PRIOR_SIGMA_MM], errors[best_sigma]
     assert across < 0.8 * across_iso
     assert abs(along - along_iso) < 0.05 * along_iso
 
