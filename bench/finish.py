@@ -15,6 +15,10 @@ Last, a whole restitch (every frame pasted again on an empty canvas, as the fini
 timed RESTITCH_REPEATS times in the same process, its median in the last column: steadier than one finish's
 restitch when comparing trees. --repeat N measures each tree N times, the trees taking turns, and prints each
 figure's median (a busy or slow machine moves one run's restitch by a fifth).
+A second table says what moves the frames at the finish, step by step (SessionReconstruction.finish's `observe`):
+how many frames the final pass (with the skin's drag learned and undone), the path held to the law's scales, and the
+gauge (a scale about frame 0's rest centre) each move by FINISH_MOVED_PX or more on their own: what decides how many
+frames the restitch pastes again.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 PARTS = ("finish", "pyramid", "tiles", "images")
 RESTITCH_REPEATS = 3  # whole restitches timed after the finish (the median)
+STEPS = ("refine", "scales", "calibrate")  # SessionReconstruction.finish's steps, as it names them to `observe`
 
 
 class _Counters:
@@ -110,8 +115,23 @@ def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | 
             out[part + "_cpu"] = now[1] - t[1]
             t = now
 
-        touched |= recon.finish()
+        places = {"live": recon.stitch_places()}  # where a restitch would paste each frame before the finish
+        observing = [0.0, 0.0]  # the wall and CPU s spent here, taken off the finish's
+
+        def observe(step: str) -> None:
+            w0, c0 = wall(), cpu()
+            places[step] = recon.stitch_places()
+            observing[0] += wall() - w0
+            observing[1] += cpu() - c0
+
+        touched |= recon.finish(observe)
         lap("finish")
+        out["finish"] -= observing[0]
+        out["finish_cpu"] -= observing[1]
+        for before, step in (("live", "refine"), ("refine", "scales"), ("scales", "calibrate")):
+            moved, median = step_moves(recon, places[before], places[step])
+            out[f"step_{step}_moved"], out[f"step_{step}_px"] = moved, median
+        out["step_calibrate_after_similarity_moved"] = step_moves(recon, places["scales"], places["calibrate"], True)[0]
         changed = pyramid.update(recon.canvas, touched)
         lap("pyramid")
         publisher.write_tiles(sid, 1, pyramid, changed, n, revisions, durable=True)
@@ -156,6 +176,37 @@ def moves_px(recon: Any, pasted: dict[int, Any]) -> tuple[float, float]:
     return float(np.median(moved)), float(np.median(left))
 
 
+def step_moves(recon: Any, before: dict[int, Any], after: dict[int, Any], similar: bool = False) -> tuple[int, float]:
+    """Return how many frames one step of the finish moves by FINISH_MOVED_PX or more (mosaic px, the farthest
+    corner; a frame's undone drag changed counts as moved) and the median move, from the places before to those after
+    (SessionReconstruction.stitch_places). similar: first map `before` by the one similarity of the canvas that fits
+    `after` best (what a global scale and shift, as the gauge is, would account for without any frame pasted)."""
+    import numpy as np
+
+    from services.core.session_reconstruction import FINISH_MOVED_PX
+
+    calib = recon.calibration
+    w, h = calib.image_size
+    corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float).T
+    kept = [i for i in after if i in before]
+    if not kept:
+        return 0, float("nan")
+
+    def on_canvas(place: Any) -> Any:
+        canvas = recon.canvas.pixels_to_canvas(place[0], calib.principal_point, calib.px_per_mm) @ corners
+        return canvas[0] + 1j * canvas[1]
+
+    old = np.array([on_canvas(before[i]) for i in kept])
+    new = np.array([on_canvas(after[i]) for i in kept])
+    if similar:
+        design = np.column_stack([old.ravel(), np.ones(old.size)])
+        old = (design @ np.linalg.lstsq(design, new.ravel(), rcond=None)[0]).reshape(old.shape)
+    moved = np.abs(new - old).max(axis=1)
+    dragged = np.array([before[i][1] != after[i][1] for i in kept])
+    count = int(np.count_nonzero((moved >= FINISH_MOVED_PX) | dragged))
+    return count, float(np.median(moved))
+
+
 def median_of(runs: list[dict[str, float | int]]) -> dict[str, float | int]:
     """Return each figure's median over repeated measurements of one tree."""
     import numpy as np
@@ -194,6 +245,7 @@ def main() -> int:
     head += ["moved px", "after one affine", f"every frame pasted again (median of {RESTITCH_REPEATS})"]
     print("| " + " | ".join(head) + " |")
     print("|---|---|" + "---:|" * (len(head) - 2))
+    steps: list[str] = []  # the second table's rows
     for scan in scans:
         base = None
         runs: dict[Path, list[dict[str, float | int]]] = {repo: [] for repo in repos}
@@ -216,6 +268,17 @@ def main() -> int:
             )
             if split:
                 print(f"finish by part ({Path(scan).name}, {name}): {split}", file=sys.stderr)
+            steps.append(
+                f"| {Path(scan).name} | {name} | {got['frames']:.0f} | "
+                + " | ".join(f"{got[f'step_{k}_moved']:.0f} ({got[f'step_{k}_px']:.2f})" for k in STEPS)
+                + f" | {got['step_calibrate_after_similarity_moved']:.0f} |"
+            )
+    print("\nwhat moves the frames at the finish: frames a step alone moves by a quarter pixel or more")
+    print("(FINISH_MOVED_PX; its undone drag changed counts too), the median move in px in brackets; the last column")
+    print("is the gauge's step after the one similarity of the canvas that fits it best (a global scale and shift)\n")
+    print("| scan | tree | frames | the final pass, drag learned | the law's scales | the gauge | after a similarity |")
+    print("|---|---|---:|---:|---:|---:|---:|")
+    print("\n".join(steps))
     return 0
 
 

@@ -216,14 +216,20 @@ class SessionReconstruction:
         fit = self.registrar.corrections.drag_fit
         return fit.of(index) if fit is not None else 0j
 
-    def finish(self) -> set[tuple[int, int]]:
+    def finish(self, observe: Callable[[str], None] | None = None) -> set[tuple[int, int]]:
         """Return the canvas tiles changed by running the final refinement and compliance self-calibration.
 
-        The seconds each part took are kept in `finish_seconds` (refine, calibrate, restitch).
+        The seconds each part took are kept in `finish_seconds` (refine, calibrate, restitch). observe, if given, is
+        called with a step's name once it is done, before the next starts: "refine" (the final pass, the skin's drag
+        learned), "scales" (the path held to the law's scales; the gauge not applied yet) and "calibrate" (the gauge
+        and the origin at frame 0's rest centre applied): bench/finish.py reads how far each step moves the frames'
+        places. Its own time counts in the next part.
         """
+        note = observe or (lambda _part: None)
         started = time.perf_counter()
         if self.options.refine:
             self.registrar.refine(final=True)
+        note("refine")
         refined = time.perf_counter()
         self.clock = self._estimate_clock()
         if self.options.self_calibrate:
@@ -233,9 +239,11 @@ class SessionReconstruction:
                 # refitted on the held ones, which would only return them): a chain's scale no longer wanders
                 self.registrar.refine_scales(self._expected_scales(self.compliance), self.options.scale_prior)
             self.gauge = self.compliance.gauge if self.compliance is not None else 1.0
+        note("scales")  # the places are in registrar units until finished: the gauge does not show yet
         self.finished = True
         if self.registrar.corrections.dragged():
             self.recent = {}  # the newest frames' planes were built with their drag in: rebuilt, undragged
+        note("calibrate")
         calibrated = time.perf_counter()
         touched = self._restitch_moved() if self.live else set()
         self.finish_seconds = {
@@ -391,14 +399,14 @@ class SessionReconstruction:
         self.pasted = {}
         self.pasted_drag = {}
         self.stale = {}
-        return old | self._paste_in_order(self._final_places())
+        return old | self._paste_in_order(self.stitch_places())
 
     def _restitch_moved(self) -> set[tuple[int, int]]:
         """Paste afresh the frames not within FINISH_MOVED_PX of their final places, and nothing else: the tiles
         they cover (pasted and final) are emptied and made again from every frame over them, in index order, as a
         whole restitch makes them (a frame that did not move stays where it is pasted). Return the tiles changed."""
         self.stale = {}
-        final = self._final_places()
+        final = self.stitch_places()
         moved = [i for i in sorted(set(final) | set(self.pasted)) if self._moved(self._pasted_place(i), final.get(i))]
         tiles: set[tuple[int, int]] = set()
         for i in moved:
@@ -415,8 +423,9 @@ class SessionReconstruction:
         emptied = {key for key in tiles if self.canvas.tiles.pop(key, None) is not None}
         return emptied | self._paste_in_order(over, only=tiles)
 
-    def _final_places(self) -> dict[int, tuple[np.ndarray, tuple[complex, float]]]:
-        """Return, in index order, each pasteable frame's stitch affine and the drag its planes undo, as now."""
+    def stitch_places(self) -> dict[int, tuple[np.ndarray, tuple[complex, float]]]:
+        """Return, in index order, each pasteable frame's stitch affine (rectified frame mm -> mosaic mm, 2x3) and the
+        drag its planes undo (mm, profile width mm), as they are now: where a restitch would paste it."""
         return {
             i: (pose, self._drag_state(i)) for i in sorted(self.frames) if (pose := self._stitch_pose(i)) is not None
         }

@@ -129,10 +129,17 @@ def test_moved_frames_are_repainted_a_few_at_a_time_and_settle_within_the_tolera
     # every pasted frame now lies within LIVE_REPASTE_PX of its current pose (tolerance: the rule itself)
     lagging = [i for i, pasted in live.pasted.items() if not live._unseen_move(pasted, live._stitch_pose(i))]
     assert not lagging
-    live.finish()
+    places: dict[str, dict[int, tuple[np.ndarray, tuple[complex, float]]]] = {}
+    live.finish(lambda step: places.setdefault(step, live.stitch_places()))
+    assert list(places) == ["refine", "scales", "calibrate"]  # the finish's steps, named in order
     assert not live.stale
     # finish pastes again every frame not within FINISH_MOVED_PX of its final place (tolerance: the rule itself)
-    final = live._final_places()
+    final = live.stitch_places()
+    assert all(np.array_equal(final[i][0], places["calibrate"][i][0]) for i in final)  # the restitch moves none
+    # the gauge shows in the last step only: it divides every frame's linear part (float64 rounding)
+    assert live.gauge != 1.0
+    for i in final:
+        np.testing.assert_allclose(final[i][0][:, :2], places["scales"][i][0][:, :2] / live.gauge, rtol=1e-12)
     assert set(live.pasted) == set(final)
     assert not [i for i in live.pasted if live._moved(live._pasted_place(i), final[i])]
 
