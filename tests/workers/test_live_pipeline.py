@@ -96,8 +96,10 @@ def test_two_workers_out_of_order_equal_offline_then_reprocess(
     backend: Backend, spawn_worker: Callable[..., Any]
 ) -> None:
     started = time.monotonic()
-    spawn_worker("a")
-    spawn_worker("b")
+    # the holder keeps the session while the next frame in order is still being prepared (the production linger_s):
+    # with FAST's 5 s, a slow day's CI released it after frame 0 and the other worker took it over, a second holder
+    spawn_worker("a", linger_s=30.0)
+    spawn_worker("b", linger_s=30.0)
     store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
     scan = scan_of(1)
     order = [int(i) for i in np.random.default_rng(7).permutation(len(scan))]
