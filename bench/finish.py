@@ -128,7 +128,7 @@ def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | 
         lap("finish")
         out["finish"] -= observing[0]
         out["finish_cpu"] -= observing[1]
-        for before, step in (("live", "refine"), ("refine", "scales"), ("scales", "calibrate")):
+        for before, step in zip(("live", *STEPS), STEPS, strict=False):  # each step from the places before it
             moved, median = step_moves(recon, places[before], places[step])
             out[f"step_{step}_moved"], out[f"step_{step}_px"] = moved, median
         out["step_calibrate_after_similarity_moved"] = step_moves(recon, places["scales"], places["calibrate"], True)[0]
