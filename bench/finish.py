@@ -158,53 +158,40 @@ def moves_px(recon: Any, pasted: dict[int, Any]) -> tuple[float, float]:
     what is left of it after the best affine map of the whole canvas: whether one warp could stand for the restitch."""
     import numpy as np
 
-    calib = recon.calibration
-    w, h = calib.image_size
-    corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float).T
-
-    def on_canvas(affine: Any) -> Any:
-        return (recon.canvas.pixels_to_canvas(affine, calib.principal_point, calib.px_per_mm) @ corners).T
-
     kept = [i for i in recon.pasted if i in pasted]
     if not kept:
         return float("nan"), float("nan")
-    before = np.concatenate([on_canvas(pasted[i]) for i in kept])
-    after = np.concatenate([on_canvas(recon.pasted[i]) for i in kept])
-    moved = np.hypot(*(after - before).T).reshape(-1, 4).max(axis=1)
-    x = np.column_stack([before, np.ones(len(before))])
-    left = np.hypot(*(x @ np.linalg.lstsq(x, after, rcond=None)[0] - after).T).reshape(-1, 4).max(axis=1)
+    before = np.array([recon.corners_px(pasted[i]) for i in kept])
+    after = np.array([recon.corners_px(recon.pasted[i]) for i in kept])
+    moved = np.abs(after - before).max(axis=1)
+    x = np.column_stack([before.real.ravel(), before.imag.ravel(), np.ones(before.size)])
+    fitted = x @ np.linalg.lstsq(x, np.column_stack([after.real.ravel(), after.imag.ravel()]), rcond=None)[0]
+    left = np.abs(fitted[:, 0] + 1j * fitted[:, 1] - after.ravel()).reshape(-1, 4).max(axis=1)
     return float(np.median(moved)), float(np.median(left))
 
 
 def step_moves(recon: Any, before: dict[int, Any], after: dict[int, Any], similar: bool = False) -> tuple[int, float]:
-    """Return how many frames one step of the finish moves by FINISH_MOVED_PX or more (mosaic px, the farthest
-    corner; a frame's undone drag changed counts as moved) and the median move, from the places before to those after
+    """Return how many frames one step of the finish moves by FINISH_MOVED_PX or more and their median move (mosaic
+    px, the finish's own measure: SessionReconstruction.moved_px), from the places before to those after
     (SessionReconstruction.stitch_places). similar: first map `before` by the one similarity of the canvas that fits
     `after` best (what a global scale and shift, as the gauge is, would account for without any frame pasted)."""
     import numpy as np
 
     from services.core.session_reconstruction import FINISH_MOVED_PX
 
-    calib = recon.calibration
-    w, h = calib.image_size
-    corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float).T
     kept = [i for i in after if i in before]
     if not kept:
         return 0, float("nan")
-
-    def on_canvas(place: Any) -> Any:
-        canvas = recon.canvas.pixels_to_canvas(place[0], calib.principal_point, calib.px_per_mm) @ corners
-        return canvas[0] + 1j * canvas[1]
-
-    old = np.array([on_canvas(before[i]) for i in kept])
-    new = np.array([on_canvas(after[i]) for i in kept])
     if similar:
+        old = np.array([recon.corners_px(before[i][0]) for i in kept])
+        new = np.array([recon.corners_px(after[i][0]) for i in kept])
         design = np.column_stack([old.ravel(), np.ones(old.size)])
-        old = (design @ np.linalg.lstsq(design, new.ravel(), rcond=None)[0]).reshape(old.shape)
-    moved = np.abs(new - old).max(axis=1)
-    dragged = np.array([before[i][1] != after[i][1] for i in kept])
-    count = int(np.count_nonzero((moved >= FINISH_MOVED_PX) | dragged))
-    return count, float(np.median(moved))
+        fitted = (design @ np.linalg.lstsq(design, new.ravel(), rcond=None)[0]).reshape(old.shape)
+        drags = np.array([recon.drag_shift_px(before[i], after[i]) for i in kept])
+        moved = np.abs(new - fitted).max(axis=1) + drags
+    else:
+        moved = np.array([recon.moved_px(before[i], after[i]) for i in kept])
+    return int(np.count_nonzero(moved >= FINISH_MOVED_PX)), float(np.median(moved))
 
 
 def median_of(runs: list[dict[str, float | int]]) -> dict[str, float | int]:
@@ -274,8 +261,9 @@ def main() -> int:
                 + f" | {got['step_calibrate_after_similarity_moved']:.0f} |"
             )
     print("\nwhat moves the frames at the finish: frames a step alone moves by a quarter pixel or more")
-    print("(FINISH_MOVED_PX; its undone drag changed counts too), the median move in px in brackets; the last column")
-    print("is the gauge's step after the one similarity of the canvas that fits it best (a global scale and shift)\n")
+    print("(FINISH_MOVED_PX, the finish's own measure: the farthest corner plus the undone drag's change), the median")
+    print("move in px in brackets; the last column is the gauge's step after the one similarity of the canvas that")
+    print("fits it best (a global scale and shift)\n")
     print("| scan | tree | frames | the final pass, drag learned | the law's scales | the gauge | after a similarity |")
     print("|---|---|---:|---:|---:|---:|---:|")
     print("\n".join(steps))

@@ -61,6 +61,8 @@ LIVE_REPASTE_PX = 2.0
 # and new places, are made again; the final pass, the drag and the gauge usually move every frame of a `best` session.
 FINISH_MOVED_PX = 0.25
 NO_DRAG: tuple[complex, float] = (0j, 0.0)  # a frame's planes undo no drag: (drag mm, profile width mm)
+# where a frame is pasted: its stitch affine (rectified frame mm -> mosaic mm, 2x3) and the drag its planes undo
+Place = tuple[np.ndarray, tuple[complex, float]]
 # Frames a refinement moved are re-pasted a few per registered frame (oldest first), not all at once: a global
 # pass moves most of a long examination's frames, whose re-paste at once held one frame for seconds. The new frame
 # and the moved frames whose planes are kept (the newest) are pasted at once; settle() lets a caught-up worker
@@ -423,35 +425,49 @@ class SessionReconstruction:
         emptied = {key for key in tiles if self.canvas.tiles.pop(key, None) is not None}
         return emptied | self._paste_in_order(over, only=tiles)
 
-    def stitch_places(self) -> dict[int, tuple[np.ndarray, tuple[complex, float]]]:
+    def stitch_places(self) -> dict[int, Place]:
         """Return, in index order, each pasteable frame's stitch affine (rectified frame mm -> mosaic mm, 2x3) and the
         drag its planes undo (mm, profile width mm), as they are now: where a restitch would paste it."""
         return {
             i: (pose, self._drag_state(i)) for i in sorted(self.frames) if (pose := self._stitch_pose(i)) is not None
         }
 
-    def _pasted_place(self, index: int) -> tuple[np.ndarray, tuple[complex, float]] | None:
+    def _pasted_place(self, index: int) -> Place | None:
         """Return the stitch affine a frame is pasted with and the drag its planes undid, or None (not pasted)."""
         pose = self.pasted.get(index)
         return None if pose is None else (pose, self.pasted_drag.get(index, NO_DRAG))
 
-    def _moved(
-        self, old: tuple[np.ndarray, tuple[complex, float]] | None, new: tuple[np.ndarray, tuple[complex, float]] | None
-    ) -> bool:
-        """Return True when a frame pasted at `old` (affine, drag; None: not pasted) must be pasted again for `new`:
-        pasted or not, or some point of it would move by FINISH_MOVED_PX mosaic pixels or more."""
+    def _moved(self, old: Place | None, new: Place | None) -> bool:
+        """Return True when a frame pasted at `old` (None: not pasted) must be pasted again for `new`: pasted or not,
+        or moved by FINISH_MOVED_PX mosaic pixels or more (moved_px)."""
         if old is None or new is None:
             return old is not new
+        return self.moved_px(old, new) >= FINISH_MOVED_PX
+
+    def corners_px(self, affine: np.ndarray) -> np.ndarray:
+        """Return the (4,) canvas positions (complex, mosaic px) of the corners of a frame pasted with the stitch
+        affine `affine` (rectified frame mm -> mosaic mm, 2x3): where an affine moves a frame most."""
         calib = self.calibration
-        before, after = (self.canvas.pixels_to_canvas(p[0], calib.principal_point, calib.px_per_mm) for p in (old, new))
         w, h = calib.image_size
-        corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float)  # an affine moves most at a corner
-        moved_px = float(np.max(np.hypot(*((after - before) @ corners.T))))
+        corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float).T
+        on_canvas = self.canvas.pixels_to_canvas(affine, calib.principal_point, calib.px_per_mm) @ corners
+        return on_canvas[0] + 1j * on_canvas[1]
+
+    def drag_shift_px(self, old: Place, new: Place) -> float:
+        """Return the most (mosaic px) a change of a frame's undone drag from place `old` to `new` shifts a pixel:
+        D phi with phi <= 1 (physics.drag), so |D1 - D0| on one profile, |D0| + |D1| across two, through the new
+        affine's largest stretch."""
         (d0, w0), (d1, w1) = old[1], new[1]
-        # the undone drag shifts a pixel by D phi (phi <= 1, physics.drag): by |D1 - D0| at most on the same profile
         drag_mm = abs(d1 - d0) if w0 == w1 or 0 in (d0, d1) else abs(d0) + abs(d1)
-        moved_px += drag_mm * calib.px_per_mm * float(np.linalg.norm(after[:, :2], 2))
-        return moved_px >= FINISH_MOVED_PX
+        calib = self.calibration
+        affine = self.canvas.pixels_to_canvas(new[0], calib.principal_point, calib.px_per_mm)
+        return drag_mm * calib.px_per_mm * float(np.linalg.norm(affine[:, :2], 2))
+
+    def moved_px(self, old: Place, new: Place) -> float:
+        """Return how far (mosaic px) a frame pasted at place `old` moves when pasted at `new`: its farthest corner's
+        move plus the most its undone drag's change shifts a pixel (the finish's rule against FINISH_MOVED_PX)."""
+        corner = float(np.max(np.abs(self.corners_px(new[0]) - self.corners_px(old[0]))))
+        return corner + self.drag_shift_px(old, new)
 
     def _footprint(self, pose: np.ndarray) -> list[tuple[int, int]]:
         """Return the canvas tiles a frame pasted with the stitch affine `pose` may cover."""
@@ -462,7 +478,7 @@ class SessionReconstruction:
         )
 
     def _paste_in_order(
-        self, places: dict[int, tuple[np.ndarray, tuple[complex, float]]], only: set[tuple[int, int]] | None = None
+        self, places: dict[int, Place], only: set[tuple[int, int]] | None = None
     ) -> set[tuple[int, int]]:
         """Paste frames at their places (index order: the same sums a whole restitch makes), within `only` (None:
         anywhere); return the tiles touched.

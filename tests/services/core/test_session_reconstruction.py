@@ -24,7 +24,7 @@ from services.core.mosaic.canvas import MosaicImage
 from services.core.path_rows import path_rows_json
 from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
 from services.core.registration.frame_prep import PreparedFrame
-from services.core.session_reconstruction import RECENT_LAYERS, SessionReconstruction
+from services.core.session_reconstruction import FINISH_MOVED_PX, NO_DRAG, RECENT_LAYERS, SessionReconstruction
 from services.core.similarity import Similarity
 from services.store.scan_folder import read_scan_folder
 from tests.shared_scans import SHARED_SCANS
@@ -141,7 +141,33 @@ def test_moved_frames_are_repainted_a_few_at_a_time_and_settle_within_the_tolera
     for i in final:
         np.testing.assert_allclose(final[i][0][:, :2], places["scales"][i][0][:, :2] / live.gauge, rtol=1e-12)
     assert set(live.pasted) == set(final)
-    assert not [i for i in live.pasted if live._moved(live._pasted_place(i), final[i])]
+    assert all(live.moved_px(live._pasted_place(i), final[i]) < FINISH_MOVED_PX for i in live.pasted)
+
+
+def test_a_frames_move_is_its_farthest_corner_plus_the_most_its_undone_drag_shifts_a_pixel(live_run: LiveRun) -> None:
+    live = live_run.live
+    affine = next(iter(live.stitch_places().values()))[0]
+    place = (affine, NO_DRAG)
+    assert live.moved_px(place, place) == 0.0
+    # a shift of the whole frame by 0.1 mm moves every corner by 0.1 mm at the canvas's scale (float64 rounding)
+    shifted = affine.copy()
+    shifted[:, 2] += (0.06, 0.08)
+    assert live.moved_px(place, (shifted, NO_DRAG)) == pytest.approx(0.1 * live.canvas.px_per_mm, rel=1e-9)
+    # a turn about the frame's centre moves its corners by the turn times their distance from the centre
+    turn = 1e-3
+    turned = affine.copy()
+    turned[:, :2] = affine[:, :2] @ np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    w, h = live.calibration.image_size
+    cx, cy = live.calibration.principal_point
+    corners_mm = np.array([[x - cx, y - cy] for x in (0, w) for y in (0, h)]) / live.calibration.px_per_mm
+    moves_mm = (turned[:, :2] - affine[:, :2]) @ corners_mm.T
+    expected = float(np.max(np.hypot(*moves_mm))) * live.canvas.px_per_mm
+    assert live.moved_px(place, (turned, NO_DRAG)) == pytest.approx(expected, rel=1e-6)
+    # a drag undone anew (0.05 mm) adds at most its size at the affine's largest stretch; on two profiles, both
+    stretch = np.linalg.norm(affine[:, :2], 2) * live.canvas.px_per_mm
+    assert live.drag_shift_px(place, (affine, (0.05j, 15.0))) == pytest.approx(0.05 * stretch, rel=1e-9)
+    both = live.drag_shift_px((affine, (0.03 + 0j, 12.0)), (affine, (0.05j, 15.0)))
+    assert both == pytest.approx(0.08 * stretch, rel=1e-9)
 
 
 def on_one_grid(*mosaics: MosaicImage) -> list[tuple[np.ndarray, np.ndarray]]:
