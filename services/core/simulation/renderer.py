@@ -54,6 +54,8 @@ class TissueLaw:
     anisotropy_axis: str = "probe"
     anisotropy_angle_deg: float = 0.0
     anchor_n: float = 10.0
+    # the strain's growth towards the rim, not in spec §2: (1 + radial (|p'| / UNMODELLED_RADIUS_MM)^2) times it
+    radial: float = UNMODELLED_RADIAL
 
     def strain(self, load_n: np.ndarray) -> np.ndarray:
         """Return the isotropic strain (dimensionless) at local loads (N)."""
@@ -89,6 +91,7 @@ class TissueLaw:
             "anisotropy_axis": self.anisotropy_axis,
             "anisotropy_angle_deg": self.anisotropy_angle_deg,
             "anchor_n": self.anchor_n,
+            "radial": self.radial,
         }
 
 
@@ -178,15 +181,16 @@ def true_undeformed_mm(
 ) -> np.ndarray:
     """Return the undeformed position (H, W, 2) mm about the frame centre of every raw pixel.
 
-    The tilted view is undone first (view_stretch), then p = (I - s(F(p')) (1 + 0.05 (|p'| / 25 mm)^2) T) p',
+    The tilted view is undone first (view_stretch), then p = (I - s(F(p')) (1 + r (|p'| / 25 mm)^2) T) p',
     s the tissue law's strain, T its anisotropy in the frame's axes at the probe's yaw (deg; TissueLaw.
     anisotropy_tensor) and F(p') = max(0, F_Z + kappa Z(p')) from spec §2 with the TRUE constants; the radial term
-    is deliberately not in spec §2. Without a law: linear, s = c F with c = nu / (E A) of true_calib.
+    (r the law's radial, UNMODELLED_RADIAL by default) is deliberately not in spec §2. Without a law: linear, s = c F
+    with c = nu / (E A) of true_calib.
     """
     law = law or TissueLaw("linear", true_calib.compliance_per_n)
     surface = view_stretch(geometry.observed_mm, state)
     load = local_load_n(geometry.observed_mm, state, true_calib)
-    extra = 1.0 + UNMODELLED_RADIAL * geometry.radius_sq_mm2 / UNMODELLED_RADIUS_MM**2
+    extra = 1.0 + law.radial * geometry.radius_sq_mm2 / UNMODELLED_RADIUS_MM**2
     strain = law.strain(load) * extra
     if law.anisotropy == 0.0:
         return surface * (1.0 - strain)[..., None]

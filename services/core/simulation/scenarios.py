@@ -173,6 +173,7 @@ def simulate(
     imu: bool = False,
     texture: np.ndarray | None = None,
     drag: bool = False,
+    radial: float | None = None,
 ) -> Scan:
     """Return a simulated Scan (frames in memory) of a scenario in SCENARIOS, deterministic for the seed.
 
@@ -196,6 +197,8 @@ def simulate(
     drag: the skin is dragged by friction under the sliding window (simulation.skin_drag: stick-slip, a
     centre-to-rim profile); the reference is then where the skin under the window's centre rests, and truth
     gains "drag" (the profile) and "drag_mm" (each frame's drag at the centre, its axes).
+    radial: the strain's growth towards the window's rim that spec §2 does not have (TissueLaw.radial; None: the
+    renderer's UNMODELLED_RADIAL). The shared scans show none (docs/accuracy.md); 0 renders without it.
     """
     if scenario not in ALL_SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; expected one of {', '.join(ALL_SCENARIOS)}")
@@ -214,6 +217,8 @@ def simulate(
         spec = spec and dataclasses.replace(spec, max_tilt_deg=HAND_TILT_DEG[scenario])
     true_calib = calib.with_overrides(young_modulus_kpa=e_true, hooke_n_per_mm=kappa_true)
     law = draw_tissue_law(rng_const, tissue or "linear", true_calib.compliance_per_n)
+    if radial is not None:
+        law = dataclasses.replace(law, radial=float(radial))
     if law.anisotropy_axis == "tissue" and spec is not None:  # the probe yaws: the tissue's axis turns in its frames
         spec = dataclasses.replace(spec, yaw_amplitude_deg=max(spec.yaw_amplitude_deg, TISSUE_AXIS_YAW_DEG))
     sep = calib.sensor_separation_mm

@@ -77,6 +77,10 @@ def test_true_deformation_matches_its_formula() -> None:
     np.testing.assert_allclose(p, obs * factor[..., None], rtol=1e-12)  # the same closed form: rounding only
     # pressing stretches the skin: every point appears farther out than it is
     assert np.all(np.linalg.norm(p, axis=-1) <= np.linalg.norm(obs, axis=-1) + 1e-12)
+    # without the radial term (as the shared scans are) the strain is the same over the whole window
+    flat = true_undeformed_mm(g, state, true_calib, TissueLaw("linear", c, radial=0.0))
+    np.testing.assert_allclose(flat, obs * (1 - c * 10.0), rtol=1e-12)
+    assert np.abs(flat - p).max() > 0.01  # mm: the term's 5 % of a 7 % strain at 25 mm shows (the check has teeth)
 
 
 def test_an_anisotropy_fixed_in_the_tissue_turns_against_the_probe() -> None:

@@ -60,6 +60,18 @@ def test_same_seed_gives_identical_scan_and_other_seed_differs() -> None:
     assert a.truth["young_modulus_kpa"] != c.truth["young_modulus_kpa"]
 
 
+def test_the_radial_term_changes_the_frames_alone() -> None:
+    # simulate(radial=0) renders the same scan (motion, forces, truth) without the strain's growth to the rim
+    plain, flat = sim("short", 5), simulate("short", 5, imu=True, radial=0.0)
+    for name in ("frame_t_s", "forces_n", "imu_tilt_deg", "reference_mm", "mask"):
+        np.testing.assert_array_equal(getattr(plain, name), getattr(flat, name), err_msg=name)
+    assert plain.truth["tissue"]["radial"] > 0 and flat.truth["tissue"]["radial"] == 0.0
+    assert {k: v for k, v in plain.truth.items() if k != "tissue"} == {
+        k: v for k, v in flat.truth.items() if k != "tissue"
+    }
+    assert not np.array_equal(plain.frame(len(plain) - 1), flat.frame(len(flat) - 1))
+
+
 @pytest.mark.parametrize(
     ("scenario", "n_frames", "dtype"),
     [("raster", 336, np.uint8), ("revisit", 240, np.uint8), ("hard", 200, np.uint16), ("short", 40, np.uint8),
