@@ -24,7 +24,13 @@ from services.core.mosaic.canvas import MosaicImage
 from services.core.path_rows import path_rows_json
 from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
 from services.core.registration.frame_prep import PreparedFrame
-from services.core.session_reconstruction import FINISH_MOVED_PX, NO_DRAG, RECENT_LAYERS, SessionReconstruction
+from services.core.session_reconstruction import (
+    FINISH_MOVED_PX,
+    NO_DRAG,
+    RECENT_LAYERS,
+    Place,
+    SessionReconstruction,
+)
 from services.core.similarity import Similarity
 from services.store.scan_folder import read_scan_folder
 from tests.shared_scans import SHARED_SCANS
@@ -129,7 +135,7 @@ def test_moved_frames_are_repainted_a_few_at_a_time_and_settle_within_the_tolera
     # every pasted frame now lies within LIVE_REPASTE_PX of its current pose (tolerance: the rule itself)
     lagging = [i for i, pasted in live.pasted.items() if not live._unseen_move(pasted, live._stitch_pose(i))]
     assert not lagging
-    places: dict[str, dict[int, tuple[np.ndarray, tuple[complex, float]]]] = {}
+    places: dict[str, dict[int, Place]] = {}
     live.finish(lambda step: places.setdefault(step, live.stitch_places()))
     assert list(places) == ["refine", "scales", "calibrate"]  # the finish's steps, named in order
     assert not live.stale
