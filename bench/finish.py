@@ -132,6 +132,9 @@ def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | 
             moved, median = step_moves(recon, places[before], places[step])
             out[f"step_{step}_moved"], out[f"step_{step}_px"] = moved, median
         out["step_calibrate_after_similarity_moved"] = step_moves(recon, places["scales"], places["calibrate"], True)[0]
+        out["whole_after_similarity_moved"], out["whole_after_similarity_px"] = step_moves(
+            recon, places["live"], places["calibrate"], True
+        )
         changed = pyramid.update(recon.canvas, touched)
         lap("pyramid")
         publisher.write_tiles(sid, 1, pyramid, changed, n, revisions, durable=True)
@@ -183,10 +186,12 @@ def step_moves(recon: Any, before: dict[int, Any], after: dict[int, Any], simila
     if not kept:
         return 0, float("nan")
     if similar:
-        old = np.array([recon.corners_px(before[i][0]) for i in kept])
-        new = np.array([recon.corners_px(after[i][0]) for i in kept])
-        design = np.column_stack([old.ravel(), np.ones(old.size)])
-        fitted = (design @ np.linalg.lstsq(design, new.ravel(), rcond=None)[0]).reshape(old.shape)
+        old = np.array([recon.corners_px(before[i][0]) for i in kept]).ravel()
+        new = np.array([recon.corners_px(after[i][0]) for i in kept]).ravel()
+        zero, one = np.zeros(old.size), np.ones(old.size)  # new = s old + o: a real scale s, a shift o (no turn)
+        design = np.vstack([np.column_stack([old.real, one, zero]), np.column_stack([old.imag, zero, one])])
+        s, ox, oy = np.linalg.lstsq(design, np.concatenate([new.real, new.imag]), rcond=None)[0]
+        fitted, new = (s * old + (ox + 1j * oy)).reshape(-1, 4), new.reshape(-1, 4)
         drags = np.array([recon.drag_shift_px(before[i], after[i]) for i in kept])
         moved = np.abs(new - fitted).max(axis=1) + drags
     else:
@@ -258,14 +263,18 @@ def main() -> int:
             steps.append(
                 f"| {Path(scan).name} | {name} | {got['frames']:.0f} | "
                 + " | ".join(f"{got[f'step_{k}_moved']:.0f} ({got[f'step_{k}_px']:.2f})" for k in STEPS)
-                + f" | {got['step_calibrate_after_similarity_moved']:.0f} |"
+                + f" | {got['step_calibrate_after_similarity_moved']:.0f}"
+                + f" | {got['whole_after_similarity_moved']:.0f} ({got['whole_after_similarity_px']:.2f}) |"
             )
     print("\nwhat moves the frames at the finish: frames a step alone moves by a quarter pixel or more")
     print("(FINISH_MOVED_PX, the finish's own measure: the farthest corner plus the undone drag's change), the median")
     print("move in px in brackets; the last column is the gauge's step after the one similarity of the canvas that")
     print("fits it best (a global scale and shift)\n")
-    print("| scan | tree | frames | the final pass, drag learned | the law's scales | the gauge | after a similarity |")
-    print("|---|---|---:|---:|---:|---:|---:|")
+    print(
+        "| scan | tree | frames | the final pass, drag learned | the law's scales | the gauge | after a similarity "
+        "| the whole finish after a similarity |"
+    )
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
     print("\n".join(steps))
     return 0
 
