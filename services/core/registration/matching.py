@@ -101,33 +101,21 @@ def match_features(
 
 
 def unique_pairs(src: np.ndarray, dst: np.ndarray, radius: float = 2.0) -> np.ndarray:
-    """Return a boolean mask keeping one of each group of matches whose ends both lie within radius."""
+    """Return a boolean mask keeping one of each group of matches whose ends both lie within radius.
+
+    Greedy in order: a match goes when an earlier match that was kept has both ends within radius of its own (each
+    coordinate). The close pairs come from one comparison of every pair (a few hundred matches at most); only the
+    matches with an earlier close one are walked in order.
+    """
     keep = np.ones(len(src), bool)
     if len(src) < 2:
         return keep
-    cell = {}
-    for i in range(len(src)):
-        key = (int(src[i, 0] // radius), int(src[i, 1] // radius))
-        duplicate = False
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                for j in cell.get((key[0] + dx, key[1] + dy), ()):
-                    if (
-                        abs(src[i, 0] - src[j, 0]) <= radius
-                        and abs(src[i, 1] - src[j, 1]) <= radius
-                        and abs(dst[i, 0] - dst[j, 0]) <= radius
-                        and abs(dst[i, 1] - dst[j, 1]) <= radius
-                    ):
-                        duplicate = True
-                        break
-                if duplicate:
-                    break
-            if duplicate:
-                break
-        if duplicate:
-            keep[i] = False
-        else:
-            cell.setdefault(key, []).append(i)
+    ends = np.hstack([src, dst])
+    close = np.tril(np.ones((len(src), len(src)), bool), -1)  # j < i
+    for column in ends.T:
+        close &= np.abs(column[:, None] - column[None, :]) <= radius
+    for i in np.flatnonzero(close.any(axis=1)):
+        keep[i] = not keep[close[i]].any()
     return keep
 
 
