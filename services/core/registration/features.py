@@ -106,15 +106,11 @@ def detect_features(
     """
     if image.dtype != np.uint8:
         raise ValueError("detect_features expects an 8-bit image")
-    if target > 0 and kind == "sift" and finest_octave >= 0:
+    if target > 0 and kind == "sift":
         detector = _detector(kind, 0, min(contrast_threshold, ADAPTIVE_CONTRAST_THRESHOLD))
-        found = detect_without_doubling(detector, image, mask)
+        found = detector.detect(image, mask) if finest_octave < 0 else detect_without_doubling(detector, image, mask)
         keypoints, descriptors = detector.compute(image, spread_keypoints(found, image.shape[:2], target))
-    elif target > 0:
-        # describe every keypoint found, then select: AffineFeature describes a keypoint in the view it was found
-        # in, and SIFT on the one Gaussian pyramid it detected on (describing the selection alone built that
-        # pyramid again: `python bench/worker_cost.py --repo <before> --repo .`, prepare 37.0 -> 35.6 ms a frame;
-        # the features are the same)
+    elif target > 0:  # AffineFeature describes a keypoint in the view it was found in: describe, then select
         detector = _detector(kind, 0, min(contrast_threshold, ADAPTIVE_CONTRAST_THRESHOLD))
         found, all_descriptors = detector.detectAndCompute(image, mask)
         row = {id(k): i for i, k in enumerate(found)}

@@ -192,21 +192,6 @@ def test_adaptive_descriptors_match_a_shifted_copy(faint_frame, kind: str) -> No
     assert abs(fit.transform.t - 24) < 0.5 and abs(abs(fit.transform.a) - 1) < 0.01
 
 
-def test_adaptive_sift_describes_its_selection_as_describing_it_alone_would(faint_frame) -> None:
-    # every keypoint found is described on the one pyramid, then the spread selection kept: its descriptors are those
-    # SIFT's compute gives the selection alone (which builds the same doubled pyramid again), exactly (tolerance 0)
-    img, mask, _ = faint_frame
-    vein = enhance_veins(img, mask, 6)
-    kept = detect_features(vein.image, vein.mask, "sift", target=300)
-    detector = _detector("sift", 0, 0.005)
-    found = detector.detect(vein.image, vein.mask)
-    chosen = spread_keypoints(found, vein.image.shape[:2], 300)
-    assert len(found) > 300 and any(_octave(k) == -1 for k in chosen)  # a selection, from the doubled octave too
-    alone_points, alone = detector.compute(vein.image, chosen)
-    assert np.array_equal(kept.points, np.array([k.pt for k in alone_points]))
-    assert np.array_equal(kept.descriptors, np.clip(np.rint(alone), 0, 255).astype(np.uint8))
-
-
 def test_sift_descriptors_are_kept_exactly_as_uint8() -> None:
     """OpenCV's SIFT values are whole numbers 0-255: the uint8 copy loses nothing (tolerance 0)."""
     rng = np.random.default_rng(3)
