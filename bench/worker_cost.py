@@ -1,6 +1,7 @@
 """CPU per frame of a live worker's steps (issues 15, 32): where a frame's processing time goes, and what threads cost.
 
     .venv/bin/python bench/worker_cost.py [--frames 150] [--copies 1,2] [--threads 1,2] [--repo PATH ...]
+                                          [--scan SCAN_FOLDER]
 
 Each measurement runs in a child process doing in order what the service's workers do with each frame of a simulated
 raster scan, on a temporary data dir: the upload decoded (the stored PNG read, its header checked, decoded:
@@ -14,7 +15,10 @@ mosaic rendered and its images written every 20 frames (2 s of scan). It prints 
 (the process's CPU time: all its threads), then the same in wall time (a step's disk waits are in it). A
 configuration is a number of copies run at once (like that many busy workers on the machine), the BLAS/OpenCV
 threads of each, and the source tree measured (--repo: e.g. `git archive <commit> | tar -x -C /tmp/old`, to compare
-code in the same run). The first configuration is the baseline of the ratio column.
+code in the same run). The first configuration is the baseline of the ratio column. --scan a scan folder (e.g.
+../shared/scans/raster_veins_23) measures its first --frames frames instead of the simulated raster: the simulator's
+vein maps hold about half the SIFT keypoints of the shared scans', so SIFT costs more on real frames (each copy runs
+the same folder then).
 """
 
 from __future__ import annotations
@@ -37,8 +41,11 @@ PARTS = (
 WORK = ("prepare", "register")  # the algorithm; the other steps are the service's overhead
 
 
-def measure(frames: int, flush_every: int, seed: int, overrides: dict[str, object]) -> dict[str, float]:
-    """Return CPU ms per frame of each step of a live worker's work on a simulated raster (this process)."""
+def measure(
+    frames: int, flush_every: int, seed: int, overrides: dict[str, object], folder: str | None = None
+) -> dict[str, float]:
+    """Return CPU ms per frame of each step of a live worker's work on a simulated raster or a scan folder (this
+    process)."""
     import cv2
 
     from services.core.methods import method_options
@@ -48,11 +55,12 @@ def measure(frames: int, flush_every: int, seed: int, overrides: dict[str, objec
     from services.core.session_reconstruction import SessionReconstruction
     from services.core.simulation.scenarios import simulate
     from services.store.results_store import ResultsStore
+    from services.store.scan_folder import read_scan_folder
     from services.store.storage import SessionStore
     from services.store.version_state import VersionState
 
     cv2.setNumThreads(int(os.environ.get("BENCH_CV_THREADS", "1")))
-    scan = simulate("raster", seed)
+    scan = read_scan_folder(folder) if folder else simulate("raster", seed)
     options = method_options("best").with_overrides(overrides)
     calib = scan.calibration
     forces = frame_forces(scan)
@@ -65,8 +73,10 @@ def measure(frames: int, flush_every: int, seed: int, overrides: dict[str, objec
         store, results = SessionStore(Path(tmp)), ResultsStore(Path(tmp))
         sid = store.create_session(uuid.uuid4().hex * 2, "bench", calib).id
         results.ensure_version(sid, 1, {"method": options.name})
-        for i in range(n):  # the uploads, as the API stores them (not measured: the API's work)
-            store.put_frame(sid, i, float(scan.frame_t_s[i]), cv2.imencode(".png", scan.frame(i))[1].tobytes(), "png")
+        seqs = [int(seq) for seq in scan.frame_seq[:n]]  # a frame is stored, prepared and registered by its seq
+        for i, seq in enumerate(seqs):  # the uploads, as the API stores them (not measured: the API's work)
+            png = cv2.imencode(".png", scan.frame(i))[1].tobytes()
+            store.put_frame(sid, seq, float(scan.frame_t_s[i]), png, "png")
         recon = SessionReconstruction(calib, options, window_radius_mm(mask, calib), live=True)
         geometry = DziGeometry.for_mosaic(calib.px_per_mm, 200.0)
         pyramid = TilePyramid(geometry)
@@ -82,9 +92,11 @@ def measure(frames: int, flush_every: int, seed: int, overrides: dict[str, objec
             waited[part] += now[1] - t[1]
             t = now
 
-        for i in range(n):
+        for i, seq in enumerate(seqs):
+            for dropped in range(len(recon.results), seq):  # seqs the camera dropped: missing, as live
+                recon.lose(dropped)
             t = (clock(), time.monotonic())
-            raw = store.load_frame(sid, i, expected_size=calib.image_size)
+            raw = store.load_frame(sid, seq, expected_size=calib.image_size)
             lap("decode")
             # prepare_scan_frame reads the scan's own copy of the frame: the decoded upload is the same pixels
             assert raw.shape == scan.frame(i).shape
@@ -92,7 +104,7 @@ def measure(frames: int, flush_every: int, seed: int, overrides: dict[str, objec
             lap("prepare")
             results.write_prepared(sid, 1, pf)
             lap("prepared_write")
-            pf = results.read_prepared(sid, 1, i)
+            pf = results.read_prepared(sid, 1, seq)
             lap("prepared_read")
             touched |= recon.add(pf)[1]
             lap("register")
@@ -149,6 +161,7 @@ def run_config(args: argparse.Namespace, copies: int, threads: int, repo: Path, 
     env["BENCH_CV_THREADS"] = str(threads)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--frames", str(args.frames)]
     cmd += ["--flush-every", str(args.flush_every), "--option-set", options]
+    cmd += ["--scan", str(args.scan.resolve())] if args.scan else []
     procs = [
         subprocess.Popen([*cmd, "--seed", str(1 + k)], env=env, cwd=repo, stdout=subprocess.PIPE, text=True)
         for k in range(copies)
@@ -165,11 +178,12 @@ def run_config(args: argparse.Namespace, copies: int, threads: int, repo: Path, 
 def main() -> int:
     """Print the table of CPU ms per frame by part for every configuration (see the module docstring)."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--frames", type=int, default=150, help="frames of the simulated raster measured")
+    p.add_argument("--frames", type=int, default=150, help="frames measured (the first)")
     p.add_argument("--flush-every", type=int, default=5, help="frames per flush (0.5 s at 10 frames/s)")
     p.add_argument("--copies", default="1,2", help="copies run at once (busy workers on the machine)")
     p.add_argument("--threads", default="1", help="BLAS and OpenCV threads per process, e.g. 1,2")
     p.add_argument("--repo", type=Path, action="append", default=None, help="source trees to measure")
+    p.add_argument("--scan", type=Path, default=None, help="a scan folder instead of the simulated raster")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--seed", type=int, default=1, help=argparse.SUPPRESS)
     p.add_argument(
@@ -180,7 +194,9 @@ def main() -> int:
     )
     args = p.parse_args()
     if args.child:
-        print(json.dumps(measure(args.frames, args.flush_every, args.seed, json.loads(args.option_set[0]))))
+        overrides = json.loads(args.option_set[0])
+        folder = str(args.scan) if args.scan else None
+        print(json.dumps(measure(args.frames, args.flush_every, args.seed, overrides, folder)))
         return 0
     repos = args.repo or [REPO]
     configs = [
@@ -190,26 +206,29 @@ def main() -> int:
         for threads in (int(t) for t in args.threads.split(","))
         for copies in (int(c) for c in args.copies.split(","))
     ]
-    print(f"raster, {args.frames} frames, a flush every {args.flush_every} frames; CPU ms per frame (mean of copies)")
+    name = args.scan.name if args.scan else "raster"
+    print(f"{name}, {args.frames} frames, a flush every {args.flush_every} frames; CPU ms per frame (mean of copies)")
     print()
     print("| tree | options | copies | threads | " + " | ".join(PARTS) + " | overhead | total | vs first |")
     print("|---|---|---:|---:|" + "---:|" * (len(PARTS) + 3))
     base = None
     walls = []
     for repo, copies, threads, options in configs:
-        print(f"running {repo.name} {options}: {copies} copies x {threads} threads ...", file=sys.stderr)
+        print(f"running {repo.resolve().name} {options}: {copies} copies x {threads} threads ...", file=sys.stderr)
         rows = run_config(args, copies, threads, repo, options)
         mean = {part: sum(r[part] for r in rows) / len(rows) for part in PARTS}
         total = sum(mean.values())
         overhead = total - sum(mean[part] for part in WORK)
         base = total if base is None else base
         cells = " | ".join(f"{mean[part]:.1f}" for part in PARTS)
-        row = f"| {repo.name} | {options} | {copies} | {threads} | {cells} | {overhead:.1f} | {total:.1f} "
+        row = f"| {repo.resolve().name} | {options} | {copies} | {threads} | {cells} | {overhead:.1f} | {total:.1f} "
         row += f"| {total / base:.2f}x |"
         print(row, flush=True)
         wall = {part: sum(r[f"{part}_wall"] for r in rows) / len(rows) for part in PARTS}
         walls.append(
-            f"| {repo.name} | {options} | {copies} | {threads} | " + " | ".join(f"{wall[p]:.1f}" for p in PARTS) + " |"
+            f"| {repo.resolve().name} | {options} | {copies} | {threads} | "
+            + " | ".join(f"{wall[p]:.1f}" for p in PARTS)
+            + " |"
         )
     print("\nwall ms per frame (mean of copies): a step's waits (fsync, other processes) are in it\n")
     print("| tree | options | copies | threads | " + " | ".join(PARTS) + " |")
