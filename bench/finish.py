@@ -131,8 +131,9 @@ def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | 
         for before, step in zip(("live", *STEPS), STEPS, strict=False):  # each step from the places before it
             moved, median = step_moves(recon, places[before], places[step])
             out[f"step_{step}_moved"], out[f"step_{step}_px"] = moved, median
-        out["step_calibrate_after_similarity_moved"] = step_moves(recon, places["scales"], places["calibrate"], True)[0]
-        out["whole_after_similarity_moved"], out["whole_after_similarity_px"] = step_moves(
+        after_gauge = step_moves(recon, places["scales"], places["calibrate"], True)
+        out["step_calibrate_after_scale_shift_moved"] = after_gauge[0]
+        out["whole_after_scale_shift_moved"], out["whole_after_scale_shift_px"] = step_moves(
             recon, places["live"], places["calibrate"], True
         )
         changed = pyramid.update(recon.canvas, touched)
@@ -176,8 +177,8 @@ def moves_px(recon: Any, pasted: dict[int, Any]) -> tuple[float, float]:
 def step_moves(recon: Any, before: dict[int, Any], after: dict[int, Any], similar: bool = False) -> tuple[int, float]:
     """Return how many frames one step of the finish moves by FINISH_MOVED_PX or more and their median move (mosaic
     px, the finish's own measure: SessionReconstruction.moved_px), from the places before to those after
-    (SessionReconstruction.stitch_places). similar: first map `before` by the one similarity of the canvas that fits
-    `after` best (what a global scale and shift, as the gauge is, would account for without any frame pasted)."""
+    (SessionReconstruction.stitch_places). similar: first map `before` by the one scale and shift of the canvas that
+    fits `after` best (no turn: what mosaic.json's px_per_mm and origin_px could carry without any frame pasted)."""
     import numpy as np
 
     from services.core.session_reconstruction import FINISH_MOVED_PX
@@ -263,16 +264,16 @@ def main() -> int:
             steps.append(
                 f"| {Path(scan).name} | {name} | {got['frames']:.0f} | "
                 + " | ".join(f"{got[f'step_{k}_moved']:.0f} ({got[f'step_{k}_px']:.2f})" for k in STEPS)
-                + f" | {got['step_calibrate_after_similarity_moved']:.0f}"
-                + f" | {got['whole_after_similarity_moved']:.0f} ({got['whole_after_similarity_px']:.2f}) |"
+                + f" | {got['step_calibrate_after_scale_shift_moved']:.0f}"
+                + f" | {got['whole_after_scale_shift_moved']:.0f} ({got['whole_after_scale_shift_px']:.2f}) |"
             )
     print("\nwhat moves the frames at the finish: frames a step alone moves by a quarter pixel or more")
     print("(FINISH_MOVED_PX, the finish's own measure: the farthest corner plus the undone drag's change), the median")
-    print("move in px in brackets; the last column is the gauge's step after the one similarity of the canvas that")
-    print("fits it best (a global scale and shift)\n")
+    print("move in px in brackets; the last two columns: the gauge's step, and the whole finish, after the one scale")
+    print("and shift of the canvas that fits each best (no turn: what mosaic.json could carry)\n")
     print(
-        "| scan | tree | frames | the final pass, drag learned | the law's scales | the gauge | after a similarity "
-        "| the whole finish after a similarity |"
+        "| scan | tree | frames | the final pass, drag learned | the law's scales | the gauge "
+        "| the gauge after a scale and shift | the whole finish after a scale and shift |"
     )
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     print("\n".join(steps))
