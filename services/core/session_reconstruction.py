@@ -42,6 +42,7 @@ from services.core.registration.outcome import (
     STATUS_REJECTED,
     FrameResult,
 )
+from services.core.registration.pose_graph import edge_yaw_sigma_deg
 from services.core.registration.registrar import Registrar
 from services.core.similarity import Similarity
 
@@ -553,13 +554,18 @@ class SessionReconstruction:
         return np.degrees(tilt_angles_rad(forces, fit.kappa_n_per_mm, self.calibration.sensor_separation_mm))
 
     def edge_yaws(self) -> np.ndarray:
-        """Return the main map's pose-graph edges as (E, 4) float64 rows: frame i, frame j, the relative yaw (deg) the
-        edge measures between the undeformed frames (as the graph uses it: view and drag corrections applied), and
-        1 for a loop closure (0 otherwise): what a tracker's yaw can check edge by edge (outputs.evaluation)."""
+        """Return the main map's pose-graph edges as (E, 5) float64 rows: frame i, frame j, the relative yaw (deg) the
+        edge measures between the undeformed frames (as the graph uses it: view and drag corrections applied), 1 for
+        a loop closure (0 otherwise), and the SD (deg) the graph weighs that yaw with (pose_graph.edge_yaw_sigma_deg):
+        what a tracker's yaw can check edge by edge (outputs.evaluation)."""
         reg = self.registrar
         edges = reg.corrections.undeformed(reg.edges, reg.poses)
-        rows = [(e.i, e.j, math.degrees(np.angle(e.relative.a)), float(e.loop)) for e in edges]
-        return np.array(rows, np.float64).reshape(-1, 4)
+        sigmas = edge_yaw_sigma_deg(edges)
+        rows = [
+            (e.i, e.j, math.degrees(np.angle(e.relative.a)), float(e.loop), s)
+            for e, s in zip(edges, sigmas, strict=True)
+        ]
+        return np.array(rows, np.float64).reshape(-1, 5)
 
     def path_rows(self) -> list[PathRow]:
         """Return one PathRow per frame seen so far (spec §4), in index order."""

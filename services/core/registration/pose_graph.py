@@ -21,6 +21,7 @@ RIDGE = 1e-9  # relative to unit-sigma rows: far below any real constraint
 DROP_WEIGHT = 1e-2  # an edge down-weighted below this is an outlier: it gets no pull at all
 PRIOR_A = 0.05  # each pose's a (scale, rotation) is held to its registered value with this sigma (5 %, ~3 deg)
 PRIOR_T_MM = 50.0  # ... and its t with this one (mm)
+LEVER_MM = 20.0  # an edge's a-row lever (mm) where the edge has none of its own (Edge.lever_mm 0)
 
 
 @dataclass(frozen=True)
@@ -91,6 +92,12 @@ def edge_centres_and_levers(edges: list[Edge], lever_mm: float) -> tuple[np.ndar
     c = np.array([e.centre for e in edges], dtype=complex)
     lever = np.array([e.lever_mm if e.lever_mm > 0 else lever_mm for e in edges], dtype=float)
     return c, lever
+
+
+def edge_yaw_sigma_deg(edges: list[Edge], lever_mm: float = LEVER_MM) -> np.ndarray:
+    """Return the SD (deg) each edge's rotation is weighed with in the graph: its a-row's sigma_mm over its lever."""
+    _, lever = edge_centres_and_levers(edges, lever_mm)
+    return np.degrees(np.array([e.sigma_mm for e in edges], dtype=float) / lever)
 
 
 def robust_weights(residuals_mm: np.ndarray, edges: list[Edge], scale_mm: float) -> np.ndarray:
@@ -182,7 +189,7 @@ def optimise_poses(
     initial: dict[int, Similarity],
     edges: list[Edge],
     fixed: int | Collection[int],
-    lever_mm: float = 20.0,
+    lever_mm: float = LEVER_MM,
     robust_mm: float = 0.5,
     iterations: int = 10,
     scale_priors: Mapping[int, tuple[float, float]] | None = None,
@@ -261,7 +268,7 @@ def _with_scale_priors(
     return vstack([A, extra]).tocsr(), np.concatenate([b, np.array([priors[n][0] for n in nodes]) * inv])
 
 
-def place_node(placed: dict[int, Similarity], edges: list[Edge], node: int, lever_mm: float = 20.0) -> Similarity:
+def place_node(placed: dict[int, Similarity], edges: list[Edge], node: int, lever_mm: float = LEVER_MM) -> Similarity:
     """Return the pose of `node` that best fits its edges to already placed nodes (their poses held)."""
     num_a, num_t, den = 0j, 0j, 0.0
     for e in edges:

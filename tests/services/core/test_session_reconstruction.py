@@ -24,6 +24,7 @@ from services.core.mosaic.canvas import MosaicImage
 from services.core.path_rows import path_rows_json
 from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
 from services.core.registration.frame_prep import PreparedFrame
+from services.core.registration.pose_graph import LEVER_MM
 from services.core.session_reconstruction import (
     FINISH_MOVED_PX,
     NO_DRAG,
@@ -318,11 +319,17 @@ def test_frame_kind_tells_keyframes_from_tracked_and_unplaced_frames(live_run: L
 
 
 def test_edge_yaws_are_the_graphs_edges_as_it_uses_them(live_run: LiveRun) -> None:
-    """One row per edge of the main map: its frames, the yaw its undeformed measurement gives, and its loop flag."""
+    """One row per edge of the main map: its frames, the yaw its undeformed measurement gives, its loop flag and the
+    SD the graph weighs that yaw with (its sigma over its a-row's lever, in degrees)."""
     reg = live_run.live.registrar
     rows = live_run.live.edge_yaws()
     edges = reg.corrections.undeformed(reg.edges, reg.poses)
-    assert rows.shape == (len(reg.edges), 4) and len(reg.edges) > live_run.frames[-1].index  # more than a chain
+    assert rows.shape == (len(reg.edges), 5) and len(reg.edges) > live_run.frames[-1].index  # more than a chain
+    levers = [e.lever_mm if e.lever_mm > 0 else LEVER_MM for e in edges]
+    assert np.allclose(
+        rows[:, 4], [np.degrees(e.sigma_mm / lever) for e, lever in zip(edges, levers, strict=True)], rtol=1e-12
+    )
+    assert np.all(rows[:, 4] > 0)
     assert [(int(i), int(j)) for i, j in rows[:, :2]] == [(e.i, e.j) for e in edges]
     assert np.allclose(rows[:, 2], [np.degrees(np.angle(e.relative.a)) for e in edges], atol=1e-12)
     assert rows[:, 3].tolist() == [float(e.loop) for e in edges] and rows[:, 3].sum() > 0  # row 2 closes loops

@@ -224,5 +224,18 @@ def test_edge_yaw_bias_known_answer_per_edge_kind() -> None:
     assert got["other_yaw_bias_deg"] == pytest.approx(0.01, abs=1e-9)
     assert got["loop_yaw_bias_deg"] == pytest.approx(-0.02, abs=1e-9)
     assert got["other_yaw_sd_deg"] == pytest.approx(0.0, abs=1e-9)
-    empty = edge_yaw_bias(np.zeros((0, 4)), ref)
+    assert math.isnan(got["loop_yaw_z_sd"])  # rows without the graph's sigmas: no z
+    empty = edge_yaw_bias(np.zeros((0, 5)), ref)
     assert empty["loop_edges"] == 0 and math.isnan(empty["loop_yaw_bias_deg"])
+
+
+def test_edge_yaw_bias_z_is_the_errors_sd_in_units_of_each_edges_sigma() -> None:
+    # loop closures off by +-0.04 deg weighed at 0.02 deg (z +-2), the chain's edges off by +-0.01 at 0.02 (z +-0.5):
+    # the loops pull twice as hard as they should against the chain, four times over what their evidence warrants
+    ref = np.zeros(9)
+    edges = [(k, k + 1, 0.01 * (-1) ** k, 0, 0.02) for k in range(8)]
+    edges += [(k, k + 5, 0.04 * (-1) ** k, 1, 0.02) for k in range(4)]
+    got = edge_yaw_bias(np.array(edges, float), ref)
+    assert got["other_yaw_z_sd"] == pytest.approx(0.5, abs=1e-9)
+    assert got["loop_yaw_z_sd"] == pytest.approx(2.0, abs=1e-9)
+    assert got["loop_yaw_sd_deg"] == pytest.approx(0.04, abs=1e-9)  # the SD in degrees as before
