@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from services.core.order_statistics import median
+
 DEFAULT_TARE_N = 0.0  # before any no-contact frame was seen
 DEFAULT_NOISE_N = 0.03  # the sensors' noise about their tare, before it is measured (N)
 FORCE_MARGIN_N = 0.15  # a load this far above the tare (at least; or TARE_NOISE_SIGMAS of its noise) is contact
@@ -58,8 +60,8 @@ def focus_measure(image: np.ndarray, mask: np.ndarray) -> float:
     inside = small_mask > 0
     if not np.any(inside):
         return 0.0
-    median = max(float(np.median(small[inside])), 1.0)
-    v = np.minimum(small / median, SPECK_LEVEL)
+    level = max(median(small[inside]), 1.0)
+    v = np.minimum(small / level, SPECK_LEVEL)
     band = cv2.GaussianBlur(v, (0, 0), FOCUS_FINE_SIGMA_PX / 2) - cv2.GaussianBlur(v, (0, 0), FOCUS_COARSE_SIGMA_PX / 2)
     inner = cv2.erode(small_mask, np.ones((5, 5), np.uint8)) > 0  # the window's rim is a step, not detail
     specks = cv2.dilate((v >= SPECK_LEVEL).astype(np.uint8), np.ones((SPECK_MARGIN_PX // 2 + 1,) * 2, np.uint8)) > 0

@@ -12,6 +12,7 @@ import numpy as np
 from services.core.contact import focus_measure
 from services.core.inputs.calibration import Calibration
 from services.core.methods import MethodOptions
+from services.core.order_statistics import median
 from services.core.physics.camera import px_to_mm_about
 from services.core.physics.force_model import LoadState, centre_stretch, depth_deviation_mm, load_state
 from services.core.physics.rectification import rectify_map
@@ -76,7 +77,7 @@ def estimate_flat_field(frames: Sequence[np.ndarray], mask: np.ndarray, sigma_px
     stack = []
     for f in frames:
         v = to_unit_float(f)
-        stack.append(v / max(float(np.median(v[inside])), 1e-6))
+        stack.append(v / max(median(v[inside]), 1e-6))
     gain = np.median(np.stack(stack), axis=0).astype(np.float32)
     gain = np.where(inside, gain, 0).astype(np.float32)
     norm = cv2.GaussianBlur(inside.astype(np.float32), (0, 0), sigma_px)
@@ -90,7 +91,7 @@ def normalise_photometry(raw: np.ndarray, mask: np.ndarray, flat: np.ndarray | N
     v = to_unit_float(raw)
     if flat is not None:
         v = v / np.maximum(flat, 0.05)
-    med = max(float(np.median(v[mask > 0])), 1e-6)
+    med = max(median(v[mask > 0]), 1e-6)
     return np.clip(v * (128.0 / med), 0, 255).astype(np.uint8)
 
 

@@ -243,3 +243,33 @@ def test_descriptors_without_the_doubled_octave_match_a_shifted_copy(faint_frame
     fit = estimate_similarity(a.points[iq], b.points[it], threshold=2.0)
     assert fit is not None and fit.inliers >= 100
     assert abs(fit.transform.t - 24) < 0.1 and abs(abs(fit.transform.a) - 1) < 0.001
+
+
+def _spread_in_rounds(
+    keypoints: list[cv2.KeyPoint], shape: tuple[int, int], target: int, grid: tuple[int, int]
+) -> list[cv2.KeyPoint]:
+    """The rounds spread_keypoints takes, written out as a loop: each round the next-strongest of every cell."""
+    cells: dict[tuple[int, int], list[cv2.KeyPoint]] = {}
+    for k in sorted(keypoints, key=lambda k: -k.response):
+        cells.setdefault(_cell(k, shape, grid), []).append(k)
+    chosen: list[cv2.KeyPoint] = []
+    depth = 0
+    while len(chosen) < target:
+        layer = sorted((c[depth] for c in cells.values() if len(c) > depth), key=lambda k: -k.response)
+        if not layer:
+            break
+        chosen.extend(layer[: target - len(chosen)])
+        depth += 1
+    return chosen
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_spread_keypoints_takes_the_rounds_in_order_ties_included(seed: int) -> None:
+    # a real frame's ~1200 keypoints over a 320 x 240 vein map; even seeds with many equal responses
+    rng = np.random.default_rng(seed)
+    n, shape, grid = 1200, (240, 320), (8, 6)
+    responses = rng.integers(0, 20, n) / 7 if seed % 2 == 0 else rng.random(n)
+    keypoints = [_keypoint(rng.uniform(0, 320), rng.uniform(0, 240), r) for r in responses]
+    for target in (1, 47, 500, 1199):
+        got = spread_keypoints(keypoints, shape, target, grid)
+        assert [id(k) for k in got] == [id(k) for k in _spread_in_rounds(keypoints, shape, target, grid)]
