@@ -1,0 +1,92 @@
+"""A finish computed ahead (issue 32): how many frames would move from where a finish run k frames before the end puts
+them, to where the real finish does?
+
+    .venv/bin/python bench/finish_ahead.py [--scan raster] [--scan exam] [--scan ../shared/scans/clinical_veins_24]
+                                           [--ahead 10,30,100]
+
+The finish (SessionReconstruction.finish: the final pass with the skin's drag learned, the path held to the law's
+scales, the gauge) moves nearly every frame of a `best` session by a quarter pixel or more from its live place
+(`bench/finish.py`'s second table), so a live session pastes nearly every frame again at its end: 6 s of a 4-minute
+examination's 9 s. If a live worker ran the finish's steps on a copy of its state from time to time while the scan
+goes on, and kept the canvas pasted at those places, its real finish would paste again only the frames that moved
+since. This measures what that would leave: for each k, the scan's first n - k frames reconstructed and finished
+offline (what a finish run ahead, k frames before the end, would give: registration is causal, so it is the state a
+live worker held then), against the whole scan finished; the frames then placed whose place moves by
+FINISH_MOVED_PX or more (SessionReconstruction.moved_px: the farthest corner plus the undone drag's change), their
+median and 90th percentile move in mosaic px, and the frames placed since, which the finish pastes in any case.
+A --scan is a simulated scenario's name (seed 1) or a scan folder. Counts only: run beside other work, it gives the
+same table (one offline reconstruction per k and one of the whole scan; a 2400-frame examination takes minutes each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def finished_places(scan_name: str, ahead: list[int]) -> tuple[int, dict[int, tuple[int, int, float, float, int]]]:
+    """Return the scan's frame count and, per k in `ahead`: the frames placed k frames before the end, how many of
+    them the whole scan's finish moves by FINISH_MOVED_PX or more from where the finish then put them, the median
+    and 90th percentile of those moves (mosaic px), and the frames placed since (pasted at the end in any case)."""
+    import numpy as np
+
+    from services.core.methods import method_options
+    from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
+    from services.core.session_reconstruction import FINISH_MOVED_PX, SessionReconstruction
+    from services.core.simulation.scenarios import simulate
+    from services.store.scan_folder import read_scan_folder
+
+    scan = read_scan_folder(scan_name) if os.sep in scan_name else simulate(scan_name, 1)
+    options = method_options("best")
+    mask, flat = window_setup(scan, options)
+    frames = list(prepared_frames(scan, frame_forces(scan), mask, flat, options))
+
+    def finished(upto: int) -> SessionReconstruction:
+        recon = SessionReconstruction(scan.calibration, options, window_radius_mm(mask, scan.calibration))
+        for pf in frames[:upto]:
+            for dropped in range(len(recon.results), pf.index):  # seqs the camera dropped: missing, as live
+                recon.lose(dropped)
+            recon.add(pf)
+        recon.finish()
+        return recon
+
+    whole = finished(len(frames))
+    final = whole.stitch_places()
+    out = {}
+    for k in ahead:
+        before = finished(len(frames) - k).stitch_places()
+        kept = [i for i in final if i in before]
+        moved = np.array([whole.moved_px(before[i], final[i]) for i in kept])
+        median, p90 = np.percentile(moved, [50, 90])
+        out[k] = (len(kept), int(np.count_nonzero(moved >= FINISH_MOVED_PX)), median, p90, len(final) - len(kept))
+    return len(frames), out
+
+
+def main() -> int:
+    """Print, per scan and k, how many frames a finish run k frames ahead would leave to paste again at the end."""
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scan", action="append", default=None, help="a simulated scenario or a scan folder")
+    p.add_argument("--ahead", default="10,30,100", help="comma list of k: frames before the end")
+    args = p.parse_args()
+    ahead = [int(k) for k in args.ahead.split(",")]
+    print("a finish run k frames before the end, against the real one: of the frames then placed, those the real")
+    print("finish moves by a quarter pixel or more (median and 90th percentile move, mosaic px); frames placed since\n")
+    head = ["scan", "frames", "k", "placed then", "moved >= 0.25 px", "median px", "90 % px", "placed since"]
+    print("| " + " | ".join([*head, "to paste at the end"]) + " |")
+    print("|---|" + "---:|" * len(head))
+    for scan in args.scan or ["raster"]:
+        name = str(Path(scan).resolve()) if os.sep in scan else scan
+        n, rows = finished_places(name, ahead)
+        for k, (placed, moved, median, p90, since) in rows.items():
+            cells = f"{placed} | {moved} | {median:.2f} | {p90:.2f} | {since} | {moved + since}"
+            print(f"| {Path(scan).name} | {n} | {k} | {cells} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
