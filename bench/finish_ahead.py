@@ -9,13 +9,14 @@ scales, the gauge) moves nearly every frame of a `best` session by a quarter pix
 (`bench/finish.py`'s second table), so a live session pastes nearly every frame again at its end: 6 s of a 4-minute
 examination's 9 s. If a live worker ran the finish's steps on a copy of its state from time to time while the scan
 goes on, and kept the canvas pasted at those places, its real finish would paste again only the frames that moved
-since. This measures what that would leave: for each k, the scan's first n - k frames reconstructed and finished
-offline (what a finish run ahead, k frames before the end, would give: registration is causal, so it is the state a
-live worker held then), against the whole scan finished; the frames then placed whose place moves by
-FINISH_MOVED_PX or more (SessionReconstruction.moved_px: the farthest corner plus the undone drag's change), their
+since. This measures what that would leave: the scan reconstructed in order, k frames before its end the places
+the finish would give then (SessionReconstruction.places_if_finished: the finish run on a copy of the session's
+state, the session left as it was), against the places of its real finish; the frames then placed whose place moves
+by FINISH_MOVED_PX or more (SessionReconstruction.moved_px: the farthest corner plus the undone drag's change), their
 median and 90th percentile move in mosaic px, and the frames placed since, which the finish pastes in any case.
 A --scan is a simulated scenario's name (seed 1) or a scan folder. Counts only: run beside other work, it gives the
-same table (one offline reconstruction per k and one of the whole scan; a 2400-frame examination takes minutes each).
+same counts (a 2400-frame examination takes a few minutes); the last column, each run ahead's CPU seconds, is
+the machine's.
 """
 
 from __future__ import annotations
@@ -23,16 +24,21 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def finished_places(scan_name: str, ahead: list[int]) -> tuple[int, dict[int, tuple[int, int, float, float, int]]]:
+Row = tuple[int, int, float, float, int, float]  # placed then, moved, median px, 90 % px, placed since, CPU s
+
+
+def finished_places(scan_name: str, ahead: list[int]) -> tuple[int, dict[int, Row]]:
     """Return the scan's frame count and, per k in `ahead`: the frames placed k frames before the end, how many of
     them the whole scan's finish moves by FINISH_MOVED_PX or more from where the finish then put them, the median
-    and 90th percentile of those moves (mosaic px), and the frames placed since (pasted at the end in any case)."""
+    and 90th percentile of those moves (mosaic px), the frames placed since (pasted at the end in any case), and the
+    CPU seconds the run ahead took."""
     import numpy as np
 
     from services.core.methods import method_options
@@ -44,27 +50,28 @@ def finished_places(scan_name: str, ahead: list[int]) -> tuple[int, dict[int, tu
     scan = read_scan_folder(scan_name) if os.sep in scan_name else simulate(scan_name, 1)
     options = method_options("best")
     mask, flat = window_setup(scan, options)
-    frames = list(prepared_frames(scan, frame_forces(scan), mask, flat, options))
-
-    def finished(upto: int) -> SessionReconstruction:
-        recon = SessionReconstruction(scan.calibration, options, window_radius_mm(mask, scan.calibration))
-        for pf in frames[:upto]:
-            for dropped in range(len(recon.results), pf.index):  # seqs the camera dropped: missing, as live
-                recon.lose(dropped)
-            recon.add(pf)
-        recon.finish()
-        return recon
-
-    whole = finished(len(frames))
-    final = whole.stitch_places()
+    recon = SessionReconstruction(scan.calibration, options, window_radius_mm(mask, scan.calibration))
+    marks = {len(scan) - k: k for k in ahead}
+    places, cpu_s = {}, {}
+    for n, pf in enumerate(prepared_frames(scan, frame_forces(scan), mask, flat, options)):
+        if n in marks:  # the finish run ahead on a copy of the session's state, the session left as it was
+            started = time.process_time()
+            places[marks[n]] = recon.places_if_finished()
+            cpu_s[marks[n]] = time.process_time() - started
+        for dropped in range(len(recon.results), pf.index):  # seqs the camera dropped: missing, as live
+            recon.lose(dropped)
+        recon.add(pf)
+    recon.finish()
+    final = recon.stitch_places()
     out = {}
     for k in ahead:
-        before = finished(len(frames) - k).stitch_places()
+        before = places[k]
         kept = [i for i in final if i in before]
-        moved = np.array([whole.moved_px(before[i], final[i]) for i in kept])
+        moved = np.array([recon.moved_px(before[i], final[i]) for i in kept])
         median, p90 = np.percentile(moved, [50, 90])
-        out[k] = (len(kept), int(np.count_nonzero(moved >= FINISH_MOVED_PX)), median, p90, len(final) - len(kept))
-    return len(frames), out
+        moved_n = int(np.count_nonzero(moved >= FINISH_MOVED_PX))
+        out[k] = (len(kept), moved_n, median, p90, len(final) - len(kept), cpu_s[k])
+    return len(scan), out
 
 
 def main() -> int:
@@ -77,13 +84,13 @@ def main() -> int:
     print("a finish run k frames before the end, against the real one: of the frames then placed, those the real")
     print("finish moves by a quarter pixel or more (median and 90th percentile move, mosaic px); frames placed since\n")
     head = ["scan", "frames", "k", "placed then", "moved >= 0.25 px", "median px", "90 % px", "placed since"]
-    print("| " + " | ".join([*head, "to paste at the end"]) + " |")
-    print("|---|" + "---:|" * len(head))
+    print("| " + " | ".join([*head, "to paste at the end", "run ahead CPU s"]) + " |")
+    print("|---|" + "---:|" * (len(head) + 1))
     for scan in args.scan or ["raster"]:
         name = str(Path(scan).resolve()) if os.sep in scan else scan
         n, rows = finished_places(name, ahead)
-        for k, (placed, moved, median, p90, since) in rows.items():
-            cells = f"{placed} | {moved} | {median:.2f} | {p90:.2f} | {since} | {moved + since}"
+        for k, (placed, moved, median, p90, since, cpu) in rows.items():
+            cells = f"{placed} | {moved} | {median:.2f} | {p90:.2f} | {since} | {moved + since} | {cpu:.2f}"
             print(f"| {Path(scan).name} | {n} | {k} | {cells} |")
     return 0
 

@@ -7,6 +7,7 @@ session over replays the prepared frames it has not seen; registration is determ
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import itertools
 import math
@@ -255,6 +256,19 @@ class SessionReconstruction:
             "restitch": round(time.perf_counter() - calibrated, 3),
         }
         return touched
+
+    def places_if_finished(self) -> dict[int, Place]:
+        """Return the stitch places the finish would give now (stitch_places after finish()), computed on a copy of
+        the main map's registration state: this session is left as it was (a finish run ahead of the scan's end,
+        bench/finish_ahead.py)."""
+        ahead = copy.copy(self)
+        ahead.live = False  # nothing pasted
+        ahead.atlas = copy.copy(self.atlas)
+        main = _with_own_containers(self.registrar)
+        main.corrections = _with_own_containers(main.corrections)
+        ahead.atlas.maps = [main, *self.atlas.maps[1:]]
+        ahead.finish()
+        return ahead.stitch_places()
 
     def _estimate_clock(self) -> ClockOffset | None:
         """Return the force clock's offset fitted to the placed frames' stretches (physics.force_clock), or None."""
@@ -602,3 +616,14 @@ class SessionReconstruction:
                 )
             )
         return rows
+
+
+def _with_own_containers(state: Any) -> Any:
+    """Return a shallow copy of a dataclass whose dict, list and set fields are copies too (their items shared, as
+    values a refinement replaces and never changes in place): what a finish run on it may change is its own."""
+    twin = copy.copy(state)
+    for f in dataclasses.fields(state):
+        value = getattr(state, f.name)
+        if isinstance(value, dict | list | set):
+            setattr(twin, f.name, copy.copy(value))
+    return twin

@@ -333,3 +333,35 @@ def test_edge_yaws_are_the_graphs_edges_as_it_uses_them(live_run: LiveRun) -> No
     assert [(int(i), int(j)) for i, j in rows[:, :2]] == [(e.i, e.j) for e in edges]
     assert np.allclose(rows[:, 2], [np.degrees(np.angle(e.relative.a)) for e in edges], atol=1e-12)
     assert rows[:, 3].tolist() == [float(e.loop) for e in edges] and rows[:, 3].sum() > 0  # row 2 closes loops
+
+
+def test_a_finish_run_ahead_gives_the_finishs_places_and_leaves_the_session_as_it_was() -> None:
+    # the simulated short scan (40 frames; the final pass moves its frames): places_if_finished at the end equals
+    # the real finish's places exactly, and called halfway it changes nothing of what the session then does
+    scan, options = simulated("short", 1), method_options("best")
+    frames, radius_mm = first_prepared(scan, options, 40)
+
+    def finished(ahead_at: int) -> tuple[SessionReconstruction, dict[int, Place], dict[int, Place]]:
+        recon = SessionReconstruction(scan.calibration, options, radius_mm, live=True)
+        ahead: dict[int, Place] = {}
+        for k, pf in enumerate(frames):
+            if k == ahead_at:
+                ahead = recon.places_if_finished()
+                assert ahead and not recon.finished and recon.compliance is None  # computed on a copy
+            recon.add(pf)
+        live_places, live_poses = recon.stitch_places(), dict(recon.registrar.poses)
+        if ahead_at == len(frames):
+            ahead = recon.places_if_finished()
+            assert recon.registrar.poses == live_poses and not recon.finished  # the live state untouched
+        recon.finish()
+        return recon, ahead, live_places
+
+    whole, ahead, live_places = finished(len(frames))
+    final = whole.stitch_places()
+    assert ahead.keys() == final.keys()
+    assert all(np.array_equal(ahead[i][0], final[i][0]) and ahead[i][1] == final[i][1] for i in final)
+    # the comparison can fail: the finish moves frames from their live places by a quarter pixel and more
+    assert max(whole.moved_px(live_places[i], final[i]) for i in final) >= FINISH_MOVED_PX
+    halfway, _, _ = finished(len(frames) // 2)
+    assert path_rows_json(halfway.path_rows()) == path_rows_json(whole.path_rows())
+    assert all(np.array_equal(halfway.stitch_places()[i][0], final[i][0]) for i in final)
