@@ -58,9 +58,7 @@ def finished_places(scan_name: str, ahead: list[int]) -> tuple[int, dict[int, Ro
             started = time.process_time()
             places[marks[n]] = recon.places_if_finished()
             cpu_s[marks[n]] = time.process_time() - started
-        for dropped in range(len(recon.results), pf.index):  # seqs the camera dropped: missing, as live
-            recon.lose(dropped)
-        recon.add(pf)
+        recon.add_next(pf)  # seqs the camera dropped recorded lost first
     recon.finish()
     final = recon.stitch_places()
     out = {}

@@ -214,21 +214,20 @@ def main() -> int:
     base = None
     walls = []
     for repo, copies, threads, options in configs:
-        print(f"running {repo.resolve().name} {options}: {copies} copies x {threads} threads ...", file=sys.stderr)
+        tree = repo.resolve().name  # '.' by its folder's name
+        print(f"running {tree} {options}: {copies} copies x {threads} threads ...", file=sys.stderr)
         rows = run_config(args, copies, threads, repo, options)
         mean = {part: sum(r[part] for r in rows) / len(rows) for part in PARTS}
         total = sum(mean.values())
         overhead = total - sum(mean[part] for part in WORK)
         base = total if base is None else base
         cells = " | ".join(f"{mean[part]:.1f}" for part in PARTS)
-        row = f"| {repo.resolve().name} | {options} | {copies} | {threads} | {cells} | {overhead:.1f} | {total:.1f} "
+        row = f"| {tree} | {options} | {copies} | {threads} | {cells} | {overhead:.1f} | {total:.1f} "
         row += f"| {total / base:.2f}x |"
         print(row, flush=True)
         wall = {part: sum(r[f"{part}_wall"] for r in rows) / len(rows) for part in PARTS}
         walls.append(
-            f"| {repo.resolve().name} | {options} | {copies} | {threads} | "
-            + " | ".join(f"{wall[p]:.1f}" for p in PARTS)
-            + " |"
+            f"| {tree} | {options} | {copies} | {threads} | " + " | ".join(f"{wall[p]:.1f}" for p in PARTS) + " |"
         )
     print("\nwall ms per frame (mean of copies): a step's waits (fsync, other processes) are in it\n")
     print("| tree | options | copies | threads | " + " | ".join(PARTS) + " |")

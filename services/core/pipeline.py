@@ -146,9 +146,7 @@ def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = 
     mask, flat = window_setup(scan, options)  # 2-3. the window's field of view; the IR ring's vignetting
     session = SessionReconstruction(calib, options, window_radius_mm(mask, calib))
     for done, pf in enumerate(prepared_frames(scan, forces, mask, flat, options), 1):  # 4. rectify + features
-        for dropped in range(len(session.results), pf.index):  # seqs the camera dropped: missing, as live
-            session.lose(dropped)
-        session.add(pf)  # 5. contact, then register against what is placed (+ refinement on loop closures)
+        session.add_next(pf)  # 5. contact, then register against what is placed (+ refinement on loop closures)
         if progress:
             progress(done, len(scan))
     session.finish()  # 6-7. final global refinement; compliance self-calibration (path in true mm)

@@ -157,6 +157,13 @@ class SessionReconstruction:
             touched |= self.settle(REPAINT_PER_FRAME)
         return result, touched
 
+    def add_next(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:
+        """Return add(pf) after recording as lost the seqs before it that never came (frames the camera dropped):
+        a scan's frames replayed in order, as offline (a live worker's queue declares its own lost frames)."""
+        for missing in range(len(self.results), pf.index):
+            self.lose(missing)
+        return self.add(pf)
+
     def _register(self, pf: PreparedFrame) -> FrameResult:
         """Return a frame's result: rejected off the skin, else placed on the atlas (a join places more frames)."""
         if not self.contact.decide(pf.load.fz_n, pf.focus).contact:

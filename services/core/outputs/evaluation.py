@@ -265,21 +265,19 @@ def edge_yaw_bias(edge_yaws: np.ndarray, reference_yaw_deg: np.ndarray) -> dict[
     units of the SD the graph weighs each edge's yaw with (`*_yaw_z_sd`: 1 where the graph weighs them as they are).
 
     edge_yaws: (E, 5) rows of frame i, frame j, measured yaw of j relative to i (deg), loop 0/1, the yaw's SD in the
-    graph (deg) (SessionReconstruction.edge_yaws; (E, 4) rows without it give NaN z); reference_yaw_deg: (N,) the
-    tracker's yaw per frame index, NaN where unknown.
+    graph (deg) (SessionReconstruction.edge_yaws); reference_yaw_deg: (N,) the tracker's yaw per frame index, NaN
+    where unknown.
     A bias the graph cannot average out turns the whole path (AccuracyReport.global_error's turn): an edge kind whose
     mean is off by a hundredth of a degree over hundreds of edges is where to look; an edge kind whose z SD is far
     above the others' pulls the yaws harder than its evidence warrants.
     """
-    rows = np.asarray(edge_yaws, np.float64)
-    rows = rows.reshape(-1, rows.shape[1] if rows.ndim == 2 and rows.shape[1] in (4, 5) else 4)
+    rows = np.asarray(edge_yaws, np.float64).reshape(-1, 5)
     ref = np.asarray(reference_yaw_deg, np.float64).ravel()
     i, j = rows[:, 0].astype(int), rows[:, 1].astype(int)
     inside = (i >= 0) & (j >= 0) & (i < len(ref)) & (j < len(ref))
     diff = np.full(len(rows), np.nan)
     diff[inside] = rows[inside, 2] - (ref[j[inside]] - ref[i[inside]])
     diff = (diff + 180.0) % 360.0 - 180.0
-    sigma = rows[:, 4] if rows.shape[1] == 5 else np.full(len(rows), np.nan)
     out: dict[str, float | int] = {}
     for kind, chosen in (("loop", rows[:, 3] > 0), ("other", rows[:, 3] <= 0)):
         kept = chosen & np.isfinite(diff)
@@ -287,6 +285,5 @@ def edge_yaw_bias(edge_yaws: np.ndarray, reference_yaw_deg: np.ndarray) -> dict[
         out[f"{kind}_edges"] = len(valid)
         out[f"{kind}_yaw_bias_deg"] = float(np.mean(valid)) if len(valid) else math.nan
         out[f"{kind}_yaw_sd_deg"] = float(np.std(valid)) if len(valid) else math.nan
-        z = valid / sigma[kept]
-        out[f"{kind}_yaw_z_sd"] = float(np.std(z)) if len(valid) and np.all(np.isfinite(z)) else math.nan
+        out[f"{kind}_yaw_z_sd"] = float(np.std(valid / rows[kept, 4])) if len(valid) else math.nan
     return out

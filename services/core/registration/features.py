@@ -78,7 +78,7 @@ def spread_keypoints(
     cx = np.minimum(np.trunc(xy[:, 0] * gx / w).astype(np.int64), gx - 1)
     cy = np.minimum(np.trunc(xy[:, 1] * gy / h).astype(np.int64), gy - 1)
     order = np.argsort(-response, kind="stable")  # strongest first, ties as given
-    cell = (cx * (gy + 1) + cy)[order]  # a key per cell (cy < gy + 1)
+    cell = (cx * gy + cy)[order]  # a key per cell
     by_cell = np.argsort(cell, kind="stable")  # each cell's keypoints together, strongest first
     starts = np.r_[True, cell[by_cell][1:] != cell[by_cell][:-1]]
     group_start = np.maximum.accumulate(np.where(starts, np.arange(len(cell)), 0))

@@ -24,6 +24,7 @@ from services.core.mosaic.canvas import MosaicImage
 from services.core.path_rows import path_rows_json
 from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
 from services.core.registration.frame_prep import PreparedFrame
+from services.core.registration.outcome import REASON_MISSING, STATUS_LOST
 from services.core.registration.pose_graph import LEVER_MM
 from services.core.session_reconstruction import (
     FINISH_MOVED_PX,
@@ -33,6 +34,7 @@ from services.core.session_reconstruction import (
     SessionReconstruction,
 )
 from services.core.similarity import Similarity
+from services.core.simulation.scenarios import simulate
 from services.store.scan_folder import read_scan_folder
 from tests.shared_scans import SHARED_SCANS
 from tests.sim_cache import simulated
@@ -336,9 +338,10 @@ def test_edge_yaws_are_the_graphs_edges_as_it_uses_them(live_run: LiveRun) -> No
 
 
 def test_a_finish_run_ahead_gives_the_finishs_places_and_leaves_the_session_as_it_was() -> None:
-    # the simulated short scan (40 frames; the final pass moves its frames): places_if_finished at the end equals
-    # the real finish's places exactly, and called halfway it changes nothing of what the session then does
-    scan, options = simulated("short", 1), method_options("best")
+    # the simulated short scan with its skin dragged (40 frames; the final pass learns the drag, refits the view and
+    # moves the frames: the state a run ahead must not share): places_if_finished at the end equals the real finish's
+    # places exactly, and called halfway it changes nothing of what the session then does
+    scan, options = simulate("short", 1, tissue="linear", drag=True), method_options("best")
     frames, radius_mm = first_prepared(scan, options, 40)
 
     def finished(ahead_at: int) -> tuple[SessionReconstruction, dict[int, Place], dict[int, Place]]:
@@ -358,6 +361,7 @@ def test_a_finish_run_ahead_gives_the_finishs_places_and_leaves_the_session_as_i
 
     whole, ahead, live_places = finished(len(frames))
     final = whole.stitch_places()
+    assert whole.registrar.corrections.dragged()  # the drag's fit and caches were in play
     assert ahead.keys() == final.keys()
     assert all(np.array_equal(ahead[i][0], final[i][0]) and ahead[i][1] == final[i][1] for i in final)
     # the comparison can fail: the finish moves frames from their live places by a quarter pixel and more
@@ -365,3 +369,17 @@ def test_a_finish_run_ahead_gives_the_finishs_places_and_leaves_the_session_as_i
     halfway, _, _ = finished(len(frames) // 2)
     assert path_rows_json(halfway.path_rows()) == path_rows_json(whole.path_rows())
     assert all(np.array_equal(halfway.stitch_places()[i][0], final[i][0]) for i in final)
+
+
+def test_add_next_records_the_seqs_the_camera_dropped_as_lost() -> None:
+    # frames 5 and 6 of the simulated short scan never come: add_next records them lost (missing) before frame 7,
+    # and the path keeps one row per seq; add alone would leave them out
+    scan, options = simulated("short", 1), method_options("best")
+    frames, radius_mm = first_prepared(scan, options, 12)
+    recon = SessionReconstruction(scan.calibration, options, radius_mm)
+    for pf in frames:
+        if pf.index not in (5, 6):
+            recon.add_next(pf)
+    assert [recon.results[i].reason for i in (5, 6)] == [REASON_MISSING, REASON_MISSING]
+    assert all(recon.results[i].status == STATUS_LOST for i in (5, 6))
+    assert [row.seq for row in recon.path_rows()] == list(range(12))

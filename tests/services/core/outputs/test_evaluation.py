@@ -213,18 +213,17 @@ def test_edge_yaw_bias_known_answer_per_edge_kind() -> None:
     edges = []
     for i, j in ((0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 6)):  # consecutive: "other"
         edges.append(
-            (i, j, (ref[j] - ref[i] + 0.01 + 180.0) % 360.0 - 180.0 if np.isfinite(ref[j] - ref[i]) else 0.0, 0)
+            (i, j, (ref[j] - ref[i] + 0.01 + 180.0) % 360.0 - 180.0 if np.isfinite(ref[j] - ref[i]) else 0.0, 0, 0.01)
         )
     for i, j in ((0, 3), (1, 4), (0, 6), (2, 5)):  # loops
         edges.append(
-            (i, j, (ref[j] - ref[i] - 0.02 + 180.0) % 360.0 - 180.0 if np.isfinite(ref[j] - ref[i]) else 0.0, 1)
+            (i, j, (ref[j] - ref[i] - 0.02 + 180.0) % 360.0 - 180.0 if np.isfinite(ref[j] - ref[i]) else 0.0, 1, 0.01)
         )
     got = edge_yaw_bias(np.array(edges, float), ref)
     assert got["other_edges"] == 4 and got["loop_edges"] == 3  # the edges of frame 5 are not compared
     assert got["other_yaw_bias_deg"] == pytest.approx(0.01, abs=1e-9)
     assert got["loop_yaw_bias_deg"] == pytest.approx(-0.02, abs=1e-9)
     assert got["other_yaw_sd_deg"] == pytest.approx(0.0, abs=1e-9)
-    assert math.isnan(got["loop_yaw_z_sd"])  # rows without the graph's sigmas: no z
     empty = edge_yaw_bias(np.zeros((0, 5)), ref)
     assert empty["loop_edges"] == 0 and math.isnan(empty["loop_yaw_bias_deg"])
 
