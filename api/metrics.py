@@ -42,6 +42,8 @@ KNOWN_COUNTERS: dict[str, str] = {
     "register_keyframe_cpu_seconds_total": "CPU seconds the workers spent registering and pasting keyframes.",
     "register_tracked_cpu_seconds_total": "CPU seconds the workers spent registering and pasting tracked frames.",
     "register_unplaced_cpu_seconds_total": "CPU seconds the workers spent on frames they could not place.",
+    "finish_ahead_runs_total": "Live sessions' finishes run ahead on a copy (finish_ahead_every_s).",
+    "finish_ahead_cpu_seconds_total": "CPU seconds the workers spent running finishes ahead (not the re-pastes).",
 }
 SUMMARIES = {"job_seconds": "Wall time of finished reprocess jobs, seconds."}
 LIVE_WINDOW_S = 60.0  # a session is live for the lag gauges while frames of it were placed this recently

@@ -1,7 +1,7 @@
 """The finish of a live session (issue 32): from its last frame registered to done, by part, per source tree.
 
     .venv/bin/python bench/finish.py [--scan raster] [--scan /work/scans/clinical_veins_24] [--frames N]
-                                     [--repo PATH ...] [--repeat N]
+                                     [--repo PATH ...] [--repeat N] [--ahead-every N]
 
 Each measurement runs in a child process as a live worker holds a session: every frame prepared and stored as its
 prepared file (services.store), added in order to a live SessionReconstruction whose pixels are read back from
@@ -14,7 +14,10 @@ tree) is the baseline of the ratio column; another tree is e.g. `git archive <co
 Last, a whole restitch (every frame pasted again on an empty canvas, as the finish does when every frame moved) is
 timed RESTITCH_REPEATS times in the same process, its median in the last column: steadier than one finish's
 restitch when comparing trees. --repeat N measures each tree N times, the trees taking turns, and prints each
-figure's median (a busy or slow machine moves one run's restitch by a fifth).
+figure's median (a busy or slow machine moves one run's restitch by a fifth). --ahead-every N runs the finish ahead
+on a copy every N frames as a caught-up live worker does (SessionReconstruction.run_ahead; at 10 frames/s the
+worker's finish_ahead_every_s 10 is N = 100), the canvas kept at its places: the finish then pastes again only what
+moved since.
 A second table says what moves the frames at the finish, step by step (SessionReconstruction.finish's `observe`):
 how many frames the final pass (with the skin's drag learned and undone), the path held to the law's scales, and the
 gauge (a scale about frame 0's rest centre) each move by FINISH_MOVED_PX or more on their own: what decides how many
@@ -51,7 +54,7 @@ class _Counters:
         """Count nothing."""
 
 
-def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | int]:
+def measure(scan_name: str, frames: int, flush_every: int, ahead_every: int = 0) -> dict[str, float | int]:
     """Return the wall and CPU seconds of a live session's finish and final flush, by part (this process)."""
     import cv2
     import numpy as np
@@ -92,12 +95,17 @@ def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | 
         touched: set[tuple[int, int]] = set()
         revisions: dict[str, dict[str, int]] = {}
         started = time.monotonic()
+        ahead_cpu, ahead_runs = 0.0, 0
         for k, i in enumerate(sorted(seqs)):
             pf = results.read_prepared(sid, 1, seqs[i])
             assert pf is not None
             for dropped in range(len(recon.results), i):  # seqs the camera dropped: missing, as live
                 recon.lose(dropped)
             touched |= recon.add(pf)[1]
+            if ahead_every and k % ahead_every == ahead_every - 1 and hasattr(recon, "run_ahead"):
+                c0 = time.process_time()
+                recon.run_ahead()  # as a caught-up worker every finish_ahead_every_s; its moved frames settle as added
+                ahead_cpu, ahead_runs = ahead_cpu + time.process_time() - c0, ahead_runs + 1
             if k % flush_every == flush_every - 1:
                 changed = pyramid.update(recon.canvas, touched)
                 publisher.write_tiles(sid, 1, pyramid, changed, k, revisions, durable=False)
@@ -105,6 +113,7 @@ def measure(scan_name: str, frames: int, flush_every: int) -> dict[str, float | 
         live_s = time.monotonic() - started
         pasted = dict(getattr(recon, "pasted", {}))
         out: dict[str, float | int] = {"frames": n, "live_s_per_frame": live_s / max(n, 1)}
+        out.update(ahead_runs=ahead_runs, ahead_cpu=ahead_cpu)
         wall, cpu = time.monotonic, time.process_time
         t = (wall(), cpu())
 
@@ -211,6 +220,7 @@ def run_child(args: argparse.Namespace, scan: str, repo: Path) -> dict[str, floa
     """Return one measurement made by a child process on source tree `repo`."""
     env = {**os.environ, "PYTHONPATH": str(repo), "OPENBLAS_NUM_THREADS": "1"}
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--scan", scan, "--frames", str(args.frames)]
+    cmd += ["--ahead-every", str(args.ahead_every)]
     done = subprocess.run(cmd, env=env, cwd=repo, stdout=subprocess.PIPE, text=True, check=False)
     if done.returncode != 0:
         raise SystemExit(f"a measurement failed (exit {done.returncode})")
@@ -224,12 +234,13 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=100000, help="the scan's first N frames")
     p.add_argument("--repo", type=Path, action="append", default=None, help="source trees to measure")
     p.add_argument("--repeat", type=int, default=1, help="measurements per tree (the trees taking turns): medians")
+    p.add_argument("--ahead-every", type=int, default=0, help="run the finish ahead every N frames (run_ahead)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
     # a scan folder named relative to here: the children run in their own trees
     scans = [str(Path(scan).resolve()) if os.sep in scan else scan for scan in args.scan or ["raster"]]
     if args.child:
-        print(json.dumps(measure(scans[0], args.frames, flush_every=5)))
+        print(json.dumps(measure(scans[0], args.frames, flush_every=5, ahead_every=args.ahead_every)))
         return 0
     repos = args.repo or [REPO]
     print("a live session's finish and final flush; wall s (CPU s); frames pasted again at the finish, tiles written;")
@@ -261,6 +272,12 @@ def main() -> int:
             )
             if split:
                 print(f"finish by part ({Path(scan).name}, {name}): {split}", file=sys.stderr)
+            if got["ahead_runs"]:
+                print(
+                    f"runs ahead ({Path(scan).name}, {name}): {got['ahead_runs']:.0f}, CPU {got['ahead_cpu']:.2f} s in "
+                    f"all; live {1000 * got['live_s_per_frame']:.1f} ms a frame (wall)",
+                    file=sys.stderr,
+                )
             steps.append(
                 f"| {Path(scan).name} | {name} | {got['frames']:.0f} | "
                 + " | ".join(f"{got[f'step_{k}_moved']:.0f} ({got[f'step_{k}_px']:.2f})" for k in STEPS)

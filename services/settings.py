@@ -57,6 +57,7 @@ class WorkerSettings(BaseModel):
     behind_flush_every_s: float = Field(default=2.0, ge=0)  # ... while a live session is behind its uploads:
     behind_lag_s: float = Field(default=5.0, ge=0)  # its newest published frame waited longer than this since upload
     image_every_s: float = Field(default=2.0, ge=0)  # whole mosaic.png/force.png at most this often (and at the end)
+    finish_ahead_every_s: float = Field(default=0.0, ge=0)  # a live session's finish run ahead this often (0: off)
     max_deliveries: int = Field(default=3, ge=1)  # attempts before an entry goes to the dead-letter stream
     linger_s: float = Field(default=30.0, ge=0)  # release a session's lease after this long without progress
     pass_budget_s: float = Field(default=2.0, gt=0)  # registration work per pass before other duties get a turn

@@ -163,6 +163,13 @@ class Publisher:
             queue.incr_metric(pipe, f"register_{kind}_cpu_seconds_total", cpu_s[kind], prefix=self.ctx.prefix)
         pipe.execute()
 
+    def count_finish_ahead(self, cpu_s: float) -> None:
+        """Add one finish run ahead and its CPU seconds to finish_ahead_runs_total, finish_ahead_cpu_seconds_total."""
+        pipe = self.ctx.r.pipeline(transaction=False)
+        queue.incr_metric(pipe, "finish_ahead_runs_total", 1, prefix=self.ctx.prefix)
+        queue.incr_metric(pipe, "finish_ahead_cpu_seconds_total", cpu_s, prefix=self.ctx.prefix)
+        pipe.execute()
+
     def event(self, sid: str, kind: str, data: dict[str, Any]) -> None:
         """XADD an event {"type", "data": json} to the session's event stream (capped near EVENTS_MAXLEN)."""
         queue.add_event(

@@ -62,6 +62,9 @@ LIVE_REPASTE_PX = 2.0
 # final poses (tests/services/core/test_session_reconstruction.py). Only the tiles such frames cover, at their old
 # and new places, are made again; the final pass, the drag and the gauge usually move every frame of a `best` session.
 FINISH_MOVED_PX = 0.25
+# A finish run ahead (run_ahead) pastes a frame again when it moved this far from where it is pasted: half the
+# finish's rule, so that the moves of runs that follow do not add up past FINISH_MOVED_PX unseen.
+AHEAD_MOVED_PX = 0.5 * FINISH_MOVED_PX
 NO_DRAG: tuple[complex, float] = (0j, 0.0)  # a frame's planes undo no drag: (drag mm, profile width mm)
 # where a frame is pasted: its stitch affine (rectified frame mm -> mosaic mm, 2x3) and the drag its planes undo
 Place = tuple[np.ndarray, tuple[complex, float]]
@@ -72,6 +75,27 @@ Place = tuple[np.ndarray, tuple[complex, float]]
 REPAINT_PER_FRAME = 4
 RESTITCH_AHEAD = 4  # a restitch builds and warps this many frames (~5 + 10 MB each) ahead of adding them
 REPAINT_AT_ONCE = 12  # moved frames this recent are re-pasted at once (their planes are usually kept)
+
+
+@dataclass(frozen=True)
+class AheadRun:
+    """A finish run ahead of the scan's end on a copy of the session (run_ahead): where it would paste each frame
+    then, and how a live pose maps onto it. While live, the canvas is kept at these places, so that the real finish
+    pastes again only what moved since."""
+
+    places: dict[int, Place]  # the run's stitch places (output mm, drags undone), by frame
+    gauge: float  # the run's compliance gauge (_output_pose)
+    origin_shift: complex  # the run's shift of frame 0's rest centre (registrar mm)
+    correction: np.ndarray  # 3x3, mosaic mm -> mosaic mm: the run's newest frame's live stitch affine onto its place
+
+    def output_pose(self, pose: Similarity) -> Similarity:
+        """Return a live registrar pose in the run's output units (its gauge and origin: _output_pose)."""
+        return Similarity(pose.a / self.gauge, (pose.t + self.origin_shift) / self.gauge)
+
+    def mapped(self, affine: np.ndarray) -> np.ndarray:
+        """Return a live stitch affine (2x3, mm) mapped onto the run's mosaic by its newest frame's correction: where
+        a frame placed since the run is pasted."""
+        return (self.correction @ np.vstack([affine, [0.0, 0.0, 1.0]]))[:2]
 
 
 @dataclass
@@ -98,6 +122,7 @@ class SessionReconstruction:
     finish_seconds: dict[str, float] = field(default_factory=dict)  # finish()'s parts, timed (s)
     recent: dict[int, FrameLayers] = field(default_factory=dict)  # paste planes of the newest frames (live)
     stale: dict[int, None] = field(default_factory=dict)  # moved frames not re-pasted yet, oldest first (live)
+    ahead: AheadRun | None = None  # the last finish run ahead (live): the canvas is kept at its places
     heartbeat: Callable[[], None] = field(default=lambda: None, repr=False)  # called between long steps
     # where a placed frame's rectified image and mask are read back by index (a live worker: its prepared file,
     # so a long examination does not hold every frame's pixels); None keeps them here, as PNG
@@ -268,14 +293,42 @@ class SessionReconstruction:
         """Return the stitch places the finish would give now (stitch_places after finish()), computed on a copy of
         the main map's registration state: this session is left as it was (a finish run ahead of the scan's end,
         bench/finish_ahead.py)."""
+        return self._finished_copy().stitch_places()
+
+    def _finished_copy(self) -> SessionReconstruction:
+        """Return a finished copy of this session, nothing pasted: the finish run on a copy of the main map's state
+        (registrar and corrections with their own containers; copy.deepcopy stops at the place index's FLANN tree)."""
         ahead = copy.copy(self)
         ahead.live = False  # nothing pasted
+        ahead.ahead = None
         ahead.atlas = copy.copy(self.atlas)
         main = _with_own_containers(self.registrar)
         main.corrections = _with_own_containers(main.corrections)
         ahead.atlas.maps = [main, *self.atlas.maps[1:]]
         ahead.finish()
-        return ahead.stitch_places()
+        return ahead
+
+    def run_ahead(self) -> int:
+        """Return how many frames now wait to be pasted again (stale), after running the finish ahead of the scan's
+        end on a copy (places_if_finished) and keeping the live canvas at its places from now on: each frame it moved
+        by AHEAD_MOVED_PX or more from where it is pasted is re-pasted a few at a time (settle), and frames placed
+        since are pasted at their live places mapped onto its mosaic (AheadRun.mapped). The path and every
+        registration state are left as they were; the real finish then pastes again only what moved since.
+        """
+        if not self.live or self.finished:
+            return 0
+        twin = self._finished_copy()
+        places = twin.stitch_places()
+        live = {i: pose for i in places if (pose := self._stitch_pose(i)) is not None}
+        correction = np.eye(3)
+        if live:
+            newest = max(live)
+            as_3x3 = lambda m: np.vstack([m, [0.0, 0.0, 1.0]])  # noqa: E731
+            correction = as_3x3(places[newest][0]) @ np.linalg.inv(as_3x3(live[newest]))
+        self.ahead = AheadRun(places, twin.gauge, twin._origin_shift(), correction)
+        moved = (i for i in sorted(set(self.pasted) | set(places)) if i in self.frames)
+        self.stale.update((i, None) for i in moved if self._repaste_needed(i, self._pasted_place(i), self._target(i)))
+        return len(self.stale)
 
     def _estimate_clock(self) -> ClockOffset | None:
         """Return the force clock's offset fitted to the placed frames' stretches (physics.force_clock), or None."""
@@ -378,24 +431,59 @@ class SessionReconstruction:
         view = self.registrar.corrections.view(index, self.registrar.poses)
         return np.hstack([m[:, :2] @ np.linalg.inv(view), m[:, 2:]])
 
+    def _target(self, index: int) -> Place | None:
+        """Return where a live frame is to be pasted now, or None (not pasted): its place in the last run ahead, its
+        live place mapped onto that run's mosaic when placed since (no drag undone), else its current place."""
+        pose = self._stitch_pose(index)
+        if pose is None:
+            return None
+        run = self.ahead
+        if run is None or self.finished:
+            return pose, self._drag_state(index)
+        return run.places.get(index) or (run.mapped(pose), NO_DRAG)
+
+    def _repaste_needed(self, index: int, old: Place | None, new: Place | None) -> bool:
+        """Return True when a frame pasted at `old` (None: not pasted) must be pasted again for `new`: pasted or not;
+        moved by AHEAD_MOVED_PX or more to a place of the last run ahead (so the finish pastes few again); else,
+        while live, moved by LIVE_REPASTE_PX (_unseen_move) or its undone drag changed."""
+        if old is None or new is None:
+            return old is not new
+        if self.ahead is not None and not self.finished and index in self.ahead.places:
+            return self.moved_px(old, new) >= AHEAD_MOVED_PX
+        return old[1] != new[1] or not self._unseen_move(old[0], new[0])
+
+    def _planes(self, index: int, drag: tuple[complex, float], remember: bool = True) -> FrameLayers:
+        """Return a frame's paste planes with `drag` undone: when that is the drag it undoes now, the remembered ones
+        or (_layers) rebuilt and remembered if `remember` (False: from another thread, nothing changed); else built
+        afresh and not remembered (a place of a run ahead, or the drag it undid before the finish learned one)."""
+        if drag == self._drag_state(index):
+            if remember:
+                return self._layers(index)
+            if (layers := self.recent.get(index)) is not None:
+                return layers
+        return self._build_layers(*self._pixels(index), self.frames[index], drag)
+
     def _sync_canvas(self, indices: tuple[int, ...]) -> set[tuple[int, int]]:
-        """Paste frames at their current poses, removing them first from where they were pasted."""
+        """Paste frames where they are to be pasted now (_target), removing them first from where they were pasted."""
         touched: set[tuple[int, int]] = set()
         for i in indices:
-            pose = self._stitch_pose(i)
-            old = self.pasted.get(i)
-            if (old is not None and pose is not None and self._unseen_move(old, pose)) or (
-                old is None and pose is None
-            ):
+            old, new = self._pasted_place(i), self._target(i)
+            if not self._repaste_needed(i, old, new):
                 continue
             self.heartbeat()
-            layers = self._layers(i)
-            if old is not None:  # live, no drag is learned: the remembered or rebuilt planes are the pasted ones
-                touched.update(self.canvas.paste(layers, old, sign=-1.0))
+            layers: FrameLayers | None = None
+            if old is not None:  # the planes it was pasted with: remembered, rebuilt, or with the run's drag undone
+                layers = self._planes(i, old[1])
+                touched.update(self.canvas.paste(layers, old[0], sign=-1.0))
                 del self.pasted[i]
-            if pose is not None:
-                touched.update(self.canvas.paste(layers, pose))
-                self.pasted[i] = pose
+                self.pasted_drag.pop(i, None)
+            if new is not None:
+                if old is None or new[1] != old[1]:  # else the planes it was pasted with serve
+                    layers = self._planes(i, new[1])
+                touched.update(self.canvas.paste(layers, new[0]))
+                self.pasted[i] = new[0]
+                if new[1] != NO_DRAG:
+                    self.pasted_drag[i] = new[1]
         return touched
 
     def _unseen_move(self, old: np.ndarray, new: np.ndarray) -> bool:
@@ -426,9 +514,11 @@ class SessionReconstruction:
         return old | self._paste_in_order(self.stitch_places())
 
     def _restitch_moved(self) -> set[tuple[int, int]]:
-        """Paste afresh the frames not within FINISH_MOVED_PX of their final places, and nothing else: the tiles
-        they cover (pasted and final) are emptied and made again from every frame over them, in index order, as a
-        whole restitch makes them (a frame that did not move stays where it is pasted). Return the tiles changed."""
+        """Paste afresh the frames not within FINISH_MOVED_PX of their final places, and nothing else; return the
+        tiles changed. The tiles they cover (pasted and final) are emptied and made again from every frame over them,
+        in index order, as a whole restitch makes them (a frame that did not move stays where it is pasted); or, when
+        that is dearer than two warps of each moved frame (a finish run ahead left few to move), those frames are
+        moved in place (_move_pasted)."""
         self.stale = {}
         final = self.stitch_places()
         moved = [i for i in sorted(set(final) | set(self.pasted)) if self._moved(self._pasted_place(i), final.get(i))]
@@ -437,15 +527,48 @@ class SessionReconstruction:
             for place in (self._pasted_place(i), final.get(i)):
                 if place is not None:
                     tiles.update(self._footprint(place[0]))
-            self.pasted.pop(i, None)
-            self.pasted_drag.pop(i, None)
         if not tiles:
             return set()
-        places = {i: place for i in self.pasted if (place := self._pasted_place(i)) is not None}
+        staying = set(self.pasted).difference(moved)
+        places = {i: place for i in staying if (place := self._pasted_place(i)) is not None}
         places.update((i, final[i]) for i in moved if i in final)
         over = {i: places[i] for i in sorted(places) if not tiles.isdisjoint(self._footprint(places[i][0]))}
+        if 2 * len(moved) < len(over):
+            return self._move_pasted(moved, final)
+        for i in moved:
+            self.pasted.pop(i, None)
+            self.pasted_drag.pop(i, None)
         emptied = {key for key in tiles if self.canvas.tiles.pop(key, None) is not None}
         return emptied | self._paste_in_order(over, only=tiles)
+
+    def _move_pasted(self, moved: list[int], final: dict[int, Place]) -> set[tuple[int, int]]:
+        """Remove the frames `moved` from where they are pasted and paste them at their places in `final` (absent:
+        not pasted); return the tiles changed. Two warps a frame, where emptying their tiles and pasting every frame
+        over them again (_restitch_moved) costs one a frame over those tiles: cheaper when few moved among many. The
+        sums are a whole restitch's to float32 rounding (the removed planes are the pasted ones, rebuilt the same).
+        Warped up to RESTITCH_AHEAD frames ahead on two threads, as _paste_in_order."""
+
+        def warp(i: int) -> list[tuple[Warped | None, float]]:
+            old, new = self._pasted_place(i), final.get(i)
+            parts = []
+            for place, sign in ((old, -1.0), (new, 1.0)):
+                if place is not None:
+                    parts.append((self.canvas.warp(self._planes(i, place[1], remember=False), place[0]), sign))
+            return parts
+
+        touched: set[tuple[int, int]] = set()
+        for i, parts in zip(moved, in_order_ahead(warp, moved, ahead=RESTITCH_AHEAD), strict=True):
+            self.heartbeat()
+            for warped, sign in parts:
+                if warped is not None:
+                    touched.update(self.canvas.add(warped, sign))
+            self.pasted.pop(i, None)
+            self.pasted_drag.pop(i, None)
+            if (place := final.get(i)) is not None:
+                self.pasted[i] = place[0]
+                if place[1] != NO_DRAG:
+                    self.pasted_drag[i] = place[1]
+        return touched
 
     def stitch_places(self) -> dict[int, Place]:
         """Return, in index order, each pasteable frame's stitch affine (rectified frame mm -> mosaic mm, 2x3) and the
@@ -512,10 +635,7 @@ class SessionReconstruction:
 
         def warp(i: int) -> Warped | None:
             pose, drag = places[i]
-            layers = self.recent.get(i) if drag == self._drag_state(i) else None
-            if layers is None:
-                layers = self._build_layers(*self._pixels(i), self.frames[i], drag)
-            return self.canvas.warp(layers, pose, only)
+            return self.canvas.warp(self._planes(i, drag, remember=False), pose, only)
 
         touched: set[tuple[int, int]] = set()
         for i, warped in zip(places, in_order_ahead(warp, list(places), ahead=RESTITCH_AHEAD), strict=True):
@@ -591,6 +711,8 @@ class SessionReconstruction:
     def path_rows(self) -> list[PathRow]:
         """Return one PathRow per frame seen so far (spec §4), in index order."""
         poses = self.final_poses() if self.finished else self.registrar.poses
+        if self.ahead is not None and not self.finished:  # live: in the units of the mosaic kept at the run's places
+            poses = {i: self.ahead.output_pose(p) for i, p in poses.items()}
         indices = sorted(self.results)
         kept = [self.frames[i] for i in indices if i in self.frames]
         tilts = iter(self._tilts_deg(kept))  # in the order of the frames kept, one vectorised call

@@ -303,3 +303,22 @@ def test_a_live_run_that_tracks_frames_gives_the_offline_path(
     off = reconstruct(scan, method_options("best").with_overrides(tracking))
     assert off.rows != offline_of(1).rows  # tracking changes the registration: this is not the default path again
     assert_matches_offline(results.read_path(sid, 1), 1, off)
+
+
+def test_a_caught_up_live_session_runs_its_finish_ahead_and_ends_with_the_offline_path(
+    backend: Backend, spawn_worker: Callable[..., Any]
+) -> None:
+    # finish_ahead_every_s (off by default): once the workers have placed the uploads, the holder runs the finish
+    # on a copy and keeps the canvas at its places; the session then finishes with the offline path all the same
+    spawn_worker("a", finish_ahead_every_s=0.05)
+    spawn_worker("b", finish_ahead_every_s=0.05)
+    store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
+    sid = store_scan(store, scan_of(1), backend.r, backend.prefix, finish=False)
+    wait_for(lambda: queue.session_counters(backend.r, sid, backend.prefix)["processed"] == 40, DONE_TIMEOUT_S, "all")
+    wait_for(lambda: metric(backend, "finish_ahead_runs_total") >= 1, 30, "a finish run ahead")
+    assert cpu_metric(backend, "finish_ahead_cpu_seconds_total") > 0
+    store.finish(sid)
+    queue.enqueue_finish(backend.r, sid, backend.prefix)
+    wait_done(store, sid)
+    assert_matches_offline(results.read_path(sid, 1), 1)
+    assert results.read_mosaic_meta(sid, 1)["status"] == "done"

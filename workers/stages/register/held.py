@@ -44,13 +44,17 @@ class Pending:
 
 @dataclass
 class Clocks:
-    """When (time.monotonic) the lease was renewed, the cursor last moved, the last flush and image render ran."""
+    """When (time.monotonic) the lease was renewed, the cursor last moved, the last flush, image render and finish
+    run ahead ran."""
 
     renewed: float = 0.0
     progressed: float = field(default_factory=time.monotonic)
     flushed: float = 0.0
     flush_interval: float = 0.0  # max(flush_every_s, 2 x the last flush's duration): flushing stays <= 1/3
     images: float = 0.0
+    ahead: float = field(default_factory=time.monotonic)  # the last finish run ahead ended (or the session was taken)
+    ahead_interval: float = 0.0  # max(finish_ahead_every_s, AHEAD_COST_FACTOR x the last run's duration)
+    ahead_placed: int = 0  # frames on the main map at the last run ahead: the next one waits for new frames
 
 
 @dataclass

@@ -3,8 +3,9 @@
 One worker at a time holds the lease of (session, version) and keeps the session's SessionReconstruction in
 memory; it keeps the lease while the session is active (so the state is not rebuilt on every kick) and serves
 its sessions between reads of the queue. Serving a session (`step`) is: renew the lease, register the frames
-that are ready (cursor), complete the session once its last frame is in (completion), flush when due (flush),
-release the lease when idle (lease). Taking a session over replays it from state.json (cursor).
+that are ready (cursor), run its finish ahead when due (ahead), complete the session once its last frame is in
+(completion), flush when due (flush), release the lease when idle (lease). Taking a session over replays it
+from state.json (cursor).
 
 An infrastructure fault while serving a session (a write refused by a full disk, Redis unreachable) drops the
 in-memory state and hands the lease off with a delay (or, Redis being down, lets it expire): the next holder
@@ -25,6 +26,7 @@ from services.store.storage import SessionNotFoundError
 from workers.config import Context
 from workers.faults import describe, failure_frames, failure_reason, is_transient
 from workers.publisher import Publisher
+from workers.stages.register.ahead import FinishAhead
 from workers.stages.register.completion import Completion
 from workers.stages.register.cursor import Cursor
 from workers.stages.register.flush import Flusher
@@ -46,6 +48,7 @@ class RegisterStage:
         self.flusher = Flusher(ctx, self.publisher, self.leases)
         self.completion = Completion(ctx, self.publisher, self.leases, self.flusher)
         self.cursor = Cursor(ctx, self.leases, self.flusher, PoisonCounter(ctx))
+        self.ahead = FinishAhead(ctx, self.publisher)
         self.held: dict[tuple[str, int], HeldSession] = {}
         self.faulted = False  # a held session met an infrastructure fault during the current step
 
@@ -91,14 +94,16 @@ class RegisterStage:
     def step(self, held: HeldSession) -> bool:
         """Return False once the session is not held any more, else True, serving a held session once.
 
-        In order: renew the lease, register the frames that are ready, complete the session once its last frame is
-        in, flush when due, release it when idle.
+        In order: renew the lease, register the frames that are ready, run the finish ahead when due, complete the
+        session once its last frame is in, flush when due, release it when idle.
         """
         self.leases.renew_if_due(held, force=True)
         meta = self.ctx.store.get_meta(held.sid)
         finished = meta.finished_at is not None
         caught_up = self.cursor.register_ready(held, finished)
-        if caught_up and held.recon.stale:  # idle between frames: repaint what a refinement moved
+        if self.ahead.due(held, caught_up, finished, time.monotonic()):
+            self.ahead.run(held)
+        if caught_up and held.recon.stale:  # idle between frames: repaint what a refinement or a run ahead moved
             held.pending.touched |= held.recon.settle(IDLE_REPAINT)
             held.pending.dirty = True
         if finished and not self.ctx.stop.is_set() and self.cursor.at_end(held):
