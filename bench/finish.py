@@ -272,12 +272,11 @@ def main() -> int:
             )
             if split:
                 print(f"finish by part ({Path(scan).name}, {name}): {split}", file=sys.stderr)
-            if got["ahead_runs"]:
-                print(
-                    f"runs ahead ({Path(scan).name}, {name}): {got['ahead_runs']:.0f}, CPU {got['ahead_cpu']:.2f} s in "
-                    f"all; live {1000 * got['live_s_per_frame']:.1f} ms a frame (wall)",
-                    file=sys.stderr,
-                )
+            print(
+                f"live ({Path(scan).name}, {name}): {1000 * got['live_s_per_frame']:.1f} ms a frame (wall); runs ahead "
+                f"{got['ahead_runs']:.0f}, CPU {got['ahead_cpu']:.2f} s in all",
+                file=sys.stderr,
+            )
             steps.append(
                 f"| {Path(scan).name} | {name} | {got['frames']:.0f} | "
                 + " | ".join(f"{got[f'step_{k}_moved']:.0f} ({got[f'step_{k}_px']:.2f})" for k in STEPS)

@@ -2,7 +2,7 @@
 them, to where the real finish does?
 
     .venv/bin/python bench/finish_ahead.py [--scan raster] [--scan exam] [--scan ../shared/scans/clinical_veins_24]
-                                           [--ahead 10,30,100]
+                                           [--ahead 10,30,100] [--every N]
 
 The finish (SessionReconstruction.finish: the final pass with the skin's drag learned, the path held to the law's
 scales, the gauge) moves nearly every frame of a `best` session by a quarter pixel or more from its live place
@@ -14,9 +14,14 @@ the finish would give then (SessionReconstruction.places_if_finished: the finish
 state, the session left as it was), against the places of its real finish; the frames then placed whose place moves
 by FINISH_MOVED_PX or more (SessionReconstruction.moved_px: the farthest corner plus the undone drag's change), their
 median and 90th percentile move in mosaic px, and the frames placed since, which the finish pastes in any case.
-A --scan is a simulated scenario's name (seed 1) or a scan folder. Counts only: run beside other work, it gives the
-same counts (a 2400-frame examination takes a few minutes); the last column, each run ahead's CPU seconds, is
-the machine's.
+With --every N, a second table: runs ahead every N frames through the scan (as a live worker with
+finish_ahead_every_s does), and between each two runs the frames the later one moves by FINISH_MOVED_PX or more
+from where the earlier one put them, as they are and after the one scale and shift of the canvas that fits the move
+best (bench/finish.py's step_moves: what the compliance gauge's change between the runs accounts for, which
+mosaic.json's px_per_mm and origin_px could carry without a frame pasted again); medians over the run pairs, with
+their range. A --scan is a simulated scenario's name (seed 1) or a scan folder. Counts only: run beside other work,
+it gives the same counts (a 2400-frame examination takes a few minutes); the first table's last column, each run
+ahead's CPU seconds, is the machine's.
 """
 
 from __future__ import annotations
@@ -32,6 +37,34 @@ sys.path.insert(0, str(REPO))
 
 
 Row = tuple[int, int, float, float, int, float]  # placed then, moved, median px, 90 % px, placed since, CPU s
+
+
+def between_runs(scan_name: str, every: int) -> list[tuple[int, int, int]]:
+    """Return, for each two runs ahead N = `every` frames apart through the scan: the frames placed at the earlier
+    run, and how many of them the later run moves by FINISH_MOVED_PX or more, as they are and after the one scale and
+    shift of the canvas that fits the move best."""
+    from bench.finish import step_moves
+    from services.core.methods import method_options
+    from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
+    from services.core.session_reconstruction import SessionReconstruction
+    from services.core.simulation.scenarios import simulate
+    from services.store.scan_folder import read_scan_folder
+
+    scan = read_scan_folder(scan_name) if os.sep in scan_name else simulate(scan_name, 1)
+    options = method_options("best")
+    mask, flat = window_setup(scan, options)
+    recon = SessionReconstruction(scan.calibration, options, window_radius_mm(mask, scan.calibration))
+    out, before = [], None
+    for n, pf in enumerate(prepared_frames(scan, frame_forces(scan), mask, flat, options)):
+        recon.add_next(pf)
+        if n % every == every - 1:
+            places = recon.places_if_finished()
+            if before is not None:
+                moved, _ = step_moves(recon, before, places)
+                similar, _ = step_moves(recon, before, places, similar=True)
+                out.append((len(before), moved, similar))
+            before = places
+    return out
 
 
 def finished_places(scan_name: str, ahead: list[int]) -> tuple[int, dict[int, Row]]:
@@ -77,6 +110,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scan", action="append", default=None, help="a simulated scenario or a scan folder")
     p.add_argument("--ahead", default="10,30,100", help="comma list of k: frames before the end")
+    p.add_argument("--every", type=int, default=0, help="also compare runs ahead every N frames (second table)")
     args = p.parse_args()
     ahead = [int(k) for k in args.ahead.split(",")]
     print("a finish run k frames before the end, against the real one: of the frames then placed, those the real")
@@ -90,6 +124,21 @@ def main() -> int:
         for k, (placed, moved, median, p90, since, cpu) in rows.items():
             cells = f"{placed} | {moved} | {median:.2f} | {p90:.2f} | {since} | {moved + since} | {cpu:.2f}"
             print(f"| {Path(scan).name} | {n} | {k} | {cells} |")
+    if args.every:
+        import numpy as np
+
+        print(f"\nruns ahead every {args.every} frames: of the frames placed at a run, those the next run moves by a")
+        print("quarter pixel or more, as they are and after the one scale and shift of the canvas that fits the move")
+        print("(median over the run pairs, range in brackets)\n")
+        print("| scan | run pairs | frames placed at a run | moved >= 0.25 px | after one scale and shift |")
+        print("|---|---:|---:|---:|---:|")
+        for scan in args.scan or ["raster"]:
+            name = str(Path(scan).resolve()) if os.sep in scan else scan
+            pairs = np.array(between_runs(name, args.every))
+            cells = " | ".join(
+                f"{np.median(pairs[:, c]):.0f} ({pairs[:, c].min()}-{pairs[:, c].max()})" for c in range(3)
+            )
+            print(f"| {Path(scan).name} | {len(pairs)} | {cells} |")
     return 0
 
 
