@@ -239,7 +239,9 @@ def test_crashed_worker_session_is_taken_over(backend: Backend, spawn_worker: Ca
         seqs = [s for t, s, _ in log if t == token]
         assert seqs == list(range(len(seqs)))
     assert [s for t, s, _ in log if t == tokens[-1]][-1] == 39
-    assert metric(backend, "frames_prepared_total") == 40  # a re-delivered prepare job keeps the first file
+    # a re-delivered prepare job keeps the first file and does not count it again (never above 40); the frame the
+    # victim was preparing when killed may have been written but not counted (the count follows the file's write)
+    assert 40 - 1 <= metric(backend, "frames_prepared_total") <= 40
 
 
 def test_poison_and_lost_frames_do_not_block(backend: Backend, spawn_worker: Callable[..., Any]) -> None:
