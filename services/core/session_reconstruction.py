@@ -163,8 +163,13 @@ class SessionReconstruction:
             return UNPLACED
         return KEYFRAME if any(index in m.features for m in self.atlas.maps) else TRACKED
 
-    def add(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:
-        """Return the result of a frame (in index order: contact, then registration) and the canvas tiles changed."""
+    def add(self, pf: PreparedFrame, repaint: bool = True) -> tuple[FrameResult, set[tuple[int, int]]]:
+        """Return the result of a frame (in index order: contact, then registration) and the canvas tiles changed.
+
+        Live, the frame is pasted, and the frames a refinement moved are re-pasted: the newest at once, older ones
+        a few at a time (settle). repaint=False (a live worker far behind its uploads) pastes the frame alone and
+        leaves every moved frame to settle later, when caught up, or to the finish.
+        """
         self.heartbeat()
         result = self._register(pf)
         self.heartbeat()
@@ -176,10 +181,11 @@ class SessionReconstruction:
         if self.live:
             if kept.pasteable:  # the planes straight from the prepared frame: the kept image is the same, losslessly
                 self._remember(pf.index, self._build_layers(pf.image, pf.mask, kept, self._drag_state(pf.index)))
-            now = tuple(i for i in result.moved if i > pf.index - REPAINT_AT_ONCE)
-            self.stale.update((i, None) for i in result.moved if i <= pf.index - REPAINT_AT_ONCE)
+            at_once = pf.index - REPAINT_AT_ONCE if repaint else math.inf
+            now = tuple(i for i in result.moved if i > at_once)
+            self.stale.update((i, None) for i in result.moved if i <= at_once)
             touched |= self._sync_canvas((pf.index, *now))
-            touched |= self.settle(REPAINT_PER_FRAME)
+            touched |= self.settle(REPAINT_PER_FRAME if repaint else 0)
         return result, touched
 
     def add_next(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:

@@ -1,11 +1,11 @@
-"""When a flush happens and when it writes the whole mosaic images (workers/stages/register/flush.py: flush_every_s,
-images_due)."""
+"""When a flush happens and when it writes the whole mosaic images, and when a session counts as behind its uploads
+(workers/stages/register/flush.py: flush_every_s, images_due, is_behind)."""
 
 from __future__ import annotations
 
 import pytest
 
-from workers.stages.register.flush import flush_every_s, images_due
+from workers.stages.register.flush import flush_every_s, images_due, is_behind
 
 
 @pytest.mark.parametrize(
@@ -38,3 +38,5 @@ def test_a_session_far_behind_its_uploads_is_flushed_less_often(
     caught_up: bool, lags_s: list[float], every: float
 ) -> None:
     assert flush_every_s(caught_up, lags_s, every_s=0.5, behind_every_s=2.0, behind_lag_s=5.0) == every
+    # the same rule says when its frames are placed without re-pasting the frames a refinement moved (cursor)
+    assert is_behind(caught_up, lags_s, behind_lag_s=5.0) is (every == 2.0)

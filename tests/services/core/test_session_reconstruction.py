@@ -153,6 +153,25 @@ def test_moved_frames_are_repainted_a_few_at_a_time_and_settle_within_the_tolera
     assert all(live.moved_px(live._pasted_place(i), final[i]) < FINISH_MOVED_PX for i in live.pasted)
 
 
+def test_a_worker_far_behind_pastes_each_frame_alone_and_its_moved_frames_wait(live_run: LiveRun) -> None:
+    # add(pf, repaint=False), as a live worker whose session is far behind its uploads: every frame a refinement
+    # moved waits (stale), none is re-pasted, the new frame is pasted; settled later the canvas is the usual one
+    live = SessionReconstruction(live_run.calib, live_run.options, live_run.radius_mm, live=True)
+    moved: set[int] = set()
+    for pf in live_run.frames:
+        before = dict(live.pasted)
+        result, _ = live.add(pf, repaint=False)
+        moved.update(result.moved)
+        assert pf.index in live.pasted or pf.index not in live.stitch_places()
+        assert all(np.array_equal(live.pasted[i], a) for i, a in before.items())  # nothing re-pasted
+    assert moved and moved <= set(live.stale)  # every moved frame waits (a refinement moved some)
+    while live.stale:
+        live.settle(16)
+    # settled, every pasted frame lies within LIVE_REPASTE_PX of its pose, as when re-pasted as it goes (the rule)
+    assert all(live._unseen_move(pasted, live._stitch_pose(i)) for i, pasted in live.pasted.items())
+    assert set(live.pasted) == set(live.stitch_places())  # every frame that has a place is pasted
+
+
 def test_a_frames_move_is_its_farthest_corner_plus_the_most_its_undone_drag_shifts_a_pixel(live_run: LiveRun) -> None:
     live = live_run.live
     affine = next(iter(live.stitch_places().values()))[0]

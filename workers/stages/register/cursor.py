@@ -122,7 +122,7 @@ class Cursor:
     def _add(self, held: HeldSession, pf: PreparedFrame, replay: bool = False) -> None:
         self._log_order(held, pf.seq, "add")
         started = time.process_time()  # the process's: a re-paste warps on helper threads
-        result, touched = held.recon.add(pf)
+        result, touched = held.recon.add(pf, repaint=replay or not held.behind)  # far behind: moved frames wait
         if not replay:
             held.pending.cost.add(held.recon.frame_kind(pf.index), time.process_time() - started)
             held.pending.touched |= touched

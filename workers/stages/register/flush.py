@@ -26,14 +26,18 @@ from workers.stages.register.held import HeldSession, RegisterCost
 from workers.stages.register.lease import LeaseKeeper
 
 
+def is_behind(caught_up: bool, lags_s: list[float], behind_lag_s: float) -> bool:
+    """Return True when a live session is behind its uploads: not caught up, and even its newest frame just published
+    waited more than behind_lag_s since its upload."""
+    return not caught_up and bool(lags_s) and min(lags_s) > behind_lag_s
+
+
 def flush_every_s(
     caught_up: bool, lags_s: list[float], every_s: float, behind_every_s: float, behind_lag_s: float
 ) -> float:
     """Return the least time (s) between a session's flushes: every_s, or behind_every_s while the session is
-    behind (not caught up, and even its newest frame just published waited more than behind_lag_s since its upload:
-    flushing it less often leaves the CPU to placing its frames)."""
-    behind = not caught_up and bool(lags_s) and min(lags_s) > behind_lag_s
-    return max(every_s, behind_every_s) if behind else every_s
+    behind (is_behind: flushing it less often leaves the CPU to placing its frames)."""
+    return max(every_s, behind_every_s) if is_behind(caught_up, lags_s, behind_lag_s) else every_s
 
 
 def images_due(final: bool, written: bool, caught_up: bool, since_s: float, every_s: float) -> bool:
@@ -147,6 +151,7 @@ class Flusher:
         # three probes on two cores: 18.2 -> 24.1 frames/s placed with the behind rule (bench/probes.py)
         every = flush_every_s(caught_up, lags, cfg.flush_every_s, cfg.behind_flush_every_s, cfg.behind_lag_s)
         held.clocks.flush_interval = max(every, 2.0 * (held.clocks.flushed - now))
+        held.behind = is_behind(caught_up, lags, cfg.behind_lag_s)  # its frames' moved neighbours wait (cursor)
         return parts.seconds
 
     def record_lags(self, held: HeldSession, seqs: list[int]) -> list[float]:

@@ -71,6 +71,7 @@ class HeldSession:
     rejected: list[int] = field(default_factory=list)
     times: dict[int, float] = field(default_factory=dict)  # t_s of frames registered without a PreparedFrame
     replayed: bool = False  # taken over mid-session: tiles another worker wrote may not have reached the disk
+    behind: bool = False  # the last flush found it behind its uploads (flush.is_behind): moved frames wait to re-paste
     pending: Pending = field(default_factory=Pending)
     clocks: Clocks = field(default_factory=Clocks)
 
