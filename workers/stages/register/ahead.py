@@ -2,10 +2,11 @@
 canvas kept at the places it gives, so that the session is done soon after its last upload (the real finish then
 pastes again only the frames that moved since: SessionReconstruction.run_ahead).
 
-A run is due once the session has caught up with its uploads, is not finished, has placed new frames since the last
-run, and finish_ahead_every_s (or AHEAD_COST_FACTOR times the last run's duration, if longer: a long examination's
-run takes about 2 s at 2400 frames) has passed since it; finish_ahead_every_s 0 (the default) turns it off: with the
-compliance gauge in the canvas's pixels each run moves most frames of a long examination (docs/performance.md).
+A run is due once the session has caught up with its uploads, is not finished, has re-pasted every frame waiting to
+be (the last run's moved frames among them), has placed new frames since the last run, and finish_ahead_every_s (or
+AHEAD_COST_FACTOR times the last run's duration, if longer: a long examination's run takes about 2 s at 2400
+frames) has passed since it; finish_ahead_every_s 0 (the default) turns it off: with the compliance gauge in the
+canvas's pixels each run moves most frames of a long examination (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -29,12 +30,14 @@ class FinishAhead:
         self.publisher = publisher
 
     def due(self, held: HeldSession, caught_up: bool, finished: bool, now: float) -> bool:
-        """Return True when a run ahead is due: caught up, not finished, new frames placed, the interval passed."""
+        """Return True when a run ahead is due: caught up, not finished, nothing waiting to be re-pasted, new frames
+        placed, the interval passed."""
         every = self.ctx.config.finish_ahead_every_s
         return (
             every > 0
             and caught_up
             and not finished
+            and not held.recon.stale  # the last run's moved frames are re-pasted (the idle settle) before another
             and len(held.recon.registrar.order) > held.clocks.ahead_placed
             and now - held.clocks.ahead >= max(every, held.clocks.ahead_interval)
         )
