@@ -77,6 +77,11 @@ RESTITCH_AHEAD = 4  # a restitch builds and warps this many frames (~5 + 10 MB e
 REPAINT_AT_ONCE = 12  # moved frames this recent are re-pasted at once (their planes are usually kept)
 
 
+def _as_3x3(affine: np.ndarray) -> np.ndarray:
+    """Return a 2x3 affine as its 3x3 homogeneous matrix."""
+    return np.vstack([affine, [0.0, 0.0, 1.0]])
+
+
 @dataclass(frozen=True)
 class AheadRun:
     """A finish run ahead of the scan's end on a copy of the session (run_ahead): where it would paste each frame
@@ -95,7 +100,7 @@ class AheadRun:
     def mapped(self, affine: np.ndarray) -> np.ndarray:
         """Return a live stitch affine (2x3, mm) mapped onto the run's mosaic by its newest frame's correction: where
         a frame placed since the run is pasted."""
-        return (self.correction @ np.vstack([affine, [0.0, 0.0, 1.0]]))[:2]
+        return (self.correction @ _as_3x3(affine))[:2]
 
 
 @dataclass
@@ -325,12 +330,11 @@ class SessionReconstruction:
             return 0
         twin = self._finished_copy()
         places = twin.stitch_places()
-        live = {i: pose for i in places if (pose := self._stitch_pose(i)) is not None}
+        newest = max(places, default=None)  # its live place against the run's maps the frames placed since
+        live = self._stitch_pose(newest) if newest is not None else None
         correction = np.eye(3)
-        if live:
-            newest = max(live)
-            as_3x3 = lambda m: np.vstack([m, [0.0, 0.0, 1.0]])  # noqa: E731
-            correction = as_3x3(places[newest][0]) @ np.linalg.inv(as_3x3(live[newest]))
+        if newest is not None and live is not None:
+            correction = _as_3x3(places[newest][0]) @ np.linalg.inv(_as_3x3(live))
         self.ahead = AheadRun(places, twin.gauge, twin._origin_shift(), correction)
         moved = (i for i in sorted(set(self.pasted) | set(places)) if i in self.frames)
         self.stale.update((i, None) for i in moved if self._repaste_needed(i, self._pasted_place(i), self._target(i)))

@@ -53,7 +53,7 @@ class Clocks:
     flush_interval: float = 0.0  # max(flush_every_s, 2 x the last flush's duration): flushing stays <= 1/3
     images: float = 0.0
     ahead: float = field(default_factory=time.monotonic)  # the last finish run ahead ended (or the session was taken)
-    ahead_interval: float = 0.0  # max(finish_ahead_every_s, AHEAD_COST_FACTOR x the last run's duration)
+    ahead_interval: float = 0.0  # AHEAD_COST_FACTOR x the last run's duration: runs wait at least that long
     ahead_placed: int = 0  # frames on the main map at the last run ahead: the next one waits for new frames
 
 
