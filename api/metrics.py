@@ -44,6 +44,18 @@ KNOWN_COUNTERS: dict[str, str] = {
     "register_unplaced_cpu_seconds_total": "CPU seconds the workers spent on frames they could not place.",
     "finish_ahead_runs_total": "Live sessions' finishes run ahead on a copy (finish_ahead_every_s).",
     "finish_ahead_cpu_seconds_total": "CPU seconds the workers spent running finishes ahead (not the re-pastes).",
+    "flushes_total": "Flushes of sessions by the workers (path, tiles, mosaic.json; the whole images when due).",
+    **{
+        f"flush_{part}_cpu_seconds_total": f"CPU seconds the workers spent in flushes' {what}."
+        for part, what in (
+            ("path", "path rows and path.json"),
+            ("pyramid", "pyramid updates"),
+            ("tiles", "tile renders and writes"),
+            ("images", "whole images (mosaic.png, force.png, coverage.png)"),
+            ("documents", "mosaic.json and state.json"),
+            ("event", "counters, lags and events"),
+        )
+    },
 }
 SUMMARIES = {"job_seconds": "Wall time of finished reprocess jobs, seconds."}
 LIVE_WINDOW_S = 60.0  # a session is live for the lag gauges while frames of it were placed this recently

@@ -163,6 +163,15 @@ class Publisher:
             queue.incr_metric(pipe, f"register_{kind}_cpu_seconds_total", cpu_s[kind], prefix=self.ctx.prefix)
         pipe.execute()
 
+    def count_flush(self, cpu_s: Mapping[str, float]) -> None:
+        """Add one flush to flushes_total and its CPU seconds by part (path, pyramid, tiles, images, documents, event:
+        workers.stages.register.flush) to flush_<part>_cpu_seconds_total."""
+        pipe = self.ctx.r.pipeline(transaction=False)
+        queue.incr_metric(pipe, "flushes_total", 1, prefix=self.ctx.prefix)
+        for part, seconds in cpu_s.items():
+            queue.incr_metric(pipe, f"flush_{part}_cpu_seconds_total", seconds, prefix=self.ctx.prefix)
+        pipe.execute()
+
     def count_finish_ahead(self, cpu_s: float) -> None:
         """Add one finish run ahead and its CPU seconds to finish_ahead_runs_total, finish_ahead_cpu_seconds_total."""
         pipe = self.ctx.r.pipeline(transaction=False)

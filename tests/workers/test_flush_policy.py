@@ -1,11 +1,11 @@
 """When a flush happens and when it writes the whole mosaic images, and when a session counts as behind its uploads
-(workers/stages/register/flush.py: flush_every_s, images_due, is_behind)."""
+(workers/stages/register/flush.py: flush_every_s, images_due, images_every_s, is_behind)."""
 
 from __future__ import annotations
 
 import pytest
 
-from workers.stages.register.flush import flush_every_s, images_due, is_behind
+from workers.stages.register.flush import IMAGES_COST_FACTOR, flush_every_s, images_due, images_every_s, is_behind
 
 
 @pytest.mark.parametrize(
@@ -22,6 +22,19 @@ def test_whole_images_wait_until_the_session_has_caught_up(
     final: bool, written: bool, caught_up: bool, since_s: float, due: bool
 ) -> None:
     assert images_due(final, written, caught_up, since_s, every_s=2.0) is due
+
+
+@pytest.mark.parametrize(
+    ("last_s", "every"),
+    [
+        (0.0, 2.0),  # none written yet: image_every_s
+        (0.05, 2.0),  # a raster's images, quick: image_every_s
+        (0.4, 0.4 * IMAGES_COST_FACTOR),  # a long examination's: they wait ten times as long as they took
+    ],
+)
+def test_whole_images_that_take_long_are_written_less_often(last_s: float, every: float) -> None:
+    assert IMAGES_COST_FACTOR * 0.4 > 2.0  # the last case is the cost rule's, not image_every_s's
+    assert images_every_s(2.0, last_s) == pytest.approx(every)
 
 
 @pytest.mark.parametrize(

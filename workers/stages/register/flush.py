@@ -6,7 +6,8 @@ most every flush_interval (flush_every_s, or twice the last flush's duration if 
 a third of the time; behind_flush_every_s while the live session is behind, its newest published frame having
 waited more than behind_lag_s since its upload); the whole images (mosaic.png, force.png, coverage.png) at most
 every image_every_s and only once the session has caught up with its uploads (a session that is behind spends
-the CPU on placing frames), and the tiles of levels where one tile holds the whole canvas with them. The final
+the CPU on placing frames), or IMAGES_COST_FACTOR times their last duration if longer (a long examination's mosaic
+takes a while to render and encode), and the tiles of levels where one tile holds the whole canvas with them. The final
 flush writes the tiles that changed and whatever was deferred, then makes every tile of the version durable.
 """
 
@@ -25,6 +26,8 @@ from workers.publisher import Publisher
 from workers.stages.register.held import HeldSession, RegisterCost
 from workers.stages.register.lease import LeaseKeeper
 
+IMAGES_COST_FACTOR = 10.0  # the whole images wait at least this many times their last duration (images_every_s)
+
 
 def is_behind(caught_up: bool, lags_s: list[float], behind_lag_s: float) -> bool:
     """Return True when a live session is behind its uploads: not caught up, and even its newest frame just published
@@ -40,6 +43,13 @@ def flush_every_s(
     return max(every_s, behind_every_s) if is_behind(caught_up, lags_s, behind_lag_s) else every_s
 
 
+def images_every_s(every_s: float, last_s: float) -> float:
+    """Return the least time (s) between a session's whole images: every_s, or IMAGES_COST_FACTOR times the last
+    images' duration (s) if longer, so that a long examination's (0.3-0.5 s on a slow day) take at most a tenth of
+    its time."""
+    return max(every_s, IMAGES_COST_FACTOR * last_s)
+
+
 def images_due(final: bool, written: bool, caught_up: bool, since_s: float, every_s: float) -> bool:
     """Return True when a flush writes the whole images: always at the end or the first time, else at most every
     every_s seconds and only once the session has caught up with its uploads."""
@@ -47,17 +57,21 @@ def images_due(final: bool, written: bool, caught_up: bool, since_s: float, ever
 
 
 class _Parts:
-    """Seconds spent in the named parts of one flush, each lap timed from the previous one."""
+    """Seconds (wall, and this process's CPU) spent in the named parts of one flush, each lap timed from the
+    previous one."""
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = {}
+        self.cpu_s: dict[str, float] = {}
         self._last = time.monotonic()
+        self._last_cpu = time.process_time()
 
     def lap(self, name: str) -> None:
         """Record the time since the previous lap under `name`."""
-        now = time.monotonic()
+        now, cpu = time.monotonic(), time.process_time()
         self.seconds[name] = round(now - self._last, 3)
-        self._last = now
+        self.cpu_s[name] = cpu - self._last_cpu
+        self._last, self._last_cpu = now, cpu
 
 
 class Flusher:
@@ -99,7 +113,8 @@ class Flusher:
         doc = ctx.results.read_mosaic_meta(sid, v) or {}
         version = int(doc.get("version", 0)) + 1
         revisions: dict[str, dict[str, int]] = doc.get("revisions") or empty_revisions()
-        with_images = images_due(final, bool(doc.get("width")), caught_up, now - held.clocks.images, cfg.image_every_s)
+        every_images = images_every_s(cfg.image_every_s, held.clocks.images_s)
+        with_images = images_due(final, bool(doc.get("width")), caught_up, now - held.clocks.images, every_images)
         pending.deferred |= held.pyramid.update(held.recon.canvas, pending.touched)
         pending.touched = set()
         # levels where one tile holds the whole canvas are only seen zoomed far out: refresh them with the images
@@ -114,8 +129,10 @@ class Flusher:
         parts.lap("tiles")
         image = image_meta(doc, held.calib.px_per_mm)
         if with_images:
+            started = time.monotonic()
             image = pub.write_images(sid, v, held.recon.canvas.render(), raw_layers=final)  # + coverage, layers
             held.clocks.images = now
+            held.clocks.images_s = time.monotonic() - started
         parts.lap("images")
         finished = ctx.store.get_meta(sid).finished_at is not None
         status = "done" if final else ("processing" if finished else "receiving")
@@ -144,6 +161,7 @@ class Flusher:
             before_event()
         pub.results_event(sid, doc, tiles_event, rows, pending.seqs, pending.path_reset or final)
         parts.lap("event")
+        self.publisher.count_flush(parts.cpu_s)
         pending.seqs = []
         pending.path_reset = False
         pending.dirty = False

@@ -52,6 +52,7 @@ class Clocks:
     flushed: float = 0.0
     flush_interval: float = 0.0  # max(flush_every_s, 2 x the last flush's duration): flushing stays <= 1/3
     images: float = 0.0
+    images_s: float = 0.0  # how long the last whole images took (s): the next wait longer (flush.images_every_s)
     ahead: float = field(default_factory=time.monotonic)  # the last finish run ahead ended (or the session was taken)
     ahead_interval: float = 0.0  # AHEAD_COST_FACTOR x the last run's duration: runs wait at least that long
     ahead_placed: int = 0  # frames on the main map at the last run ahead: the next one waits for new frames
