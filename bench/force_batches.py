@@ -6,7 +6,9 @@ A real SessionStore on a temporary data dir: one session receives --batches batc
 frame of a 10 frames/s probe). At every 400 batches it times, per call, what the prepare stage runs for each
 frame: SessionStore.merged_forces after one new batch (incremental: only the new batch is merged), against the
 baseline in the same run, a glob of every batch file and a merge of all of them (what merged_forces did before,
-with the same per-file parse cache), and an upload's put_forces (its duplicate check lists the batches).
+with the same per-file parse cache); merged_forces asked to cover a frame's time 1 s before the newest sample (a
+frame prepared behind its upload, as the prepare stage asks: what was merged already serves, nothing is listed);
+and an upload's put_forces (a re-send is found by its digest's marker, the batches not listed).
 Prints a table of milliseconds (median of --repeat calls) and the baseline / incremental ratio.
 """
 
@@ -50,8 +52,9 @@ def main() -> int:
     def glob_and_merge_all() -> object:  # the baseline: every batch listed by a glob and merged, per frame
         return _merge_rows([store._load_batch(f, "samples", 5) for f in sorted(bdir.glob("[0-9]*.json"))], 5)
 
-    print("| batches | merged_forces ms (one new batch) | glob + merge all ms (before) | ratio | put_forces ms |")
-    print("|---:|---:|---:|---:|---:|")
+    head = ["batches", "merged_forces ms (one new batch)", "glob + merge all ms (before)", "ratio"]
+    print("| " + " | ".join([*head, "covering a frame ms", "put_forces ms"]) + " |")
+    print("|---:|---:|---:|---:|---:|---:|")
     t = 0.0
 
     def next_batch() -> list[list[float]]:
@@ -74,7 +77,11 @@ def main() -> int:
                 n += 1
             merged, put = statistics.median(merges), statistics.median(puts)
             base = _ms(glob_and_merge_all, args.repeat)
-            print(f"| {n} | {merged:.2f} | {base:.2f} | {base / merged:.1f}x | {put:.2f} |", flush=True)
+            store.put_forces(sid, next_batch())  # a batch newer than the frame: not needed to prepare it
+            covering = _ms(lambda: store.merged_forces(sid, covering_t_s=t - 1.0), args.repeat)
+            n += 1
+            row = f"| {n} | {merged:.2f} | {base:.2f} | {base / merged:.1f}x | {covering:.3f} | {put:.2f} |"
+            print(row, flush=True)
     return 0
 
 

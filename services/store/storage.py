@@ -33,7 +33,7 @@ import numpy as np
 from services.core.inputs.calibration import Calibration, parse_calibration
 from services.core.inputs.image_header import check_header, read_header
 from services.core.inputs.study import StudyContext, parse_study
-from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir
+from services.store.durable import atomic_write_bytes, directory_lock, fsync_dir, replace_bytes
 from services.store.job_ledger import JobLedger
 
 SessionStatus = Literal["receiving", "processing", "done", "failed"]
@@ -122,6 +122,15 @@ def _merge_rows(batches: list[np.ndarray], width: int) -> np.ndarray:
     return rows[first]
 
 
+def _appended(merged: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+    """Return _merge_rows([merged, fresh]) for rows already merged and rows of later batches, merged: appended
+    as they are when every fresh row is later than the last merged one (a probe's batches arrive in time order,
+    so this is the usual case, and it does not re-sort a long examination's samples per frame), else re-merged."""
+    if len(merged) and len(fresh) and fresh[0, 0] <= merged[-1, 0]:
+        return _merge_rows([merged, fresh], merged.shape[1])
+    return np.concatenate([merged, fresh], axis=0)
+
+
 def _batch_names(bdir: Path) -> list[str]:
     """Return the batch file names in bdir in arrival order (os.listdir: a glob cost 10 ms at 2400 batches)."""
     try:
@@ -185,7 +194,7 @@ class SessionStore:
         )
         tmp_dir = self.root / f".{session_id}.tmp"
         try:
-            for sub in ("raw/frames", "raw/forces", "raw/imu"):
+            for sub in ("raw/frames", "raw/forces", "raw/imu", "raw/digests"):
                 (tmp_dir / sub).mkdir(parents=True)
             atomic_write_bytes(tmp_dir / "calibration.json", _json_bytes(meta.calibration))
             atomic_write_bytes(tmp_dir / "session.json", _json_bytes(asdict(meta)))
@@ -386,14 +395,23 @@ class SessionStore:
 
     # ----- force and IMU batches -------------------------------------------------------------------------
     def _put_batch(self, path: Path, kind: str, rows: np.ndarray) -> str | None:
+        """Return the name of the batch file holding `rows` (kind "samples" or "imu"), written unless the same batch
+        was stored before (a re-send: stored once). Called under the session lock.
+
+        Each stored batch leaves a marker named by its digest, holding its name: a re-send is found by one read, not
+        by listing every batch (2400 of them in a 4-minute examination). The marker is not synced: lost in a crash,
+        a re-send is stored twice, which the merge reads as one (_merge_rows: equal times, equal values).
+        """
         body = _json_bytes({kind: rows.tolist()})
         digest = hashlib.sha256(body).hexdigest()[:16]
         bdir = path / "raw" / ("forces" if kind == "samples" else "imu")
-        for existing in _batch_names(bdir):
-            if existing.endswith(f"-{digest}.json"):
-                return existing.removesuffix(".json")  # the same batch re-sent: stored once
+        marker = path / "raw" / "digests" / f"{bdir.name}-{digest}"
+        with contextlib.suppress(FileNotFoundError):
+            return marker.read_text()  # the same batch re-sent: stored once
         name = f"{time.time_ns():019d}-{digest}"
         atomic_write_bytes(bdir / f"{name}.json", body)
+        marker.parent.mkdir(exist_ok=True)  # a session stored before the markers has no such directory
+        replace_bytes(marker, name.encode())
         return name
 
     def put_forces(
@@ -429,20 +447,23 @@ class SessionStore:
             self._batch_cache[path] = arr
         return arr
 
-    def _merged_batches(self, bdir: Path, kind: str, width: int) -> np.ndarray:
+    def _merged_batches(self, bdir: Path, kind: str, width: int, covering_t_s: float | None = None) -> np.ndarray:
         """Return the rows of every batch in bdir merged (_merge_rows), merging only batches new since the last call.
 
         Batch names sort in arrival order, so the batches of the last call are a prefix of the listing and the
         new ones arrived later (they win ties, as in a full merge). A listing that does not extend the last one
-        (a batch renamed into place late by another process) is merged whole again.
+        (a batch renamed into place late by another process) is merged whole again. With covering_t_s, the rows
+        of the last call are returned as they are, the directory not even listed, when they reach that time (s).
         """
-        names = _batch_names(bdir)
         known = self._merged_cache.get(bdir)
+        if covering_t_s is not None and known is not None and len(known[1]) and known[1][-1, 0] >= covering_t_s:
+            return known[1]
+        names = _batch_names(bdir)
         if known is not None and names[: len(known[0])] == known[0]:
             fresh = names[len(known[0]) :]
             if not fresh:
                 return known[1]
-            rows = _merge_rows([known[1], *(self._load_batch(bdir / n, kind, width) for n in fresh)], width)
+            rows = _appended(known[1], _merge_rows([self._load_batch(bdir / n, kind, width) for n in fresh], width))
         else:
             rows = _merge_rows([self._load_batch(bdir / n, kind, width) for n in names], width)
         if bdir not in self._merged_cache and len(self._merged_cache) >= _MERGED_CACHE_MAX:
@@ -450,16 +471,23 @@ class SessionStore:
         self._merged_cache[bdir] = (names, rows)
         return rows
 
-    def merged_forces(self, session_id: str) -> tuple[np.ndarray, np.ndarray]:
-        """Return (t_s (M,) s strictly increasing, forces_n (M, 4) N as F1..F4) over all batches, deduped."""
+    def merged_forces(self, session_id: str, covering_t_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Return (t_s (M,) s strictly increasing, forces_n (M, 4) N as F1..F4) over all batches, deduped.
+
+        covering_t_s: a time (s) the caller needs samples up to; when what this process merged last reaches it, that
+        is returned without looking for batches since (a frame's preparation in a long examination: listing 2400
+        batches per frame to read two samples cost more than the rest of the merge). Batches arrive in time order;
+        one sent late for times already covered is merged by the next call that looks.
+        """
         bdir = self.session_dir(session_id) / "raw" / "forces"
-        rows = self._merged_batches(bdir, "samples", 5)
+        rows = self._merged_batches(bdir, "samples", 5, covering_t_s)
         return rows[:, 0].copy(), rows[:, 1:].copy()
 
-    def merged_imu(self, session_id: str) -> tuple[np.ndarray, np.ndarray]:
-        """Return (t_s (K,) s strictly increasing, tilt_deg (K, 2) as tilt_x, tilt_y) over all IMU batches."""
+    def merged_imu(self, session_id: str, covering_t_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Return (t_s (K,) s strictly increasing, tilt_deg (K, 2) as tilt_x, tilt_y) over all IMU batches
+        (covering_t_s as for merged_forces)."""
         bdir = self.session_dir(session_id) / "raw" / "imu"
-        rows = self._merged_batches(bdir, "imu", 3)
+        rows = self._merged_batches(bdir, "imu", 3, covering_t_s)
         return rows[:, 0].copy(), rows[:, 1:].copy()
 
     # ----- health ---------------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from services.core.physics.force_model import interpolate_forces
+from services.core.physics.force_model import interpolate_forces, samples_around
 from services.core.physics.tissue_model import reference_tilts_at
 from services.core.pipeline import MASK_SAMPLE_FRAMES, window_setup_of
 from services.core.registration.frame_prep import prepare_frame
@@ -80,13 +80,13 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
     if setup is None:
         return Retry(ctx.config.not_ready_delay_s, "setup")
     finished = meta.finished_at is not None
-    force_t, forces = ctx.store.merged_forces(sid)
+    force_t, forces = ctx.store.merged_forces(sid, covering_t_s=rec.t_s)
     if not finished and (len(force_t) == 0 or force_t[-1] < rec.t_s):
         return Retry(ctx.config.not_ready_delay_s, "forces")
     if finished:
         force_t, forces = stored_forces(ctx.store, sid, rec.t_s)
-    forces_n = interpolate_forces(force_t, forces, np.array([rec.t_s]))[0]
-    imu_t, imu = ctx.store.merged_imu(sid)  # an IMU's rows come with the force batches: wait for them as for forces
+    forces_n = interpolate_forces(*samples_around(force_t, forces, rec.t_s), np.array([rec.t_s]))[0]
+    imu_t, imu = ctx.store.merged_imu(sid, covering_t_s=rec.t_s)  # with the force batches: wait for them too
     if not finished and len(imu_t) and imu_t[-1] < rec.t_s:
         return Retry(ctx.config.not_ready_delay_s, "imu")
     imu_tilt = reference_tilts_at(np.array([rec.t_s]), imu_t, imu)[0]

@@ -48,6 +48,15 @@ def interpolate_forces(sample_t: np.ndarray, samples: np.ndarray, t: np.ndarray)
     return np.stack([np.interp(t, uniq, means[:, c]) for c in range(means.shape[1])], axis=1)
 
 
+def samples_around(sample_t: np.ndarray, samples: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return the rows of samples at strictly increasing times sample_t (s) that interpolating at time t (s) reads:
+    its two neighbours, or the end held (interpolate_forces gives the same forces from them as from all). A long
+    examination holds tens of thousands of samples; a frame needs two."""
+    k = int(np.searchsorted(sample_t, t))
+    lo, hi = max(k - 1, 0), min(k + 1, len(sample_t))
+    return sample_t[lo:hi], samples[lo:hi]
+
+
 def load_state(forces_n: np.ndarray, calib: Calibration) -> LoadState:
     """Return the LoadState for sensor forces (F1, F2, F3, F4) in N (spec §2, sides as settled there)."""
     f1, f2, f3, f4 = (float(v) for v in np.asarray(forces_n, dtype=np.float64).ravel()[:4])

@@ -186,8 +186,9 @@ def test_merged_forces_sorted_dedup_latest_wins(store: SessionStore, sid: str) -
 
 
 def test_merged_forces_incremental_equals_a_fresh_merge(store: SessionStore, sid: str, tmp_path: Path) -> None:
-    """Merging only the batches new since the last call gives what a fresh process merging all of them gives,
-    ties won by the later arrival, also when a batch named earlier appears after a later one was merged."""
+    """Merging only the batches new since the last call (appended when later than every sample merged, merged
+    again where a batch overlaps) gives what a fresh process merging all of them gives, ties won by the later
+    arrival, also when a batch named earlier appears after a later one was merged."""
     rng = np.random.default_rng(7)
     for k in range(30):
         t0 = 0.1 * k - (0.15 if k % 4 == 0 else 0.0)  # every fourth batch overlaps the one before
@@ -208,6 +209,18 @@ def test_merged_forces_incremental_equals_a_fresh_merge(store: SessionStore, sid
     np.testing.assert_array_equal(f_late, f_ref)
     assert t_late[-1] == 99.0 and len(t_late) == len(t_all) + 1  # its new sample is in
     np.testing.assert_array_equal(f_late[t_late == 0.1], f_all[t_all == 0.1])  # at t = 0.1 the later arrival wins
+
+
+def test_merged_forces_covering_a_time_reads_no_batch_it_does_not_need(store: SessionStore, sid: str) -> None:
+    """A frame's preparation asks for samples up to its time: what was merged already is returned while it reaches
+    that time (the batches are not listed again), and the batches since are merged once it does not."""
+    store.put_forces(sid, [[0.0, 1, 1, 1, 1], [1.0, 2, 2, 2, 2]])
+    assert store.merged_forces(sid)[0].tolist() == [0.0, 1.0]
+    store.put_forces(sid, [[2.0, 3, 3, 3, 3]])
+    assert store.merged_forces(sid, covering_t_s=0.5)[0].tolist() == [0.0, 1.0]  # covered: the new batch not read
+    assert store.merged_forces(sid, covering_t_s=1.5)[0].tolist() == [0.0, 1.0, 2.0]  # not covered: merged
+    store.put_forces(sid, [[3.0, 4, 4, 4, 4]])
+    assert store.merged_forces(sid)[0].tolist() == [0.0, 1.0, 2.0, 3.0]  # without a time: every batch, as before
 
 
 def test_bad_force_rows_rejected(store: SessionStore, sid: str) -> None:

@@ -23,6 +23,7 @@ from services.core.physics.force_model import (
     local_load_n,
     rectify_factor,
     rectify_points_mm,
+    samples_around,
 )
 from tests.tolerances import TOL
 
@@ -233,6 +234,21 @@ def test_interpolate_unsorted_samples() -> None:
     out = interpolate_forces(np.array([2.0, 0.0, 1.0]), np.array([20.0, 0.0, 10.0]), np.array([0.5, 1.5]))
     assert out.shape == (2, 1)
     np.testing.assert_allclose(out[:, 0], [5.0, 15.0], rtol=0, atol=TOL.force_interp_n)
+
+
+def test_the_samples_around_a_time_interpolate_as_all_of_them() -> None:
+    """The prepare stage interpolates a frame's forces from samples_around alone: the same numbers to the bit as
+    from every sample, between samples, on one, and beyond either end (held)."""
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.005, 0.02, 500))
+    f = rng.uniform(0, 20, (500, 4))
+    queries = [t[0] - 1.0, t[0], float(rng.uniform(t[0], t[-1])), t[250], (t[10] + t[11]) / 2, t[-1], t[-1] + 1.0]
+    for q in queries:
+        near_t, near_f = samples_around(t, f, q)
+        assert 1 <= len(near_t) <= 2
+        np.testing.assert_array_equal(
+            interpolate_forces(near_t, near_f, np.array([q])), interpolate_forces(t, f, np.array([q]))
+        )
 
 
 def test_interpolate_repeated_timestamps_are_averaged() -> None:
