@@ -477,7 +477,8 @@ class SessionStore:
         covering_t_s: a time (s) the caller needs samples up to; when what this process merged last reaches it, that
         is returned without looking for batches since (a frame's preparation in a long examination: listing 2400
         batches per frame to read two samples cost more than the rest of the merge). Batches arrive in time order;
-        one sent late for times already covered is merged by the next call that looks.
+        one sent late, for times already covered, reaches only the frames prepared after a call that looks (as a
+        batch sent after a frame's preparation never reaches that frame live; a reprocess reads every batch).
         """
         bdir = self.session_dir(session_id) / "raw" / "forces"
         rows = self._merged_batches(bdir, "samples", 5, covering_t_s)
