@@ -25,6 +25,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import secrets
 import signal
 import sys
@@ -54,7 +55,6 @@ from services.store.scan_folder import write_scan_folder
 
 DONE_TARGET_S = 5.0
 LAG_P95_TARGET_S = 2.0
-FLUSH_PARTS = ("path", "pyramid", "tiles", "images", "documents", "event")  # workers.stages.register.flush
 KINDS = (KEYFRAME, TRACKED)  # SessionReconstruction.frame_kind of placed frames
 
 
@@ -87,13 +87,18 @@ def cost_line(n: int, before: dict[str, float], after: dict[str, float], workers
     counted = delta.get("prepare_cpu_seconds_total", 0.0) + sum(
         delta.get(f"register_{kind}_cpu_seconds_total", 0.0) for kind in (*KINDS, UNPLACED)
     )
-    flush_ms = {part: 1000 * delta.get(f"flush_{part}_cpu_seconds_total", 0.0) / frames_in for part in FLUSH_PARTS}
+    flush_ms = {  # by part, as the flushes count them (workers.stages.register.flush)
+        m.group(1): 1000 * value / max(frames_in, 1)
+        for key, value in delta.items()
+        if (m := re.fullmatch(r"flush_(\w+)_cpu_seconds_total", key))
+    }
     flushes_ms = sum(flush_ms.values())
+    tiles_ms, images_ms = flush_ms.get("tiles", 0.0) + flush_ms.get("pyramid", 0.0), flush_ms.get("images", 0.0)
     rest_ms = 1000 * (workers_cpu_s - counted) / frames_in - flushes_ms if frames_in else math.nan
     return (
         f"| {n} | {share:.1f} | {prepare_ms:.1f} | {register_ms[KEYFRAME]:.1f} | {register_ms[TRACKED]:.1f} "
         f"| {prepare_ms + register_ms[KEYFRAME]:.1f} | {prepare_ms + register_ms[TRACKED]:.1f} "
-        f"| {flushes_ms:.1f} ({flush_ms['tiles'] + flush_ms['pyramid']:.1f} / {flush_ms['images']:.1f}) "
+        f"| {flushes_ms:.1f} ({tiles_ms:.1f} / {images_ms:.1f}) "
         f"| {rest_ms:.1f} |"
     )
 

@@ -77,6 +77,12 @@ RESTITCH_AHEAD = 4  # a restitch builds and warps this many frames (~5 + 10 MB e
 REPAINT_AT_ONCE = 12  # moved frames this recent are re-pasted at once (their planes are usually kept)
 
 
+def _in_output_units(pose: Similarity, gauge: float, origin_shift: complex) -> Similarity:
+    """Return a registrar pose in output units: divided by the compliance gauge, its origin moved by origin_shift
+    (registrar mm) to where the skin under frame 0's centre rests."""
+    return Similarity(pose.a / gauge, (pose.t + origin_shift) / gauge)
+
+
 def _as_3x3(affine: np.ndarray) -> np.ndarray:
     """Return a 2x3 affine as its 3x3 homogeneous matrix."""
     return np.vstack([affine, [0.0, 0.0, 1.0]])
@@ -94,8 +100,8 @@ class AheadRun:
     correction: np.ndarray  # 3x3, mosaic mm -> mosaic mm: the run's newest frame's live stitch affine onto its place
 
     def output_pose(self, pose: Similarity) -> Similarity:
-        """Return a live registrar pose in the run's output units (its gauge and origin: _output_pose)."""
-        return Similarity(pose.a / self.gauge, (pose.t + self.origin_shift) / self.gauge)
+        """Return a live registrar pose in the run's output units (its gauge and origin)."""
+        return _in_output_units(pose, self.gauge, self.origin_shift)
 
     def mapped(self, affine: np.ndarray) -> np.ndarray:
         """Return a live stitch affine (2x3, mm) mapped onto the run's mosaic by its newest frame's correction: where
@@ -248,7 +254,7 @@ class SessionReconstruction:
     def _output_pose(self, pose: Similarity) -> Similarity:
         """Return a registrar pose in output units: divided by the gauge (1 until finish), its origin moved to
         where the skin under frame 0's centre rests (0 until a drag is learned: physics.drag)."""
-        return Similarity(pose.a / self.gauge, (pose.t + self._origin_shift()) / self.gauge)
+        return _in_output_units(pose, self.gauge, self._origin_shift())
 
     def _origin_shift(self) -> complex:
         """Return mm (registrar units) to add to every pose so frame 0's rest centre is the origin (spec §4)."""
@@ -485,16 +491,22 @@ class SessionReconstruction:
             if old is not None:  # the planes it was pasted with: remembered, rebuilt, or with the run's drag undone
                 layers = self._planes(i, old[1])
                 touched.update(self.canvas.paste(layers, old[0], sign=-1.0))
-                del self.pasted[i]
-                self.pasted_drag.pop(i, None)
             if new is not None:
                 if old is None or new[1] != old[1]:  # else the planes it was pasted with serve
                     layers = self._planes(i, new[1])
                 touched.update(self.canvas.paste(layers, new[0]))
-                self.pasted[i] = new[0]
-                if new[1] != NO_DRAG:
-                    self.pasted_drag[i] = new[1]
+            self._record_pasted(i, new)
         return touched
+
+    def _record_pasted(self, index: int, place: Place | None) -> None:
+        """Record where a frame is pasted now (`pasted`, and `pasted_drag` unless its planes undo no drag); None: it
+        is not pasted."""
+        self.pasted.pop(index, None)
+        self.pasted_drag.pop(index, None)
+        if place is not None:
+            self.pasted[index] = place[0]
+            if place[1] != NO_DRAG:
+                self.pasted_drag[index] = place[1]
 
     def _unseen_move(self, old: np.ndarray, new: np.ndarray) -> bool:
         """Return True when a frame pasted with affine `old` (2x3, mm) needs no re-paste at `new`: the same, or
@@ -546,8 +558,7 @@ class SessionReconstruction:
         if 2 * len(moved) < len(over):
             return self._move_pasted(moved, final)
         for i in moved:
-            self.pasted.pop(i, None)
-            self.pasted_drag.pop(i, None)
+            self._record_pasted(i, None)
         emptied = {key for key in tiles if self.canvas.tiles.pop(key, None) is not None}
         return emptied | self._paste_in_order(over, only=tiles)
 
@@ -572,12 +583,7 @@ class SessionReconstruction:
             for warped, sign in parts:
                 if warped is not None:
                     touched.update(self.canvas.add(warped, sign))
-            self.pasted.pop(i, None)
-            self.pasted_drag.pop(i, None)
-            if (place := final.get(i)) is not None:
-                self.pasted[i] = place[0]
-                if place[1] != NO_DRAG:
-                    self.pasted_drag[i] = place[1]
+            self._record_pasted(i, final.get(i))
         return touched
 
     def stitch_places(self) -> dict[int, Place]:
@@ -652,12 +658,7 @@ class SessionReconstruction:
             self.heartbeat()
             if warped is not None:
                 touched.update(self.canvas.add(warped))
-            pose, drag = places[i]
-            self.pasted[i] = pose
-            if drag == NO_DRAG:
-                self.pasted_drag.pop(i, None)
-            else:
-                self.pasted_drag[i] = drag
+            self._record_pasted(i, places[i])
         return touched
 
     def learned_model(self) -> dict[str, Any]:

@@ -117,10 +117,11 @@ def test_two_workers_out_of_order_equal_offline_then_reprocess(
     # (two-sided: a frame's SIFT alone takes over 10 ms here, and nothing takes a second)
     assert 0.01 * 40 < cpu_metric(backend, "prepare_cpu_seconds_total") < 1.0 * 40
     assert 0.002 * 40 < cpu_metric(backend, "register_keyframe_cpu_seconds_total") < 1.0 * 40
-    # and each flush's CPU by part: tiles were rendered, images written at least at the end (two-sided as above)
+    # and each flush's CPU by part: tiles rendered, the whole images written at least at the end (two-sided: each
+    # renders and encodes PNGs of the mosaic, over 5 ms in all; a flush part with nothing to do counts microseconds)
     assert metric(backend, "flushes_total") >= 1
-    assert 0.0 < cpu_metric(backend, "flush_tiles_cpu_seconds_total") < 1.0 * 40
-    assert 0.0 < cpu_metric(backend, "flush_images_cpu_seconds_total") < 1.0 * 40
+    assert 0.005 < cpu_metric(backend, "flush_tiles_cpu_seconds_total") < 1.0 * 40
+    assert 0.005 < cpu_metric(backend, "flush_images_cpu_seconds_total") < 1.0 * 40
     # one holder registered the frames, in seq order, each once
     log = order_log(backend, sid)
     assert [seq for _, seq, _ in log] == list(range(40)) and len({t for t, _, _ in log}) == 1

@@ -45,8 +45,8 @@ def flush_every_s(
 
 def images_every_s(every_s: float, last_s: float) -> float:
     """Return the least time (s) between a session's whole images: every_s, or IMAGES_COST_FACTOR times the last
-    images' duration (s) if longer, so that a long examination's (0.3-0.5 s on a slow day) take at most a tenth of
-    its time."""
+    images' duration (s) if longer, so that a long examination's (its last ones took 0.45 s on a slow day) take at
+    most a tenth of its time."""
     return max(every_s, IMAGES_COST_FACTOR * last_s)
 
 
@@ -129,11 +129,11 @@ class Flusher:
         parts.lap("tiles")
         image = image_meta(doc, held.calib.px_per_mm)
         if with_images:
-            started = time.monotonic()
             image = pub.write_images(sid, v, held.recon.canvas.render(), raw_layers=final)  # + coverage, layers
             held.clocks.images = now
-            held.clocks.images_s = time.monotonic() - started
         parts.lap("images")
+        if with_images:
+            held.clocks.images_s = parts.seconds["images"]
         finished = ctx.store.get_meta(sid).finished_at is not None
         status = "done" if final else ("processing" if finished else "receiving")
         doc = pub.write_mosaic_json(
