@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.sparse import csr_matrix, diags, identity, vstack
 
-from services.core.normal_equations import solve_normal
+from services.core.normal_equations import NormalSolver
 from services.core.similarity import Similarity
 
 RIDGE = 1e-9  # relative to unit-sigma rows: far below any real constraint
@@ -224,14 +224,16 @@ def optimise_poses(
     n_edge_rows = 4 * len(usable)
     sigma = np.array([e.sigma_mm for e in usable])
     it = 0
+    solver = NormalSolver()  # the reweighted iterations' systems differ only in their weights
     for it in range(1, iterations + 1):
         # each edge's 4 rows scaled by sqrt(weight) / sigma; the prior rows as built
         scale = np.ones(A0.shape[0])
         scale[:n_edge_rows] = np.repeat(np.sqrt(weights) / sigma, 4)
         A = diags(scale) @ A0
-        # normal equations, solved directly (SuperLU); the tiny ridge keeps a node without edges where it is
+        # normal equations (SuperLU's factor, reused while the weights settle); the tiny ridge keeps a node without
+        # edges where it is
         normal = (A.T @ A + RIDGE * identity(A.shape[1], format="csr")).tocsc()
-        dx = solve_normal(normal, A.T @ (scale * b0 - A @ x0))
+        dx = solver.solve(normal, A.T @ (scale * b0 - A @ x0))
         x0 = x0 + dx
         for n in free:
             v = x0[col[n] : col[n] + 4]

@@ -18,10 +18,12 @@ from services.core.physics.tissue_model import (
     AffineEvidence,
     ViewFit,
     ViewModel,
+    corrected_affine,
     corrected_relative,
     fit_kappa_to_tilts,
     fit_view_model,
     foreshortening,
+    inverse_2x2,
     reference_tilts_at,
     tilt_angles_rad,
 )
@@ -142,6 +144,24 @@ def test_corrected_relative_undoes_both_views() -> None:
     observed = np.hstack([d_i @ m[:, :2] @ np.linalg.inv(d_j), d_i @ m[:, 2:]])
     back = corrected_relative(Similarity(1.0, 0j), observed, d_i, d_j)
     assert abs(back.a - rel.a) < 1e-12 and abs(back.t - rel.t) < 1e-12
+
+
+def test_the_written_out_2x2_algebra_is_numpys_to_rounding() -> None:
+    """inverse_2x2 and corrected_affine write 2x2 products out entry by entry for speed; stacked and broadcast
+    (one affine against stacks of views), they equal numpy's general inverse and matmul to 1e-14 (rounding of
+    entries near 1)."""
+    rng = np.random.default_rng(7)
+    d_i = np.eye(2) + 0.1 * rng.standard_normal((50, 2, 2))
+    d_j = np.eye(2) + 0.1 * rng.standard_normal((50, 2, 2))
+    affine = np.concatenate([np.eye(2) + 0.1 * rng.standard_normal((50, 2, 2)), rng.standard_normal((50, 2, 1))], -1)
+    np.testing.assert_allclose(inverse_2x2(d_i), np.linalg.inv(d_i), rtol=0, atol=1e-14)
+    inv_i = np.linalg.inv(d_i)
+    expected = np.concatenate([inv_i @ affine[..., :2] @ d_j, inv_i @ affine[..., 2:]], axis=-1)
+    np.testing.assert_allclose(corrected_affine(affine, d_i, d_j), expected, rtol=0, atol=1e-14)
+    one = corrected_affine(affine[0], d_i, d_j[0])  # one affine and one D_j against 50 D_i
+    np.testing.assert_allclose(
+        one, np.concatenate([inv_i @ affine[0, :, :2] @ d_j[0], inv_i @ affine[0, :, 2:]], -1), rtol=0, atol=1e-14
+    )
 
 
 def test_reference_tilts_interpolated_inside_the_stream_only() -> None:
