@@ -44,6 +44,17 @@ KNOWN_COUNTERS: dict[str, str] = {
     "register_unplaced_cpu_seconds_total": "CPU seconds the workers spent on frames they could not place.",
     "finish_ahead_runs_total": "Live sessions' finishes run ahead on a copy (finish_ahead_every_s).",
     "finish_ahead_cpu_seconds_total": "CPU seconds the workers spent running finishes ahead (not the re-pastes).",
+    "sessions_finished_total": "Live sessions finished by the workers (final refinement, restitch, final flush).",
+    "finish_frames_pasted_again_total": "Frames live sessions' finishes pasted again (moved a quarter pixel or more).",
+    **{
+        f"finish_{part}_seconds_total": f"Wall seconds of live sessions' finishes spent in {what}."
+        for part, what in (
+            ("refine", "the final refinement"),
+            ("calibrate", "the compliance self-calibration"),
+            ("restitch", "pasting moved frames again"),
+            ("final_flush", "the final flush"),
+        )
+    },
     "flushes_total": "Flushes of sessions by the workers (path, tiles, mosaic.json; the whole images when due).",
     **{
         f"flush_{part}_cpu_seconds_total": f"CPU seconds the workers spent in flushes' {what}."

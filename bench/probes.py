@@ -4,18 +4,19 @@
 
 Starts the service once as `veinmosaic serve` does (cli.launcher.Service: API + --workers workers, embedded Redis
 unless REDIS_URL is set, then under a private key prefix deleted afterwards) and, for each N of --probes in turn,
-uploads N sessions at once, each a simulated scan (different seeds) paced at --rate frames/s on its own clock
-with bench/live.py's client (forces interleaved ahead of each frame, every upload's 2xx timed, the session state
+uploads N sessions at once, each a simulated scan (different seeds) paced at --rate frames/s on its own clock with
+bench/live.py's client (forces interleaved ahead of each frame, every upload's 2xx timed, the session state
 polled). Per N it prints, per session and in total: processed frames/s, lag p50/p95 from each upload's 2xx to a
 poll seeing it processed, the time from the last upload to status done, and the CPU seconds per frame and peak
 resident memory of the API, of each worker process, of the embedded Redis and of this bench's own client over the
-run (psutil): the client shares the two cores here, as a clinic's probes on their own network would not. Then,
-from the service's own counters (GET /metrics), the share of frames placed as keyframes and the workers' CPU per
-frame: preparing it, and registering it (with the paste and refinements it brings) split into keyframes (described
-and matched) and tracked frames (aligned on a keyframe: --worker-config '{"method_options": {"track_overlap":
-0.85}}'). The first N (1 by default) is the baseline the others are compared with in the same run. Targets (issue
-15): 3 probes, every session done within 5 s of its last upload and lag p95 <= 2 s; --rate 30 is one probe at 30
-frames/s (issue 32).
+run (psutil): the client shares the two cores here, as a clinic's probes on their own network would not. Then, from
+the service's own counters (GET /metrics), the share of frames placed as keyframes and the workers' CPU per frame:
+preparing it, and registering it (with the paste and refinements it brings) split into keyframes (described and
+matched) and tracked frames (aligned on a keyframe: --worker-config '{"method_options": {"track_overlap": 0.85}}'),
+and each session's finish by part, with the frames it pasted again and the finish runs ahead (--worker-config
+'{"finish_ahead_every_s": 10}'). The first N (1 by default) is the baseline the others are compared with in the
+same run. Targets (issue 15): 3 probes, every session done within 5 s of its last upload and lag p95 <= 2 s; --rate
+30 is one probe at 30 frames/s (issue 32).
 """
 
 from __future__ import annotations
@@ -103,6 +104,22 @@ def cost_line(n: int, before: dict[str, float], after: dict[str, float], workers
     )
 
 
+FINISH_PARTS = ("refine", "calibrate", "restitch", "final_flush")  # the finish's parts as the workers count them
+
+
+def finish_line(n: int, before: dict[str, float], after: dict[str, float]) -> str:
+    """Return a table row: the sessions finished in a run, the mean wall seconds of their finishes by part
+    (finish_<part>_seconds_total: workers.stages.register.completion) and the frames each pasted again."""
+    delta = {k: after.get(k, 0.0) - before.get(k, 0.0) for k in after}
+    done = delta.get("sessions_finished_total", 0.0)
+    mean = {k: delta.get(f"finish_{k}_seconds_total", 0.0) / done if done else math.nan for k in FINISH_PARTS}
+    again = delta.get("finish_frames_pasted_again_total", 0.0) / done if done else math.nan
+    runs = delta.get("finish_ahead_runs_total", 0.0)
+    ahead_cpu = delta.get("finish_ahead_cpu_seconds_total", 0.0)
+    parts = " | ".join(f"{mean[k]:.2f}" for k in FINISH_PARTS)
+    return f"| {n} | {done:.0f} | {parts} | {sum(mean.values()):.2f} | {again:.0f} | {runs:.0f} ({ahead_cpu:.1f} s) |"
+
+
 class Usage:
     """CPU seconds and peak RSS of the service's processes, sampled every 0.5 s while running."""
 
@@ -174,6 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         env["VEINMOSAIC_WORKER_CONFIG"] = args.worker_config
     results: list[tuple[int, list[Row], dict[str, tuple[float, float]]]] = []
     costs: list[str] = []
+    finishes: list[str] = []
     with tempfile.TemporaryDirectory(prefix="vm-probes-", ignore_cleanup_errors=True) as tmp:
         scans = []
         for seed in range(1, max(counts) + 1):
@@ -194,7 +212,9 @@ def main(argv: list[str] | None = None) -> int:
                 results.append((n, rows, usage.stop()))
                 workers_cpu_s = sum(cpu for name, (cpu, _) in results[-1][2].items() if name.startswith("worker"))
                 frames_in = sum(r.frames for r in rows)
-                costs.append(cost_line(n, before, service_counters(service), workers_cpu_s, frames_in))
+                after = service_counters(service)
+                costs.append(cost_line(n, before, after, workers_cpu_s, frames_in))
+                finishes.append(finish_line(n, before, after))
                 time.sleep(2.0)  # let the workers go idle between runs
         finally:
             service.stop()
@@ -237,6 +257,12 @@ def main(argv: list[str] | None = None) -> int:
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     print("\n".join(costs))
+    print("\neach session's finish from its last frame registered (GET /metrics, wall s, the mean over the sessions):")
+    print("final refinement, calibration, restitch, final flush; frames pasted again; finish runs ahead (their CPU)\n")
+    head = ["probes", "sessions", *FINISH_PARTS, "in all", "pasted again", "runs ahead (CPU)"]
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    print("\n".join(finishes))
     last = results[-1][1]
     done_ok = all(r.done_s <= DONE_TARGET_S for r in last)
     lag_ok = all(r.lag.size and np.percentile(r.lag, 95) <= LAG_P95_TARGET_S for r in last)

@@ -131,6 +131,7 @@ class SessionReconstruction:
     gauge: float = 1.0
     finished: bool = False
     finish_seconds: dict[str, float] = field(default_factory=dict)  # finish()'s parts, timed (s)
+    finish_pasted_again: int = 0  # frames the finish pasted again (moved by FINISH_MOVED_PX; live)
     recent: dict[int, FrameLayers] = field(default_factory=dict)  # paste planes of the newest frames (live)
     stale: dict[int, None] = field(default_factory=dict)  # moved frames not re-pasted yet, oldest first (live)
     ahead: AheadRun | None = None  # the last finish run ahead (live): the canvas is kept at its places
@@ -544,6 +545,7 @@ class SessionReconstruction:
         self.stale = {}
         final = self.stitch_places()
         moved = [i for i in sorted(set(final) | set(self.pasted)) if self._moved(self._pasted_place(i), final.get(i))]
+        self.finish_pasted_again = len(moved)
         tiles: set[tuple[int, int]] = set()
         for i in moved:
             for place in (self._pasted_place(i), final.get(i)):

@@ -122,6 +122,12 @@ def test_two_workers_out_of_order_equal_offline_then_reprocess(
     assert metric(backend, "flushes_total") >= 1
     assert 0.005 < cpu_metric(backend, "flush_tiles_cpu_seconds_total") < 1.0 * 40
     assert 0.005 < cpu_metric(backend, "flush_images_cpu_seconds_total") < 1.0 * 40
+    # the finish counted once, by part: the final refinement, the restitch and the final flush each take some
+    # milliseconds and none the whole run's time; `best` moves the frames at the finish, 1 to 40 pasted again
+    assert metric(backend, "sessions_finished_total") == 1
+    for part in ("refine", "restitch", "final_flush"):
+        assert 0.0005 < cpu_metric(backend, f"finish_{part}_seconds_total") < live_s, part
+    assert 1 <= metric(backend, "finish_frames_pasted_again_total") <= 40
     # one holder registered the frames, in seq order, each once
     log = order_log(backend, sid)
     assert [seq for _, seq, _ in log] == list(range(40)) and len({t for t, _, _ in log}) == 1

@@ -52,6 +52,9 @@ class Completion:
         flushed = self.flusher.flush(held, final=True, before_event=mark_done)
         timings = {"finish_s": round(finished - started, 2), "final_flush_s": round(time.monotonic() - finished, 2)}
         parts = {**held.recon.finish_seconds, **{f"flush_{k}": v for k, v in flushed.items()}}
+        if held.version == LIVE_VERSION:
+            finish = {**held.recon.finish_seconds, "final_flush": timings["final_flush_s"]}
+            self.publisher.count_finish(finish, held.recon.finish_pasted_again)
         log.info(
             "session done", extra={"session": held.sid, "frames": len(held.recon.results), **timings, "parts_s": parts}
         )
