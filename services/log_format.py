@@ -28,6 +28,7 @@ LOG_FIELDS = (
     "finish_s",  # a session's final refinement and restitch (s), in its "session done" line
     "final_flush_s",  # and its final flush: every tile durably, the whole images (s)
     "parts_s",  # both by part: {refine, calibrate, restitch, flush_path, flush_pyramid, flush_tiles, ...} (s)
+    "pasted_again",  # the frames the finish pasted again (moved by a quarter pixel or more)
 )
 
 

@@ -56,7 +56,14 @@ class Completion:
             finish = {**held.recon.finish_seconds, "final_flush": timings["final_flush_s"]}
             self.publisher.count_finish(finish, held.recon.finish_pasted_again)
         log.info(
-            "session done", extra={"session": held.sid, "frames": len(held.recon.results), **timings, "parts_s": parts}
+            "session done",
+            extra={
+                "session": held.sid,
+                "frames": len(held.recon.results),
+                **timings,
+                "parts_s": parts,
+                "pasted_again": held.recon.finish_pasted_again,
+            },
         )
 
     def finish_empty(self, lease: Lease, sv: SessionVersion, session_status: str, rejected: list[int]) -> None:
