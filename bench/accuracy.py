@@ -23,7 +23,9 @@ where the reference has yaws, `loop yaw bias deg` and `other yaw bias deg`: the 
 closures, and its other edges, measure of the relative yaw minus the tracker's (evaluation.edge_yaw_bias): a bias
 that hundreds of edges share is not averaged out and turns the path; `yaw z loop / other`: the SD of those errors in
 units of the SD the pose graph weighs each edge's yaw with (the two kinds' ratio is what counts: the kind with the
-larger pulls the yaws harder than its evidence warrants, against the other).
+larger pulls the yaws harder than its evidence warrants, against the other); `loop yaw bias, top third of loads`: the
+loop closures' mean over those whose frames' mean load is in the top third (a bias that grows with the load points at
+the load's model: the rectification's strain gradient across the window, the view model).
 Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe, tissue-saturating: a patient as on the shared
 scans (a hand's tilt, a tissue law of that shape with anisotropy: along the frame's x or y, or for saturating fixed
 in the tissue at any angle while the probe yaws +-15 deg), not an imaging look. Cell drag: that patient (linear
@@ -224,7 +226,14 @@ def run_one(cell: Cell, scan: Scan, method: str, bar: tqdm) -> dict[str, Any]:
         angles = evaluate_angles(path_angles_deg(recon.rows), recon.registered, scan.by_seq(scan.reference_angles_deg))
         row["tilt_rmse_deg"] = max(angles.get("tilt_x_rmse_deg", math.nan), angles.get("tilt_y_rmse_deg", math.nan))
         yaws = edge_yaw_bias(recon.edge_yaws, scan.by_seq(scan.reference_angles_deg)[:, 0])
-        row.update({k: yaws[k] for k in ("loop_yaw_bias_deg", "other_yaw_bias_deg", "loop_yaw_z_sd", "other_yaw_z_sd")})
+        keys = (
+            "loop_yaw_bias_deg",
+            "other_yaw_bias_deg",
+            "loop_yaw_z_sd",
+            "other_yaw_z_sd",
+            "loop_yaw_bias_high_load_deg",
+        )
+        row.update({k: yaws[k] for k in keys if k in yaws})
     return row
 
 
@@ -251,7 +260,7 @@ HEADER = (
     f" {'final drift mm':>14} | {'error ratio %':>13} | {'s/frame':>7} | {'tilt RMS deg':>12} |"
     f" {'scale %':>7} | {'turn deg':>8} | {'after sim. mm':>13} | {'lead mm':>7} | {'air placed':>10} |"
     f" {'tracked %':>9} | {'closures':>8} | {'drag fit':>8} | {'loop yaw bias deg':>17} | {'other yaw bias deg':>18} |"
-    f" {'yaw z loop / other':>18}"
+    f" {'yaw z loop / other':>18} | {'loop yaw bias, top third of loads':>33}"
 )
 
 
@@ -276,7 +285,8 @@ def table_line(row: dict[str, Any]) -> str:
         f" {fmt(row.get('air_placed'), '10d')} | {fmt(row.get('tracked_pct'), '9.1f')} |"
         f" {fmt(row.get('closures'), '8d')} | {fmt(row.get('drag_fit'), '8.2f')} |"
         f" {fmt(row.get('loop_yaw_bias_deg'), '+17.4f')} | {fmt(row.get('other_yaw_bias_deg'), '+18.4f')} |"
-        f" {fmt(row.get('loop_yaw_z_sd'), '8.2f')} / {fmt(row.get('other_yaw_z_sd'), '7.2f')}"
+        f" {fmt(row.get('loop_yaw_z_sd'), '8.2f')} / {fmt(row.get('other_yaw_z_sd'), '7.2f')} |"
+        f" {fmt(row.get('loop_yaw_bias_high_load_deg'), '+33.4f')}"
     )
 
 

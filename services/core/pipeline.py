@@ -47,9 +47,9 @@ class Reconstruction:
     seconds: float
     learned: dict[str, Any] = field(default_factory=dict)  # SessionReconstruction.learned_model()
     keyframes: int = 0  # placed frames registered by their features (the rest tracked: MethodOptions.track_overlap)
-    # the final graph's edges: frame i, frame j, measured relative yaw (deg), loop 0/1, the yaw's SD in the graph (deg)
-    # (SessionReconstruction.edge_yaws)
-    edge_yaws: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
+    # the final graph's edges: frame i, frame j, measured relative yaw (deg), loop 0/1, the yaw's SD in the graph (deg),
+    # the mean load of its frames (N) (SessionReconstruction.edge_yaws)
+    edge_yaws: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
 
     @property
     def closures(self) -> int:

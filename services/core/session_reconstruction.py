@@ -708,18 +708,23 @@ class SessionReconstruction:
         return np.degrees(tilt_angles_rad(forces, fit.kappa_n_per_mm, self.calibration.sensor_separation_mm))
 
     def edge_yaws(self) -> np.ndarray:
-        """Return the main map's pose-graph edges as (E, 5) float64 rows: frame i, frame j, the relative yaw (deg) the
+        """Return the main map's pose-graph edges as (E, 6) float64 rows: frame i, frame j, the relative yaw (deg) the
         edge measures between the undeformed frames (as the graph uses it: view and drag corrections applied), 1 for
-        a loop closure (0 otherwise), and the SD (deg) the graph weighs that yaw with (pose_graph.edge_yaw_sigma_deg):
-        what a tracker's yaw can check edge by edge (outputs.evaluation)."""
+        a loop closure (0 otherwise), the SD (deg) the graph weighs that yaw with (pose_graph.edge_yaw_sigma_deg) and
+        the mean load F_Z of its two frames (N): what a tracker's yaw can check edge by edge (outputs.evaluation)."""
         reg = self.registrar
         edges = reg.corrections.undeformed(reg.edges, reg.poses)
         sigmas = edge_yaw_sigma_deg(edges)
         rows = [
-            (e.i, e.j, math.degrees(np.angle(e.relative.a)), float(e.loop), s)
+            (e.i, e.j, math.degrees(np.angle(e.relative.a)), float(e.loop), s, self._mean_load_n(e.i, e.j))
             for e, s in zip(edges, sigmas, strict=True)
         ]
-        return np.array(rows, np.float64).reshape(-1, 5)
+        return np.array(rows, np.float64).reshape(-1, 6)
+
+    def _mean_load_n(self, *indices: int) -> float:
+        """Return the mean load F_Z (N) of the kept frames among `indices`, NaN when none is kept."""
+        loads = [self.frames[i].load.fz_n for i in indices if i in self.frames]
+        return float(np.mean(loads)) if loads else math.nan
 
     def path_rows(self) -> list[PathRow]:
         """Return one PathRow per frame seen so far (spec §4), in index order."""

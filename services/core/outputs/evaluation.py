@@ -259,19 +259,26 @@ def evaluate_angles(estimate_deg: np.ndarray, registered: np.ndarray, reference_
     return out
 
 
+HIGH_LOAD_QUANTILE = 2.0 / 3.0  # edge_yaw_bias's high-load loop closures: their mean load in the top third
+
+
 def edge_yaw_bias(edge_yaws: np.ndarray, reference_yaw_deg: np.ndarray) -> dict[str, float | int]:
     """Return the mean and SD (deg) of what the pose graph's edges measure of the relative yaw minus the tracker's,
     for the loop closures and the other edges apart, how many of each were compared, and the SD of those errors in
-    units of the SD the graph weighs each edge's yaw with (`*_yaw_z_sd`: 1 where the graph weighs them as they are).
+    units of the SD the graph weighs each edge's yaw with (`*_yaw_z_sd`: 1 where the graph weighs them as they are);
+    with the edges' loads, also the mean over the loop closures whose frames' mean load lies in the top third of the
+    compared closures' (`loop_yaw_bias_high_load_deg`, of `loop_high_load_edges`).
 
-    edge_yaws: (E, 5) rows of frame i, frame j, measured yaw of j relative to i (deg), loop 0/1, the yaw's SD in the
-    graph (deg) (SessionReconstruction.edge_yaws); reference_yaw_deg: (N,) the tracker's yaw per frame index, NaN
-    where unknown.
+    edge_yaws: (E, 5) or (E, 6) rows of frame i, frame j, measured yaw of j relative to i (deg), loop 0/1, the yaw's
+    SD in the graph (deg) and the mean load of the two frames (N) (SessionReconstruction.edge_yaws);
+    reference_yaw_deg: (N,) the tracker's yaw per frame index, NaN where unknown.
     A bias the graph cannot average out turns the whole path (AccuracyReport.global_error's turn): an edge kind whose
     mean is off by a hundredth of a degree over hundreds of edges is where to look; an edge kind whose z SD is far
-    above the others' pulls the yaws harder than its evidence warrants.
+    above the others' pulls the yaws harder than its evidence warrants. A bias that grows with the load points at the
+    load's model (the rectification's strain gradient across the window, the view model), not at the matching.
     """
-    rows = np.asarray(edge_yaws, np.float64).reshape(-1, 5)
+    table = np.asarray(edge_yaws, np.float64)
+    rows = table.reshape(-1, table.shape[-1] if table.ndim == 2 else 5)
     ref = np.asarray(reference_yaw_deg, np.float64).ravel()
     i, j = rows[:, 0].astype(int), rows[:, 1].astype(int)
     inside = (i >= 0) & (j >= 0) & (i < len(ref)) & (j < len(ref))
@@ -286,4 +293,9 @@ def edge_yaw_bias(edge_yaws: np.ndarray, reference_yaw_deg: np.ndarray) -> dict[
         out[f"{kind}_yaw_bias_deg"] = float(np.mean(valid)) if len(valid) else math.nan
         out[f"{kind}_yaw_sd_deg"] = float(np.std(valid)) if len(valid) else math.nan
         out[f"{kind}_yaw_z_sd"] = float(np.std(valid / rows[kept, 4])) if len(valid) else math.nan
+    if rows.shape[1] >= 6:
+        loops = (rows[:, 3] > 0) & np.isfinite(diff) & np.isfinite(rows[:, 5])
+        high = loops & (rows[:, 5] >= np.quantile(rows[loops, 5], HIGH_LOAD_QUANTILE)) if loops.any() else loops
+        out["loop_high_load_edges"] = int(np.count_nonzero(high))
+        out["loop_yaw_bias_high_load_deg"] = float(np.mean(diff[high])) if high.any() else math.nan
     return out

@@ -338,12 +338,14 @@ def test_frame_kind_tells_keyframes_from_tracked_and_unplaced_frames(live_run: L
 
 
 def test_edge_yaws_are_the_graphs_edges_as_it_uses_them(live_run: LiveRun) -> None:
-    """One row per edge of the main map: its frames, the yaw its undeformed measurement gives, its loop flag and the
-    SD the graph weighs that yaw with (its sigma over its a-row's lever, in degrees)."""
+    """One row per edge of the main map: its frames, the yaw its undeformed measurement gives, its loop flag, the
+    SD the graph weighs that yaw with (its sigma over its a-row's lever, in degrees) and its frames' mean load."""
     reg = live_run.live.registrar
     rows = live_run.live.edge_yaws()
     edges = reg.corrections.undeformed(reg.edges, reg.poses)
-    assert rows.shape == (len(reg.edges), 5) and len(reg.edges) > live_run.frames[-1].index  # more than a chain
+    assert rows.shape == (len(reg.edges), 6) and len(reg.edges) > live_run.frames[-1].index  # more than a chain
+    loads = {pf.index: pf.load.fz_n for pf in live_run.frames}
+    assert np.allclose(rows[:, 5], [(loads[e.i] + loads[e.j]) / 2 for e in edges], rtol=1e-12)
     levers = [e.lever_mm if e.lever_mm > 0 else LEVER_MM for e in edges]
     assert np.allclose(
         rows[:, 4], [np.degrees(e.sigma_mm / lever) for e, lever in zip(edges, levers, strict=True)], rtol=1e-12

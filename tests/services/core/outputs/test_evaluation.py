@@ -228,6 +228,21 @@ def test_edge_yaw_bias_known_answer_per_edge_kind() -> None:
     assert empty["loop_edges"] == 0 and math.isnan(empty["loop_yaw_bias_deg"])
 
 
+def test_edge_yaw_bias_of_the_loop_closures_at_the_top_third_of_loads() -> None:
+    # six loop closures at mean loads 3..18 N, the two heaviest off by -0.05 deg, the others by +0.01; a chain edge
+    # at 30 N off by +1 deg counts in no loop figure: the top third's mean is the heavy closures' alone
+    ref = np.zeros(12)
+    loads = [3.0, 6.0, 9.0, 12.0, 15.0, 18.0]
+    edges = [(k, k + 6, -0.05 if load > 13 else 0.01, 1, 0.02, load) for k, load in enumerate(loads)]
+    edges.append((0, 1, 1.0, 0, 0.02, 30.0))
+    got = edge_yaw_bias(np.array(edges, float), ref)
+    assert got["loop_high_load_edges"] == 2
+    assert got["loop_yaw_bias_high_load_deg"] == pytest.approx(-0.05, abs=1e-12)
+    assert got["loop_yaw_bias_deg"] == pytest.approx((4 * 0.01 - 2 * 0.05) / 6, abs=1e-12)
+    # without the loads' column (five columns) the figure is not made up
+    assert "loop_yaw_bias_high_load_deg" not in edge_yaw_bias(np.array(edges, float)[:, :5], ref)
+
+
 def test_edge_yaw_bias_z_is_the_errors_sd_in_units_of_each_edges_sigma() -> None:
     # loop closures off by +-0.04 deg weighed at 0.02 deg (z +-2), the chain's edges off by +-0.01 at 0.02 (z +-0.5):
     # the loops pull twice as hard as they should against the chain, four times over what their evidence warrants
