@@ -47,7 +47,7 @@ KNOWN_COUNTERS: dict[str, str] = {
     "sessions_finished_total": "Live sessions finished by the workers (final refinement, restitch, final flush).",
     "finish_frames_pasted_again_total": "Frames live sessions' finishes pasted again (moved a quarter pixel or more).",
     **{
-        f"finish_{part}_seconds_total": f"Wall seconds of live sessions' finishes spent in {what}."
+        f"finish_{part}_wall_seconds_total": f"Wall seconds of live sessions' finishes spent in {what}."
         for part, what in (
             ("refine", "the final refinement"),
             ("calibrate", "the compliance self-calibration"),

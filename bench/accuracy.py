@@ -24,8 +24,8 @@ closures, and its other edges, measure of the relative yaw minus the tracker's (
 that hundreds of edges share is not averaged out and turns the path; `yaw z loop / other`: the SD of those errors in
 units of the SD the pose graph weighs each edge's yaw with (the two kinds' ratio is what counts: the kind with the
 larger pulls the yaws harder than its evidence warrants, against the other); `loop yaw bias, top third of loads`: the
-loop closures' mean over those whose frames' mean load is in the top third (a bias that grows with the load points at
-the load's model: the rectification's strain gradient across the window, the view model).
+loop closures' mean over those whose frames' mean load is in the top third (docs/accuracy.md, Known limits: the
+shared raster's turn).
 Cells tissue-linear, tissue-stiffening, tissue-power, tissue-toe, tissue-saturating: a patient as on the shared
 scans (a hand's tilt, a tissue law of that shape with anisotropy: along the frame's x or y, or for saturating fixed
 in the tissue at any angle while the probe yaws +-15 deg), not an imaging look. Cell drag: that patient (linear

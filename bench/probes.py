@@ -104,20 +104,23 @@ def cost_line(n: int, before: dict[str, float], after: dict[str, float], workers
     )
 
 
-FINISH_PARTS = ("refine", "calibrate", "restitch", "final_flush")  # the finish's parts as the workers count them
+def finish_parts(counters: dict[str, float]) -> list[str]:
+    """Return the finish's parts the workers count (finish_<part>_wall_seconds_total: workers.stages.register
+    .completion), in the order GET /metrics gives them."""
+    return [m.group(1) for key in counters if (m := re.fullmatch(r"finish_(\w+)_wall_seconds_total", key))]
 
 
-def finish_line(n: int, before: dict[str, float], after: dict[str, float]) -> str:
-    """Return a table row: the sessions finished in a run, the mean wall seconds of their finishes by part
-    (finish_<part>_seconds_total: workers.stages.register.completion) and the frames each pasted again."""
+def finish_line(n: int, before: dict[str, float], after: dict[str, float], parts: list[str]) -> str:
+    """Return a table row: the sessions finished in a run, the mean wall seconds of their finishes by part and in
+    all, the frames each pasted again, and the finish runs ahead with their CPU seconds."""
     delta = {k: after.get(k, 0.0) - before.get(k, 0.0) for k in after}
     done = delta.get("sessions_finished_total", 0.0)
-    mean = {k: delta.get(f"finish_{k}_seconds_total", 0.0) / done if done else math.nan for k in FINISH_PARTS}
+    mean = {k: delta.get(f"finish_{k}_wall_seconds_total", 0.0) / done if done else math.nan for k in parts}
     again = delta.get("finish_frames_pasted_again_total", 0.0) / done if done else math.nan
     runs = delta.get("finish_ahead_runs_total", 0.0)
     ahead_cpu = delta.get("finish_ahead_cpu_seconds_total", 0.0)
-    parts = " | ".join(f"{mean[k]:.2f}" for k in FINISH_PARTS)
-    return f"| {n} | {done:.0f} | {parts} | {sum(mean.values()):.2f} | {again:.0f} | {runs:.0f} ({ahead_cpu:.1f} s) |"
+    cells = " | ".join(f"{mean[k]:.2f}" for k in parts)
+    return f"| {n} | {done:.0f} | {cells} | {sum(mean.values()):.2f} | {again:.0f} | {runs:.0f} ({ahead_cpu:.1f} s) |"
 
 
 class Usage:
@@ -191,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         env["VEINMOSAIC_WORKER_CONFIG"] = args.worker_config
     results: list[tuple[int, list[Row], dict[str, tuple[float, float]]]] = []
     costs: list[str] = []
-    finishes: list[str] = []
+    counted: list[tuple[int, dict[str, float], dict[str, float]]] = []  # each run's counters before and after
     with tempfile.TemporaryDirectory(prefix="vm-probes-", ignore_cleanup_errors=True) as tmp:
         scans = []
         for seed in range(1, max(counts) + 1):
@@ -214,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
                 frames_in = sum(r.frames for r in rows)
                 after = service_counters(service)
                 costs.append(cost_line(n, before, after, workers_cpu_s, frames_in))
-                finishes.append(finish_line(n, before, after))
+                counted.append((n, before, after))
                 time.sleep(2.0)  # let the workers go idle between runs
         finally:
             service.stop()
@@ -259,10 +262,11 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(costs))
     print("\neach session's finish from its last frame registered (GET /metrics, wall s, the mean over the sessions):")
     print("final refinement, calibration, restitch, final flush; frames pasted again; finish runs ahead (their CPU)\n")
-    head = ["probes", "sessions", *FINISH_PARTS, "in all", "pasted again", "runs ahead (CPU)"]
+    parts = finish_parts(counted[-1][2])
+    head = ["probes", "sessions", *parts, "in all", "pasted again", "runs ahead (CPU)"]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
-    print("\n".join(finishes))
+    print("\n".join(finish_line(n, before, after, parts) for n, before, after in counted))
     last = results[-1][1]
     done_ok = all(r.done_s <= DONE_TARGET_S for r in last)
     lag_ok = all(r.lag.size and np.percentile(r.lag, 95) <= LAG_P95_TARGET_S for r in last)

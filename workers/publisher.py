@@ -181,13 +181,13 @@ class Publisher:
 
     def count_finish(self, seconds: Mapping[str, float], pasted_again: int) -> None:
         """Add one finished live session to sessions_finished_total, its finish's wall seconds by part (refine,
-        calibrate, restitch, final_flush) to finish_<part>_seconds_total and the frames it pasted again to
+        calibrate, restitch, final_flush) to finish_<part>_wall_seconds_total and the frames it pasted again to
         finish_frames_pasted_again_total."""
         pipe = self.ctx.r.pipeline(transaction=False)
         queue.incr_metric(pipe, "sessions_finished_total", 1, prefix=self.ctx.prefix)
         queue.incr_metric(pipe, "finish_frames_pasted_again_total", pasted_again, prefix=self.ctx.prefix)
         for part, value in seconds.items():
-            queue.incr_metric(pipe, f"finish_{part}_seconds_total", value, prefix=self.ctx.prefix)
+            queue.incr_metric(pipe, f"finish_{part}_wall_seconds_total", value, prefix=self.ctx.prefix)
         pipe.execute()
 
     def event(self, sid: str, kind: str, data: dict[str, Any]) -> None:

@@ -715,16 +715,12 @@ class SessionReconstruction:
         reg = self.registrar
         edges = reg.corrections.undeformed(reg.edges, reg.poses)
         sigmas = edge_yaw_sigma_deg(edges)
+        load = {i: kept.load.fz_n for i, kept in self.frames.items()}  # every frame added is kept, placed or not
         rows = [
-            (e.i, e.j, math.degrees(np.angle(e.relative.a)), float(e.loop), s, self._mean_load_n(e.i, e.j))
+            (e.i, e.j, math.degrees(np.angle(e.relative.a)), float(e.loop), s, (load[e.i] + load[e.j]) / 2)
             for e, s in zip(edges, sigmas, strict=True)
         ]
         return np.array(rows, np.float64).reshape(-1, 6)
-
-    def _mean_load_n(self, *indices: int) -> float:
-        """Return the mean load F_Z (N) of the kept frames among `indices`, NaN when none is kept."""
-        loads = [self.frames[i].load.fz_n for i in indices if i in self.frames]
-        return float(np.mean(loads)) if loads else math.nan
 
     def path_rows(self) -> list[PathRow]:
         """Return one PathRow per frame seen so far (spec §4), in index order."""

@@ -274,11 +274,10 @@ def edge_yaw_bias(edge_yaws: np.ndarray, reference_yaw_deg: np.ndarray) -> dict[
     reference_yaw_deg: (N,) the tracker's yaw per frame index, NaN where unknown.
     A bias the graph cannot average out turns the whole path (AccuracyReport.global_error's turn): an edge kind whose
     mean is off by a hundredth of a degree over hundreds of edges is where to look; an edge kind whose z SD is far
-    above the others' pulls the yaws harder than its evidence warrants. A bias that grows with the load points at the
-    load's model (the rectification's strain gradient across the window, the view model), not at the matching.
+    above the others' pulls the yaws harder than its evidence warrants; a loop bias that grows with the load is where
+    to look next (docs/accuracy.md, Known limits).
     """
-    table = np.asarray(edge_yaws, np.float64)
-    rows = table.reshape(-1, table.shape[-1] if table.ndim == 2 else 5)
+    rows = np.asarray(edge_yaws, np.float64)
     ref = np.asarray(reference_yaw_deg, np.float64).ravel()
     i, j = rows[:, 0].astype(int), rows[:, 1].astype(int)
     inside = (i >= 0) & (j >= 0) & (i < len(ref)) & (j < len(ref))
@@ -294,7 +293,7 @@ def edge_yaw_bias(edge_yaws: np.ndarray, reference_yaw_deg: np.ndarray) -> dict[
         out[f"{kind}_yaw_sd_deg"] = float(np.std(valid)) if len(valid) else math.nan
         out[f"{kind}_yaw_z_sd"] = float(np.std(valid / rows[kept, 4])) if len(valid) else math.nan
     if rows.shape[1] >= 6:
-        loops = (rows[:, 3] > 0) & np.isfinite(diff) & np.isfinite(rows[:, 5])
+        loops = (rows[:, 3] > 0) & np.isfinite(diff)
         high = loops & (rows[:, 5] >= np.quantile(rows[loops, 5], HIGH_LOAD_QUANTILE)) if loops.any() else loops
         out["loop_high_load_edges"] = int(np.count_nonzero(high))
         out["loop_yaw_bias_high_load_deg"] = float(np.mean(diff[high])) if high.any() else math.nan

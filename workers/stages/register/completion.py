@@ -50,10 +50,11 @@ class Completion:
                 self.ctx.store.set_status(held.sid, "done")
 
         flushed = self.flusher.flush(held, final=True, before_event=mark_done)
-        timings = {"finish_s": round(finished - started, 2), "final_flush_s": round(time.monotonic() - finished, 2)}
+        flush_s = time.monotonic() - finished
+        timings = {"finish_s": round(finished - started, 2), "final_flush_s": round(flush_s, 2)}
         parts = {**held.recon.finish_seconds, **{f"flush_{k}": v for k, v in flushed.items()}}
         if held.version == LIVE_VERSION:
-            finish = {**held.recon.finish_seconds, "final_flush": timings["final_flush_s"]}
+            finish = {**held.recon.finish_seconds, "final_flush": flush_s}
             self.publisher.count_finish(finish, held.recon.finish_pasted_again)
         log.info(
             "session done",
