@@ -78,6 +78,9 @@ class Row:
     drain_s: float
     done_s: float
     registered: float
+    session_id: str = ""
+    status: str = ""  # the session's last polled status
+    rmse_mm: float = float("nan")  # its path against the scan's reference.csv (with_rmse), once done
 
     @property
     def keeps_up(self) -> bool:
@@ -154,7 +157,10 @@ def run(
 
     poller: list[threading.Thread] = []
 
+    created_ids: list[str] = []
+
     def started(created: dict) -> None:
+        created_ids.append(created["id"])
         poller.append(threading.Thread(target=poll, args=(created["id"],), daemon=True))
         poller[0].start()
 
@@ -173,7 +179,23 @@ def run(
     if not samples:
         raise RuntimeError(f"{label}: GET /v1/sessions/{{id}} never answered")
     acked = np.array([client.acked[int(s)] for s in scan.frame_seq])
-    return measure(label, rate, acked, samples, final, args.frames_csv)
+    row = measure(label, rate, acked, samples, final, args.frames_csv)
+    return replace(row, session_id=created_ids[0], status=str(final.get("status", "")))
+
+
+def with_rmse(service: Service, key: str, row: Row, scan_dir: Path) -> Row:
+    """Return the row with the RMSE (mm) of its done session's path against the scan folder's reference.csv, as
+    the service's accuracy report gives it (POST /v1/sessions/{id}/reference; run after every upload of a bench,
+    so that the report's work delays none); NaN when not done or the folder has none."""
+    reference = scan_dir / "reference.csv"
+    if row.status != "done" or not reference.is_file():
+        return row
+    client = VeinmosaicClient(service.base_url, key, timeout_s=60.0)
+    try:
+        rmse = client.post_reference(row.session_id, reference.read_text(encoding="utf-8")).get("rmse_mm")
+    finally:
+        client.close()
+    return replace(row, rmse_mm=float("nan") if rmse is None else float(rmse))
 
 
 def measure(

@@ -4,19 +4,21 @@
 
 Starts the service once as `veinmosaic serve` does (cli.launcher.Service: API + --workers workers, embedded Redis
 unless REDIS_URL is set, then under a private key prefix deleted afterwards) and, for each N of --probes in turn,
-uploads N sessions at once, each a simulated scan (different seeds) paced at --rate frames/s on its own clock with
-bench/live.py's client (forces interleaved ahead of each frame, every upload's 2xx timed, the session state
-polled). Per N it prints, per session and in total: processed frames/s, lag p50/p95 from each upload's 2xx to a
-poll seeing it processed, the time from the last upload to status done, and the CPU seconds per frame and peak
-resident memory of the API, of each worker process, of the embedded Redis and of this bench's own client over the
-run (psutil): the client shares the two cores here, as a clinic's probes on their own network would not. Then, from
-the service's own counters (GET /metrics), the share of frames placed as keyframes and the workers' CPU per frame:
-preparing it, and registering it (with the paste and refinements it brings) split into keyframes (described and
-matched) and tracked frames (aligned on a keyframe: --worker-config '{"method_options": {"track_overlap": 0.85}}'),
-and each session's finish by part, with the frames it pasted again and the finish runs ahead (--worker-config
-'{"finish_ahead_every_s": 10}'). The first N (1 by default) is the baseline the others are compared with in the
-same run. Targets (issue 15): 3 probes, every session done within 5 s of its last upload and lag p95 <= 2 s; --rate
-30 is one probe at 30 frames/s (issue 32).
+uploads N sessions at once, each a simulated scan (different seeds; or the --scan folders, cycling) paced at --rate
+frames/s on its own clock with bench/live.py's client (forces interleaved ahead of each frame, every upload's 2xx
+timed, the session state polled). Per N it prints, per session and in total: processed frames/s, lag p50/p95 from
+each upload's 2xx to a poll seeing it processed, the time from the last upload to status done, the RMSE of its path
+against the scan's reference.csv (the service's accuracy report, asked once every session of the run is done), and
+the CPU seconds per frame and peak resident memory of the API, of each worker process, of the embedded Redis and of
+this bench's own client over the run (psutil): the client shares the two cores here, as a clinic's probes on their
+own network would not. Then, from the service's own counters (GET /metrics), the share of frames placed as keyframes
+and the workers' CPU per frame: preparing it, and registering it (with the paste and refinements it brings) split
+into keyframes (described and matched) and tracked frames (aligned on a keyframe: always with --worker-config
+'{"method_options": {"track_overlap": 0.85}}', and with `best` while a session is behind its uploads:
+MethodOptions.track_overlap_behind), and each session's finish by part, with the frames it pasted again and the
+finish runs ahead (--worker-config '{"finish_ahead_every_s": 10}'). The first N (1 by default) is the baseline the
+others are compared with in the same run. Targets (issue 15): 3 probes, every session done within 5 s of its last
+upload and lag p95 <= 2 s; --rate 30 is one probe at 30 frames/s (issue 32).
 """
 
 from __future__ import annotations
@@ -45,14 +47,14 @@ from prometheus_client.parser import text_string_to_metric_families
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from live import Row, first_frames, run  # bench/live.py: one paced session and its figures
+from live import Row, first_frames, run, with_rmse  # bench/live.py: one paced session and its figures
 
 from cli.launcher import Service, free_port
 from services.core.session_reconstruction import KEYFRAME, TRACKED, UNPLACED
 from services.core.simulation.scenarios import ALL_SCENARIOS, LONG_SCENARIOS, simulate
 from services.jobs.redis_backend import embedded_pid
 from services.settings import get_settings
-from services.store.scan_folder import write_scan_folder
+from services.store.scan_folder import read_scan_folder, write_scan_folder
 
 DONE_TARGET_S = 5.0
 LAG_P95_TARGET_S = 2.0
@@ -175,6 +177,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--probes", default="1,3", help="numbers of simultaneous probes, the first is the baseline")
     p.add_argument("--scenario", default="raster", choices=[s for s in ALL_SCENARIOS if s != "calib"])
     p.add_argument("--frames", type=int, default=336, help="upload each scan's first N frames")
+    p.add_argument(
+        "--scan",
+        type=Path,
+        action="append",
+        default=None,
+        help="a scan folder (e.g. ../shared/scans/raster_veins_23) instead of the simulated scenario: probe k "
+        "uploads the k-th given, cycling (repeat the option)",
+    )
     p.add_argument("--rate", type=float, default=10.0, help="upload rate per probe, frames/s")
     p.add_argument("--workers", type=int, default=2, help="worker processes")
     p.add_argument("--poll", type=float, default=0.2, help="seconds between each session's state polls")
@@ -198,9 +208,12 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="vm-probes-", ignore_cleanup_errors=True) as tmp:
         scans = []
         for seed in range(1, max(counts) + 1):
-            print(f"simulating {args.scenario} seed {seed} ...", file=sys.stderr)
-            length = args.frames if args.scenario in LONG_SCENARIOS else None  # an exam: as long as asked
-            scan = first_frames(simulate(args.scenario, seed, frames=length), args.frames)
+            if args.scan:
+                scan = first_frames(read_scan_folder(args.scan[(seed - 1) % len(args.scan)]), args.frames)
+            else:
+                print(f"simulating {args.scenario} seed {seed} ...", file=sys.stderr)
+                length = args.frames if args.scenario in LONG_SCENARIOS else None  # an exam: as long as asked
+                scan = first_frames(simulate(args.scenario, seed, frames=length), args.frames)
             folder = Path(tmp) / f"scan{seed}"
             write_scan_folder(scan, folder)
             scans.append((folder, scan))
@@ -218,6 +231,8 @@ def main(argv: list[str] | None = None) -> int:
                 after = service_counters(service)
                 costs.append(cost_line(n, before, after, workers_cpu_s, frames_in))
                 counted.append((n, before, after))
+                rmse_rows = [with_rmse(service, key, r, folder) for r, (folder, _) in zip(rows, scans, strict=False)]
+                results[-1] = (n, rmse_rows, results[-1][2])  # the reports computed after the run's counters
                 time.sleep(2.0)  # let the workers go idle between runs
         finally:
             service.stop()
@@ -226,8 +241,10 @@ def main(argv: list[str] | None = None) -> int:
                     for k in r.scan_iter(match=f"{prefix}*", count=1000):
                         r.delete(k)
     config = f", worker config {args.worker_config}" if args.worker_config else ""
-    print(f"\n{args.scenario}, {args.frames} frames per probe at {args.rate:g} f/s; {args.workers} workers{config}\n")
+    source = ", ".join(sorted({f.name for f in args.scan})) if args.scan else args.scenario
+    print(f"\n{source}, {args.frames} frames per probe at {args.rate:g} f/s; {args.workers} workers{config}\n")
     head = ["probes", "session", "proc f/s", "lag p50 s", "lag p95 s", "done after last upload s", "placed %"]
+    head.append("RMSE mm")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     base_rate = None
@@ -238,9 +255,9 @@ def main(argv: list[str] | None = None) -> int:
             p50, p95 = (np.percentile(r.lag, q) for q in (50, 95)) if r.lag.size else (np.nan, np.nan)
             print(
                 f"| {n} | {k + 1} | {r.proc_rate:.2f} | {p50:.2f} | {p95:.2f} | {r.done_s:.1f} "
-                f"| {100 * r.registered:.1f} |"
+                f"| {100 * r.registered:.1f} | {r.rmse_mm:.3f} |"
             )
-        print(f"| {n} | all | {total:.2f} ({total / base_rate:.2f}x) | | | | |")
+        print(f"| {n} | all | {total:.2f} ({total / base_rate:.2f}x) | | | | | |")
     print("\n| probes | process | CPU s/frame | peak MB |")
     print("|---|---|---|---|")
     for n, rows, use in results:

@@ -56,6 +56,9 @@ class WorkerSettings(BaseModel):
     flush_every_s: float = Field(default=0.5, ge=0)  # path/tiles/mosaic.json/event at most this often
     behind_flush_every_s: float = Field(default=2.0, ge=0)  # ... while a live session is behind its uploads:
     behind_lag_s: float = Field(default=5.0, ge=0)  # its newest published frame waited longer than this since upload
+    # a live session whose newest published frame waited longer than this has its next frames prepared without
+    # features, to be tracked on keyframes (MethodOptions.track_overlap_behind; issue 32; 0: never, as offline)
+    track_lag_s: float = Field(default=1.5, ge=0)
     image_every_s: float = Field(default=2.0, ge=0)  # whole mosaic.png/force.png at most this often (and at the end)
     finish_ahead_every_s: float = Field(default=0.0, ge=0)  # a live session's finish run ahead this often (0: off)
     max_deliveries: int = Field(default=3, ge=1)  # attempts before an entry goes to the dead-letter stream

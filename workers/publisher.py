@@ -131,6 +131,10 @@ class Publisher:
         self.ctx.results.write_state(sid, v, state)
 
     # ----- counters and events ---------------------------------------------------------------------------------
+    def mark_tracking(self, sid: str, on: bool) -> None:
+        """Mark (renewed) or unmark a live session whose next frames are to be prepared to be tracked."""
+        queue.set_tracking(self.ctx.r, sid, on, self.ctx.prefix)
+
     def record_lags(self, sid: str, v: int, lags_s: Sequence[float]) -> None:
         """Record the upload-to-placement lags (s) of frames the live version just published."""
         if v == LIVE_VERSION:

@@ -28,6 +28,7 @@ _BOUNDS: dict[str, dict[str, float]] = {
     "ratio": {"ge": 0, "le": 1},  # Lowe ratio
     "min_correlation": {"ge": 0, "le": 1},  # ECC correlation
     "track_overlap": {"ge": 0, "le": 1},  # a share of the keyframe's window
+    "track_overlap_behind": {"ge": 0, "le": 1},  # the same, for a live session behind its uploads
     "track_correlation": {"ge": 0, "le": 1},  # ECC correlation
     "track_closures": {"ge": 0, "le": 20},  # direct alignments per tracked frame
     "confirmed_inlier_share": {"ge": 0, "le": 1},  # a share

@@ -30,6 +30,10 @@ class MethodOptions:
     # it covers at least this share of the keyframe's window; below it, it becomes a keyframe (0: every frame is one)
     track_overlap: float = 0.0
     track_correlation: float = 0.6  # ... and while the tracking alignment's vein-map correlation reaches this
+    # a live session behind its uploads (workers: track_lag_s) has its frames prepared without features: each is then
+    # tracked as track_overlap would track it, at this overlap, or made a keyframe (0: every frame is a keyframe
+    # however far behind). Offline nothing is behind: a reconstruction is track_overlap's alone (issue 32)
+    track_overlap_behind: float = 0.85
     track_closures: int = 2  # a tracked frame's loop closures, by direct alignment on older keyframes (0: none)
     rigid_stitch: bool = False  # stitch with yaw + x/y only (the paper's correction) instead of the similarity
     refine: bool = True  # global pose-graph refinement on loop closures (beyond the paper)

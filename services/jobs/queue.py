@@ -179,6 +179,29 @@ def record_lags(r: redis.Redis, session_id: str, lags_s: Sequence[float], prefix
     pipe.execute()
 
 
+TRACKING_TTL_S = 10.0  # a session's tracking mark outlives its last renewal (a flush) by this: a worker gone
+
+
+def tracking_key(session_id: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Return the name of the key present while a live session's frames are prepared to be tracked (behind)."""
+    return f"{session_key(session_id, prefix)}:tracking"
+
+
+def set_tracking(r: redis.Redis, session_id: str, on: bool, prefix: str = DEFAULT_PREFIX) -> None:
+    """Mark (renewed for TRACKING_TTL_S) or unmark a live session whose registration is behind its uploads, so that
+    its next frames are prepared without features, to be tracked (MethodOptions.track_overlap_behind)."""
+    key = tracking_key(session_id, prefix)
+    if on:
+        r.set(key, "1", px=int(TRACKING_TTL_S * 1000))
+    else:
+        r.delete(key)
+
+
+def is_tracking(r: redis.Redis, session_id: str, prefix: str = DEFAULT_PREFIX) -> bool:
+    """Return whether a live session's frames are to be prepared to be tracked (set_tracking)."""
+    return bool(r.exists(tracking_key(session_id, prefix)))
+
+
 def placing_key(prefix: str = DEFAULT_PREFIX) -> str:
     """Return the name of the ZSET of sessions by the time (Unix s) a worker last placed frames of theirs."""
     return f"{prefix}placing"

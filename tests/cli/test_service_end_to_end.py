@@ -73,7 +73,9 @@ def test_two_sessions_two_workers_out_of_order_equal_offline(tmp_path: Path) -> 
     env = {
         "VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view"]}),
         "VEINMOSAIC_REDIS_PREFIX": prefix,
-        "VEINMOSAIC_WORKER_CONFIG": json.dumps({"debug_order": True}),
+        # uploaded faster than two workers place them: tracking a session behind its uploads (issue 32, track_lag_s)
+        # would make the live paths differ from the offline ones compared here
+        "VEINMOSAIC_WORKER_CONFIG": json.dumps({"debug_order": True, "track_lag_s": 0.0}),
         "VEINMOSAIC_LOG_LEVEL": "WARNING",
     }
     redis_url = os.environ.get("REDIS_URL") or None

@@ -1,11 +1,18 @@
 """When a flush happens and when it writes the whole mosaic images, and when a session counts as behind its uploads
-(workers/stages/register/flush.py: flush_every_s, images_due, images_every_s, is_behind)."""
+(workers/stages/register/flush.py: flush_every_s, images_due, images_every_s, is_behind, tracking_due)."""
 
 from __future__ import annotations
 
 import pytest
 
-from workers.stages.register.flush import IMAGES_COST_FACTOR, flush_every_s, images_due, images_every_s, is_behind
+from workers.stages.register.flush import (
+    IMAGES_COST_FACTOR,
+    flush_every_s,
+    images_due,
+    images_every_s,
+    is_behind,
+    tracking_due,
+)
 
 
 @pytest.mark.parametrize(
@@ -53,3 +60,18 @@ def test_a_session_far_behind_its_uploads_is_flushed_less_often(
     assert flush_every_s(caught_up, lags_s, every_s=0.5, behind_every_s=2.0, behind_lag_s=5.0) == every
     # the same rule says when its frames are placed without re-pasting the frames a refinement moved (cursor)
     assert is_behind(caught_up, lags_s, behind_lag_s=5.0) is (every == 2.0)
+
+
+@pytest.mark.parametrize(
+    ("caught_up", "lags_s", "track_lag_s", "due"),
+    [
+        (False, [3.0, 2.0], 1.5, True),  # even its newest frame waited over track_lag_s: its next frames tracked
+        (False, [3.0, 1.0], 1.5, False),  # the newest is within it: catching up, described again
+        (True, [9.0, 8.0], 1.5, False),  # caught up: every frame described, however late the ones just placed
+        (False, [9.0, 8.0], 0.0, False),  # 0: never (the tests that compare a live path with the offline one)
+    ],
+)
+def test_a_session_behind_its_uploads_has_its_next_frames_prepared_to_be_tracked(
+    caught_up: bool, lags_s: list[float], track_lag_s: float, due: bool
+) -> None:
+    assert tracking_due(caught_up, lags_s, track_lag_s) is due

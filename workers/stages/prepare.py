@@ -107,6 +107,7 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
         mask=mask,
         flat=flat,
         options=sv.method_options,
+        behind=queue.is_tracking(ctx.r, sid, ctx.prefix),  # its features left to registration, to track it
     )
     cpu_s = time.process_time() - started
     counters = ctx.r.pipeline(transaction=False)  # one round trip

@@ -107,10 +107,12 @@ def prepare_frame(
     flat: np.ndarray | None,
     options: MethodOptions,
     imu_tilt_deg: np.ndarray | None = None,
+    behind: bool = False,
 ) -> PreparedFrame:
     """Return the prepared frame: photometry, undistort + rectify (spec §2 order), features in mm.
 
     imu_tilt_deg: the IMU's (tilt_x, tilt_y) deg at the frame time (kept, not used here); None or NaN: no IMU.
+    behind: the live session is behind its uploads: the features are left to registration (leaves_features).
     """
     if raw.shape != (calib.image_size[1], calib.image_size[0]):
         raise ValueError(f"frame {seq}: size {raw.shape[::-1]} differs from calibration {calib.image_size}")
@@ -139,7 +141,7 @@ def prepare_frame(
         imu_tilt_deg=_imu_or_none(imu_tilt_deg),
         focus=focus_measure(image, rect_mask),
     )
-    if tracks_frames(options):  # features on demand: only the frames that become keyframes need them
+    if leaves_features(options, behind):  # features on demand: only the frames that become keyframes need them
         return prepared
     return describe_frame(prepared, options, calib.principal_point, calib.px_per_mm)
 
@@ -147,6 +149,14 @@ def prepare_frame(
 def tracks_frames(options: MethodOptions) -> bool:
     """Return whether the method tracks most frames without features (so preparation leaves them to registration)."""
     return options.registration == "keyframes" and options.track_overlap > 0
+
+
+def leaves_features(options: MethodOptions, behind: bool) -> bool:
+    """Return whether a frame is prepared without features, for registration to track it or describe it: always
+    when the method tracks frames, and for a live session behind its uploads when options.track_overlap_behind > 0
+    (Registrar.track_overlap)."""
+    keyframes = options.registration == "keyframes"
+    return tracks_frames(options) or (behind and keyframes and options.track_overlap_behind > 0)
 
 
 def describe_frame(

@@ -306,7 +306,8 @@ class Registrar:
         of the keyframe's window; otherwise (or after lost frames, a blurred frame, MAX_TRACKED_RUN frames) it is a
         keyframe: described, matched against the keyframes around it, loops closed (add).
         """
-        if not tracks_frames(self.options) or len(self.order) < FIRST_KEYFRAMES:
+        overlap = self.track_overlap(pf)
+        if overlap <= 0 or len(self.order) < FIRST_KEYFRAMES:
             return None
         if pf.index - self.order[-1] != 1:  # frames lost in between: no motion to track from
             return None
@@ -315,7 +316,7 @@ class Registrar:
             return None
         predicted = self.predict(pf.t_s)
         assert predicted is not None
-        found = self._tracking_match(pf, kf, self.poses[kf].inverse().compose(predicted))
+        found = self._tracking_match(pf, kf, self.poses[kf].inverse().compose(predicted), overlap)
         if found is None or not self._plausible(self.poses[kf].compose(found.relative), predicted, 0):
             return None
         self.corrections.record(pf)
@@ -323,10 +324,21 @@ class Registrar:
         pose = place_node(self.poses, self.corrections.undeformed(edges, self.poses), pf.index)
         return self._refined(self._accept(pf, pose, edges, 0, False), edges)
 
-    def _tracking_match(self, pf: PreparedFrame, other: int, start: Similarity) -> Match | None:
+    def track_overlap(self, pf: PreparedFrame) -> float:
+        """Return the share of its keyframe's window a frame must cover to be tracked (0: it is a keyframe):
+        options.track_overlap when the method tracks frames, else options.track_overlap_behind for a frame prepared
+        without features (a live session behind its uploads: frame_prep.leaves_features)."""
+        if tracks_frames(self.options):
+            return self.options.track_overlap
+        if self.options.registration == "keyframes" and pf.features is None:
+            return self.options.track_overlap_behind
+        return 0.0
+
+    def _tracking_match(self, pf: PreparedFrame, other: int, start: Similarity, overlap: float) -> Match | None:
         """Return the direct alignment of a frame on placed frame `other` from `start` (frame mm -> other mm) as a
-        match with its affine and overlap pairs, or None below options.track_correlation or options.track_overlap."""
-        return self._sparse_match(pf, other, start, self.options.track_correlation, self.options.track_overlap)
+        match with its affine and overlap pairs, or None below options.track_correlation or `overlap` (a share of
+        other's window)."""
+        return self._sparse_match(pf, other, start, self.options.track_correlation, overlap)
 
     def _sparse_match(
         self, pf: PreparedFrame, other: int, start: Similarity, min_correlation: float, min_overlap: float

@@ -4,7 +4,8 @@ A flush writes path.json, the changed tiles, mosaic.json and state.json, counts 
 last one and publishes one event, all through the publisher and only after the fence check. Flushes happen at
 most every flush_interval (flush_every_s, or twice the last flush's duration if longer: flushing takes at most
 a third of the time; behind_flush_every_s while the live session is behind, its newest published frame having
-waited more than behind_lag_s since its upload); the whole images (mosaic.png, force.png, coverage.png) at most
+waited more than behind_lag_s since its upload; its next frames are prepared to be tracked while that wait passes
+track_lag_s); the whole images (mosaic.png, force.png, coverage.png) at most
 every image_every_s and only once the session has caught up with its uploads (a session that is behind spends
 the CPU on placing frames), or IMAGES_COST_FACTOR times their last duration if longer (a long examination's mosaic
 takes a while to render and encode), and the tiles of levels where one tile holds the whole canvas with them. The final
@@ -33,6 +34,12 @@ def is_behind(caught_up: bool, lags_s: list[float], behind_lag_s: float) -> bool
     """Return True when a live session is behind its uploads: not caught up, and even its newest frame just published
     waited more than behind_lag_s since its upload."""
     return not caught_up and bool(lags_s) and min(lags_s) > behind_lag_s
+
+
+def tracking_due(caught_up: bool, lags_s: list[float], track_lag_s: float) -> bool:
+    """Return True when a live session's next frames are to be prepared to be tracked: it is behind its uploads by
+    track_lag_s (is_behind; 0: never)."""
+    return track_lag_s > 0 and is_behind(caught_up, lags_s, track_lag_s)
 
 
 def flush_every_s(
@@ -170,6 +177,10 @@ class Flusher:
         every = flush_every_s(caught_up, lags, cfg.flush_every_s, cfg.behind_flush_every_s, cfg.behind_lag_s)
         held.clocks.flush_interval = max(every, 2.0 * (held.clocks.flushed - now))
         held.behind = is_behind(caught_up, lags, cfg.behind_lag_s)  # its frames' moved neighbours wait (cursor)
+        tracking = tracking_due(caught_up, lags, cfg.track_lag_s)  # its next frames are prepared to be tracked
+        if tracking or held.tracking:  # renewed while behind, cleared once
+            self.publisher.mark_tracking(held.sid, tracking)
+        held.tracking = tracking
         return parts.seconds
 
     def record_lags(self, held: HeldSession, seqs: list[int]) -> list[float]:

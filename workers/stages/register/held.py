@@ -73,6 +73,7 @@ class HeldSession:
     times: dict[int, float] = field(default_factory=dict)  # t_s of frames registered without a PreparedFrame
     replayed: bool = False  # taken over mid-session: tiles another worker wrote may not have reached the disk
     behind: bool = False  # the last flush found it behind its uploads (flush.is_behind): moved frames wait to re-paste
+    tracking: bool = False  # the last flush marked its next frames to be prepared for tracking (queue.set_tracking)
     pending: Pending = field(default_factory=Pending)
     clocks: Clocks = field(default_factory=Clocks)
 

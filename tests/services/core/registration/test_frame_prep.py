@@ -15,6 +15,7 @@ from services.core.registration.frame_prep import (
     describe_frame,
     estimate_flat_field,
     estimate_window_mask,
+    leaves_features,
     load_map_n,
     normalise_photometry,
     prepare_frame,
@@ -209,6 +210,36 @@ def test_load_map_is_spec_local_load_on_every_pixel(scan: Scan, state: LoadState
     got = load_map_n(calib, state)
     assert got.shape == (h, w) and got.dtype == np.float32
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=5e-5)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "behind", "leaves"),
+    [
+        ({}, False, False),  # best, a session keeping up: every frame described when prepared
+        ({}, True, True),  # best, a live session behind its uploads: left to registration, to be tracked
+        ({"track_overlap_behind": 0.0}, True, False),  # ... unless tracking behind is off
+        ({"track_overlap": 0.85}, False, True),  # a method that tracks frames: always left
+        ({"registration": "previous"}, True, False),  # the baselines track nothing
+    ],
+)
+def test_a_frame_is_prepared_without_features_only_when_registration_may_track_it(
+    scan: Scan, overrides: dict, behind: bool, leaves: bool
+) -> None:
+    options = method_options("best").with_overrides(overrides)
+    assert leaves_features(options, behind) is leaves
+    pf = prepare_frame(
+        scan.frame(2),
+        index=2,
+        seq=2,
+        t_s=float(scan.frame_t_s[2]),
+        forces_n=np.full(4, 1.5),
+        calib=scan.calibration,
+        mask=scan.mask,
+        flat=None,
+        options=options,
+        behind=behind,
+    )
+    assert (pf.features is None) is leaves
 
 
 @pytest.mark.parametrize("enhance", [True, False], ids=["vein-map", "grey-levels"])

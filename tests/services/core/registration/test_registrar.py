@@ -21,7 +21,7 @@ from services.core.physics.drag import profile
 from services.core.registration import registrar as registrar_module
 from services.core.registration.edge_corrections import EdgeCorrections, view_evidence
 from services.core.registration.features import Features
-from services.core.registration.frame_prep import PreparedFrame
+from services.core.registration.frame_prep import PreparedFrame, prepare_frame
 from services.core.registration.outcome import (
     REASON_FEW_INLIERS,
     REASON_FEW_KEYPOINTS,
@@ -362,20 +362,60 @@ def test_tracked_frames_are_aligned_sparsely_not_by_ecc(scan: Scan, monkeypatch:
     assert calls[("sparse_align", True)] >= len(tracked) and calls[("align", True)] == 0
 
 
-def _tracked(scan: Scan, overrides: dict[str, float]) -> tuple[list[FrameResult], Registrar, set[int]]:
-    """Return (results, registrar, tracked frames) of a scan registered as the atlas does with tracking."""
+def _tracked(
+    scan: Scan, overrides: dict[str, float], behind: set[int] | None = None
+) -> tuple[list[FrameResult], Registrar, set[int]]:
+    """Return (results, registrar, tracked frames) of a scan registered as the atlas does with tracking (track, else
+    add). behind: the frames prepared while a live session was behind its uploads (prepare_frame's behind; None: the
+    pipeline's own preparation)."""
     options = method_options("best").with_overrides(overrides)
     forces = pipeline.frame_forces(scan)
     mask, flat = pipeline.window_setup(scan, options)
     radius = pipeline.window_radius_mm(mask, scan.calibration)
     registrar = Registrar(options, scan.calibration.px_per_mm, radius, centre_px=scan.calibration.principal_point)
+    if behind is None:
+        frames = pipeline.prepared_frames(scan, forces, mask, flat, options)
+    else:
+        calib = scan.calibration
+        frames = (
+            prepare_frame(
+                scan.frame(i),
+                index=i,
+                seq=int(scan.frame_seq[i]),
+                t_s=float(scan.frame_t_s[i]),
+                forces_n=forces[i],
+                calib=calib,
+                mask=mask,
+                flat=flat,
+                options=options,
+                behind=i in behind,
+            )
+            for i in range(len(scan))
+        )
     results, tracked = [], set()
-    for pf in pipeline.prepared_frames(scan, forces, mask, flat, options):
+    for pf in frames:
+        if behind is not None:
+            assert (pf.features is None) == (pf.index in behind and options.track_overlap_behind > 0)
         result = registrar.track(pf)
         if result is not None:
             tracked.add(pf.index)
         results.append(result or registrar.add(pf))
     return results, registrar, tracked
+
+
+def test_best_tracks_the_frames_a_live_session_prepared_behind_its_uploads(scan: Scan) -> None:
+    # issue 32: `best` tracks no frame prepared with its features, and tracks at track_overlap_behind those a live
+    # session behind its uploads prepared without (the others there are described in registration: keyframes)
+    behind = set(range(15, 32))
+    results, _, tracked = _tracked(scan, {}, behind)
+    assert all(r.status == STATUS_OK for r in results)
+    assert tracked <= behind and len(tracked) >= 6  # measured 13 of the 17
+    assert max(_errors_mm(scan, results).values()) < RELOCALISED_MM  # measured 0.42 mm: as tracked frames are
+    # track_overlap_behind 0: every frame prepared with its features and described, behind or not: the same
+    # registration as a session that never fell behind
+    off, _, none_tracked = _tracked(scan, {"track_overlap_behind": 0.0}, behind)
+    assert not none_tracked
+    assert [r.pose for r in off] == [r.pose for r in _tracked(scan, {}, set())[0]]
 
 
 def test_tracked_frames_close_loops_on_older_keyframes_by_direct_alignment() -> None:
