@@ -119,6 +119,8 @@ def test_an_imu_scan_uploaded_as_a_device_would_equals_offline(tmp_path: Path) -
     key = f"k-{uuid.uuid4().hex}"
     env = {"VEINMOSAIC_API_KEYS": json.dumps({key: ["ingest", "view"]}), "VEINMOSAIC_LOG_LEVEL": "WARNING"}
     env["VEINMOSAIC_REDIS_PREFIX"] = f"vmtest{uuid.uuid4().hex[:8]}:"
+    # uploaded as fast as accepted: a session behind its uploads would track frames (issue 32), not the offline path
+    env["VEINMOSAIC_WORKER_CONFIG"] = json.dumps({"track_lag_s": 0.0})
     service = Service(
         tmp_path / "data", port=free_port(), workers=1, redis_url=os.environ.get("REDIS_URL"), extra_env=env
     )

@@ -221,7 +221,9 @@ def test_two_sessions_concurrently(backend: Backend, spawn_worker: Callable[...,
 
 def test_crashed_worker_session_is_taken_over(backend: Backend, spawn_worker: Callable[..., Any]) -> None:
     store, results = SessionStore(backend.data_dir), ResultsStore(backend.data_dir)
-    victim = spawn_worker("victim")
+    # uploaded faster than it places them, the victim is behind: with behind_lag_s 1.5 it would flush (and write
+    # state.json) only every 2 s and have placed every frame before its state showed 8; at 5 s it flushes every 0.3 s
+    victim = spawn_worker("victim", behind_lag_s=5.0)
     time.sleep(1.0)  # let it start before uploads begin
     scan = scan_of(1)
     # upload at ~25 frames/s while the victim works; kill it once it has registered some frames

@@ -14,6 +14,7 @@ flush writes the tiles that changed and whatever was deferred, then makes every 
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 
@@ -27,6 +28,7 @@ from workers.publisher import Publisher
 from workers.stages.register.held import HeldSession, RegisterCost
 from workers.stages.register.lease import LeaseKeeper
 
+log = logging.getLogger("veinmosaic.worker")
 IMAGES_COST_FACTOR = 10.0  # the whole images wait at least this many times their last duration (images_every_s)
 
 
@@ -180,6 +182,10 @@ class Flusher:
         tracking = tracking_due(caught_up, lags, cfg.track_lag_s)  # its next frames are prepared to be tracked
         if tracking or held.tracking:  # renewed while behind, cleared once
             self.publisher.mark_tracking(held.sid, tracking)
+        if tracking != held.tracking:
+            state = "behind its uploads: its next frames are tracked" if tracking else "caught up: frames described"
+            waited = min(lags, default=0.0)
+            log.info("session %s (newest frame waited %.1f s)", state, waited, extra={"session": held.sid})
         held.tracking = tracking
         return parts.seconds
 
