@@ -63,15 +63,17 @@ def test_a_session_far_behind_its_uploads_is_flushed_less_often(
 
 
 @pytest.mark.parametrize(
-    ("caught_up", "lags_s", "track_lag_s", "due"),
+    ("caught_up", "lags_s", "track_lag_s", "held_s", "due"),
     [
-        (False, [3.0, 2.0], 1.5, True),  # even its newest frame waited over track_lag_s: its next frames tracked
-        (False, [3.0, 1.0], 1.5, False),  # the newest is within it: catching up, described again
-        (True, [9.0, 8.0], 1.5, False),  # caught up: every frame described, however late the ones just placed
-        (False, [9.0, 8.0], 0.0, False),  # 0: never (the tests that compare a live path with the offline one)
+        (False, [3.0, 2.0], 1.5, 20.0, True),  # even its newest frame waited over track_lag_s: its next frames tracked
+        (False, [3.0, 1.0], 1.5, 20.0, False),  # the newest is within it: catching up, described again
+        (True, [9.0, 8.0], 1.5, 20.0, False),  # caught up: every frame described, however late the ones just placed
+        (False, [9.0, 8.0], 0.0, 20.0, False),  # 0: never (the tests that compare a live path with the offline one)
+        # taken 0.6 s ago: its first frames waited for the window set-up (frame 23), not for this worker
+        (False, [3.1, 3.0], 1.5, 0.6, False),
     ],
 )
 def test_a_session_behind_its_uploads_has_its_next_frames_prepared_to_be_tracked(
-    caught_up: bool, lags_s: list[float], track_lag_s: float, due: bool
+    caught_up: bool, lags_s: list[float], track_lag_s: float, held_s: float, due: bool
 ) -> None:
-    assert tracking_due(caught_up, lags_s, track_lag_s) is due
+    assert tracking_due(caught_up, lags_s, track_lag_s, held_s) is due

@@ -38,10 +38,11 @@ def is_behind(caught_up: bool, lags_s: list[float], behind_lag_s: float) -> bool
     return not caught_up and bool(lags_s) and min(lags_s) > behind_lag_s
 
 
-def tracking_due(caught_up: bool, lags_s: list[float], track_lag_s: float) -> bool:
+def tracking_due(caught_up: bool, lags_s: list[float], track_lag_s: float, held_s: float) -> bool:
     """Return True when a live session's next frames are to be prepared to be tracked: it is behind its uploads by
-    track_lag_s (is_behind; 0: never)."""
-    return track_lag_s > 0 and is_behind(caught_up, lags_s, track_lag_s)
+    track_lag_s (is_behind; 0: never), and the worker has held it longer than that (held_s: before, its frames were
+    waiting for its window set-up, frame 23, or for the worker that held it before, not for this one)."""
+    return track_lag_s > 0 and held_s > track_lag_s and is_behind(caught_up, lags_s, track_lag_s)
 
 
 def flush_every_s(
@@ -179,7 +180,8 @@ class Flusher:
         every = flush_every_s(caught_up, lags, cfg.flush_every_s, cfg.behind_flush_every_s, cfg.behind_lag_s)
         held.clocks.flush_interval = max(every, 2.0 * (held.clocks.flushed - now))
         held.behind = is_behind(caught_up, lags, cfg.behind_lag_s)  # its frames' moved neighbours wait (cursor)
-        tracking = tracking_due(caught_up, lags, cfg.track_lag_s)  # its next frames are prepared to be tracked
+        held_s = time.time() - held.taken_at
+        tracking = tracking_due(caught_up, lags, cfg.track_lag_s, held_s)  # its next frames are prepared to be tracked
         if tracking or held.tracking:  # renewed while behind, cleared once
             self.publisher.mark_tracking(held.sid, tracking)
         if tracking != held.tracking:

@@ -74,6 +74,7 @@ class HeldSession:
     replayed: bool = False  # taken over mid-session: tiles another worker wrote may not have reached the disk
     behind: bool = False  # the last flush found it behind its uploads (flush.is_behind): moved frames wait to re-paste
     tracking: bool = False  # the last flush marked its next frames to be prepared for tracking (queue.set_tracking)
+    taken_at: float = field(default_factory=time.time)  # when this worker took it (Unix s, as the frames' uploads)
     pending: Pending = field(default_factory=Pending)
     clocks: Clocks = field(default_factory=Clocks)
 
