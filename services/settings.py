@@ -57,10 +57,11 @@ class WorkerSettings(BaseModel):
     behind_flush_every_s: float = Field(default=2.0, ge=0)  # ... while a live session is behind its uploads:
     # its newest published frame waited longer than this since upload: as track_lag_s, so a session whose frames are
     # tracked also flushes less often (three probes: 10.8-13.2 -> 7.0-8.7 ms of flushes a frame, bench/probes.py)
-    behind_lag_s: float = Field(default=1.5, ge=0)
+    behind_lag_s: float = Field(default=1.0, ge=0)
     # a live session whose newest published frame waited longer than this has its next frames prepared without
-    # features, to be tracked on keyframes (MethodOptions.track_overlap_behind; issue 32; 0: never, as offline)
-    track_lag_s: float = Field(default=1.5, ge=0)
+    # features, to be tracked on keyframes (MethodOptions.track_overlap_behind; issue 32; 0: never, as offline). 1.0
+    # and 1.5 s taking turns, three probes (bench/probes.py): the slowest session done 4.5-4.7 s against 5.0-5.1 s
+    track_lag_s: float = Field(default=1.0, ge=0)
     image_every_s: float = Field(default=2.0, ge=0)  # whole mosaic.png/force.png at most this often (and at the end)
     finish_ahead_every_s: float = Field(default=0.0, ge=0)  # a live session's finish run ahead this often (0: off)
     max_deliveries: int = Field(default=3, ge=1)  # attempts before an entry goes to the dead-letter stream
