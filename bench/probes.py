@@ -225,14 +225,14 @@ def main(argv: list[str] | None = None) -> int:
             for n in counts:
                 usage, before = Usage(service), service_counters(service)
                 rows = run_probes(service, key, scans[:n], args)
-                results.append((n, rows, usage.stop()))
-                workers_cpu_s = sum(cpu for name, (cpu, _) in results[-1][2].items() if name.startswith("worker"))
-                frames_in = sum(r.frames for r in rows)
+                use = usage.stop()
+                workers_cpu_s = sum(cpu for name, (cpu, _) in use.items() if name.startswith("worker"))
                 after = service_counters(service)
-                costs.append(cost_line(n, before, after, workers_cpu_s, frames_in))
+                costs.append(cost_line(n, before, after, workers_cpu_s, sum(r.frames for r in rows)))
                 counted.append((n, before, after))
-                rmse_rows = [with_rmse(service, key, r, folder) for r, (folder, _) in zip(rows, scans, strict=False)]
-                results[-1] = (n, rmse_rows, results[-1][2])  # the reports computed after the run's counters
+                # the accuracy reports after the run's CPU and counters are read: their work counts in neither
+                rows = [with_rmse(service, key, r, folder) for r, (folder, _) in zip(rows, scans[:n], strict=True)]
+                results.append((n, rows, use))
                 time.sleep(2.0)  # let the workers go idle between runs
         finally:
             service.stop()

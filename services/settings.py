@@ -56,7 +56,7 @@ class WorkerSettings(BaseModel):
     flush_every_s: float = Field(default=0.5, ge=0)  # path/tiles/mosaic.json/event at most this often
     behind_flush_every_s: float = Field(default=2.0, ge=0)  # ... while a live session is behind its uploads:
     # its newest published frame waited longer than this since upload: as track_lag_s, so a session whose frames are
-    # tracked also flushes less often (three probes: 10.8-13.2 -> 7.0-8.7 ms of flushes a frame, bench/probes.py)
+    # tracked also flushes less often (three probes, at 1.5 against 5 s: 10.8-13.2 -> 7.0-8.7 ms of flushes a frame)
     behind_lag_s: float = Field(default=1.0, ge=0)
     # a live session whose newest published frame waited longer than this has its next frames prepared without
     # features, to be tracked on keyframes (MethodOptions.track_overlap_behind; issue 32; 0: never, as offline). 1.0

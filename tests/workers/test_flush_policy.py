@@ -45,21 +45,24 @@ def test_whole_images_that_take_long_are_written_less_often(last_s: float, every
 
 
 @pytest.mark.parametrize(
-    ("caught_up", "lags_s", "every"),
+    ("caught_up", "lags_s", "held_s", "every"),
     [
-        (True, [9.0, 8.0], 0.5),  # caught up: the usual cadence, however late the frames it just placed
-        (False, [1.2, 0.8], 0.5),  # a frame or two waiting for preparation, as one probe often has: not behind
-        (False, [9.0, 6.0], 2.0),  # even its newest frame waited over behind_lag_s: behind, flush less often
-        (False, [9.0, 4.0], 0.5),  # the newest one is within behind_lag_s: catching up
-        (False, [], 0.5),  # nothing published (or a reprocessed version, whose lags are not recorded)
+        (True, [9.0, 8.0], 60.0, 0.5),  # caught up: the usual cadence, however late the frames it just placed
+        (False, [1.2, 0.8], 60.0, 0.5),  # a frame or two waiting for preparation, as one probe often has: not behind
+        (False, [9.0, 6.0], 60.0, 2.0),  # even its newest frame waited over behind_lag_s: behind, flush less often
+        (False, [9.0, 4.0], 60.0, 0.5),  # the newest one is within behind_lag_s: catching up
+        (False, [], 60.0, 0.5),  # nothing published (or a reprocessed version, whose lags are not recorded)
+        # held 3 s: its first frames waited for the window set-up (frame 23) or an earlier holder, not for this worker
+        (False, [9.0, 6.0], 3.0, 0.5),
     ],
 )
 def test_a_session_far_behind_its_uploads_is_flushed_less_often(
-    caught_up: bool, lags_s: list[float], every: float
+    caught_up: bool, lags_s: list[float], held_s: float, every: float
 ) -> None:
-    assert flush_every_s(caught_up, lags_s, every_s=0.5, behind_every_s=2.0, behind_lag_s=5.0) == every
+    behind = is_behind(caught_up, lags_s, 5.0, held_s)
+    assert flush_every_s(behind, every_s=0.5, behind_every_s=2.0) == every
     # the same rule says when its frames are placed without re-pasting the frames a refinement moved (cursor)
-    assert is_behind(caught_up, lags_s, behind_lag_s=5.0) is (every == 2.0)
+    assert behind is (every == 2.0)
 
 
 @pytest.mark.parametrize(

@@ -32,25 +32,24 @@ log = logging.getLogger("veinmosaic.worker")
 IMAGES_COST_FACTOR = 10.0  # the whole images wait at least this many times their last duration (images_every_s)
 
 
-def is_behind(caught_up: bool, lags_s: list[float], behind_lag_s: float) -> bool:
-    """Return True when a live session is behind its uploads: not caught up, and even its newest frame just published
-    waited more than behind_lag_s since its upload."""
-    return not caught_up and bool(lags_s) and min(lags_s) > behind_lag_s
+def is_behind(caught_up: bool, lags_s: list[float], lag_s: float, held_s: float) -> bool:
+    """Return True when a live session is behind its uploads by lag_s: not caught up, even its newest frame just
+    published waited more than lag_s since its upload, and this worker has held it for longer than lag_s (held_s:
+    before that its frames waited for the session's window set-up, frame 23, or for the worker that held it before,
+    not for this one)."""
+    return not caught_up and held_s > lag_s and bool(lags_s) and min(lags_s) > lag_s
 
 
 def tracking_due(caught_up: bool, lags_s: list[float], track_lag_s: float, held_s: float) -> bool:
     """Return True when a live session's next frames are to be prepared to be tracked: it is behind its uploads by
-    track_lag_s (is_behind; 0: never), and the worker has held it longer than that (held_s: before, its frames were
-    waiting for its window set-up, frame 23, or for the worker that held it before, not for this one)."""
-    return track_lag_s > 0 and held_s > track_lag_s and is_behind(caught_up, lags_s, track_lag_s)
+    track_lag_s (is_behind; 0: never)."""
+    return track_lag_s > 0 and is_behind(caught_up, lags_s, track_lag_s, held_s)
 
 
-def flush_every_s(
-    caught_up: bool, lags_s: list[float], every_s: float, behind_every_s: float, behind_lag_s: float
-) -> float:
+def flush_every_s(behind: bool, every_s: float, behind_every_s: float) -> float:
     """Return the least time (s) between a session's flushes: every_s, or behind_every_s while the session is
     behind (is_behind: flushing it less often leaves the CPU to placing its frames)."""
-    return max(every_s, behind_every_s) if is_behind(caught_up, lags_s, behind_lag_s) else every_s
+    return max(every_s, behind_every_s) if behind else every_s
 
 
 def images_every_s(every_s: float, last_s: float) -> float:
@@ -176,11 +175,11 @@ class Flusher:
         pending.path_reset = False
         pending.dirty = False
         held.clocks.flushed = time.monotonic()
-        # three probes on two cores: 18.2 -> 24.1 frames/s placed with the behind rule (bench/probes.py)
-        every = flush_every_s(caught_up, lags, cfg.flush_every_s, cfg.behind_flush_every_s, cfg.behind_lag_s)
-        held.clocks.flush_interval = max(every, 2.0 * (held.clocks.flushed - now))
-        held.behind = is_behind(caught_up, lags, cfg.behind_lag_s)  # its frames' moved neighbours wait (cursor)
         held_s = time.time() - held.taken_at
+        held.behind = is_behind(caught_up, lags, cfg.behind_lag_s, held_s)  # its frames' moved neighbours wait (cursor)
+        # three probes on two cores: 18.2 -> 24.1 frames/s placed with the behind rule (bench/probes.py)
+        every = flush_every_s(held.behind, cfg.flush_every_s, cfg.behind_flush_every_s)
+        held.clocks.flush_interval = max(every, 2.0 * (held.clocks.flushed - now))
         tracking = tracking_due(caught_up, lags, cfg.track_lag_s, held_s)  # its next frames are prepared to be tracked
         if tracking or held.tracking:  # renewed while behind, cleared once
             self.publisher.mark_tracking(held.sid, tracking)
