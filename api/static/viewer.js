@@ -49,7 +49,7 @@
     dzi: null,
     pxPerMm: null,
     extentMm: null,
-    frames: { processed: 0, ok: 0, lost: 0, rejected: 0, no_contact: 0, in_fragments: 0 },
+    frames: { processed: 0, ok: 0, lost: 0, rejected: 0, no_contact: 0, in_fragments: 0, keyframes: 0, tracked: 0 },
     lag: null, // while live: {p50_s, p95_s, frames} from GET /v1/sessions/{id}
     framesKnown: false, // counters arrived (until then the status line says "loading results")
     received: null,
@@ -594,7 +594,7 @@
       }
     }
     if (data.mosaic_version !== undefined) state.mosaicVersion = data.mosaic_version;
-    for (const k of ["processed", "ok", "lost", "rejected", "no_contact", "in_fragments"]) {
+    for (const k of ["processed", "ok", "lost", "rejected", "no_contact", "in_fragments", "keyframes", "tracked"]) {
       if (data[k] !== undefined) {
         state.frames[k] = data[k];
         state.framesKnown = true;
@@ -688,7 +688,10 @@
       // never "done · 0 frames processed" while the results are still on their way
       text += state.status === "receiving" && !state.dzi ? " · waiting for the first frames" : " · loading results…";
     } else {
-      text += " · " + f.processed + " frames processed (" + f.ok + " placed, " + f.lost + " lost";
+      text += " · " + f.processed + " frames processed (" + f.ok + " placed, ";
+      // placed frames tracked on a keyframe without features (the service fell behind its uploads): only when any
+      if (f.tracked) text += f.tracked + " of them tracked, ";
+      text += f.lost + " lost";
       const rejected = f.rejected - (f.no_contact || 0);
       text += rejected ? ", " + rejected + " rejected)" : ")";
       if (f.no_contact) text += " · " + f.no_contact + " off the skin";

@@ -50,6 +50,7 @@ class Reconstruction:
     # the final graph's edges: frame i, frame j, measured relative yaw (deg), loop 0/1, the yaw's SD in the graph (deg),
     # the mean load of its frames (N) (SessionReconstruction.edge_yaws)
     edge_yaws: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    tracked: int = 0  # placed frames tracked without features (SessionReconstruction.tracked_count): frame_counts'
 
     @property
     def closures(self) -> int:
@@ -161,4 +162,5 @@ def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = 
         session.learned_model(),
         len(session.registrar.features),
         session.edge_yaws(),
+        tracked=session.tracked_count(),
     )

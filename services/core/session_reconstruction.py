@@ -175,6 +175,10 @@ class SessionReconstruction:
             return UNPLACED
         return KEYFRAME if any(index in m.features for m in self.atlas.maps) else TRACKED
 
+    def tracked_count(self) -> int:
+        """Return how many handled frames are placed as "tracked" (frame_kind): the frame counts' `tracked`."""
+        return sum(self.frame_kind(i) == TRACKED for i in self.results)
+
     def add(self, pf: PreparedFrame, repaint: bool = True) -> tuple[FrameResult, set[tuple[int, int]]]:
         """Return the result of a frame (in index order: contact, then registration) and the canvas tiles changed.
 

@@ -59,7 +59,9 @@ def write_reconstruction(
         "tissue": recon.learned,
     }
     identity = SheetIdentity(session=label or out.resolve().name, method=recon.method)  # offline: no patient
-    report = build_session_report(recon.rows, reference, mosaic, extra, identity=identity, sheet=sheet)
+    report = build_session_report(
+        recon.rows, reference, mosaic, extra, identity=identity, sheet=sheet, tracked=recon.tracked
+    )
     for name, data in report.images.items():
         (out / name).write_bytes(data)
     (out / "report.json").write_text(json.dumps(report.doc, indent=2, allow_nan=False))

@@ -75,11 +75,13 @@ def write_version_report(
     frame_seqs: the session's stored frame seqs (the reference may name any of them). Raises BadReferenceError
     (bad reference), NoPathYetError (version v has no path rows), NothingToCompareError (no frame comparable).
     """
+    # mosaic.json before path.json (a flush writes them the other way round): its frame counts, of which the report
+    # takes the tracked frames, are never newer than the rows they count
+    mosaic_doc = rs.read_mosaic_meta(sid, v) or {}
     rows = path_rows_from_json(rs.read_path(sid, v) or [])
     reference = reference_for_rows(reference_text, rows, frame_seqs)  # a bad file is named first
     if not rows:
         raise NoPathYetError("no path yet: post the reference after frames have been processed")
-    mosaic_doc = rs.read_mosaic_meta(sid, v) or {}
     mosaic = rs.read_mosaic_layers(sid, v)
     try:
         report = version_report(
@@ -92,6 +94,7 @@ def write_version_report(
             method=(rs.read_options(sid, v) or {}).get("method"),
             backdrop=_backdrop(rs, sid, v, mosaic_doc) if mosaic is None else None,
             tissue=mosaic_doc.get("tissue"),
+            tracked=int((mosaic_doc.get("frames") or {}).get("tracked", 0)),  # 0 in results from before it
         )
     except ValueError as exc:
         raise NothingToCompareError(f"reference.csv: {exc}") from None

@@ -86,7 +86,16 @@ def make_bundle(scan: Scan, n_frames: int | None = None, final: bool = True, mos
         "revisions": revisions,
         "dzi": geometry.to_dict(),
         "extent_mm": extent,
-        "frames": {"processed": len(rows), "ok": len(ok), "lost": 0, "rejected": 0, "no_contact": 0, "in_fragments": 0},
+        "frames": {
+            "processed": len(rows),
+            "ok": len(ok),
+            "lost": 0,
+            "rejected": 0,
+            "no_contact": 0,
+            "in_fragments": 0,
+            "keyframes": len(ok),
+            "tracked": 0,
+        },
         "status": "done" if final else "processing",
     }
     truth = np.asarray(scan.truth["poses"], float)[:n, :2]

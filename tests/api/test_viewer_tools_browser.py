@@ -2,8 +2,9 @@
 
 The results are a known fixture written with the services code the workers use (SparseCanvas, TilePyramid,
 ResultsStore): 30 synthetic frames placed along a straight 58 mm line, 5 of them lost — independent of the
-registration algorithm, so the viewer is tested on geometry known exactly. Checked for real in the page:
-the mm scale bar follows the zoom, the measuring tool reads the known distance between the path's start and
+registration algorithm, so the viewer is tested on geometry known exactly; 6 of the placed count as tracked (placed
+without features). Checked for real in the page: the status line counts the tracked frames, the mm scale bar follows
+the zoom, the measuring tool reads the known distance between the path's start and
 end in mm, the banner shows the >5 % lost warning, lost frames are marked, hovering a frame shows its seq,
 time and load in N, and the coverage layer renders in colour where the vein layer is grey.
 Screenshots go to tests/artifacts/viewer_tools_*.png.
@@ -39,6 +40,7 @@ N_FRAMES = 30
 STEP_MM = 2.0
 LOST = (7, 8, 15, 21, 22)  # not placed: 5 of 30 = 16.7 % > 5 %, the banner must show
 REJECTED = (22,)  # of those, rejected (blur) rather than lost
+TRACKED = 6  # placed frames tracked without features (a live session behind its uploads): the status line says so
 FRAME_SHAPE = (160, 200)  # h, w px: 20 x 25 mm
 
 
@@ -79,18 +81,26 @@ def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:
                 0.0, 0.0, 1.0, 0 if lost else 120, status, reason,
             )
         )  # fmt: skip
-    doc = _write_results(data_dir, sid, canvas, rows, lost=[s for s in LOST if s not in REJECTED], rejected=REJECTED)
+    lost_seqs = [s for s in LOST if s not in REJECTED]
+    doc = _write_results(data_dir, sid, canvas, rows, lost=lost_seqs, rejected=REJECTED, tracked=TRACKED)
     assert doc["frames"] == {
-        "processed": N_FRAMES, "ok": N_FRAMES - len(LOST), "lost": 4, "rejected": 1, "no_contact": 0, "in_fragments": 0
+        "processed": N_FRAMES, "ok": N_FRAMES - len(LOST), "lost": 4, "rejected": 1, "no_contact": 0, "in_fragments": 0,
+        "keyframes": N_FRAMES - len(LOST) - TRACKED, "tracked": TRACKED,
     }  # fmt: skip
     return rows
 
 
 def _write_results(
-    data_dir: Path, sid: str, canvas: SparseCanvas, rows: list[PathRow], lost: list[int], rejected: tuple[int, ...]
+    data_dir: Path,
+    sid: str,
+    canvas: SparseCanvas,
+    rows: list[PathRow],
+    lost: list[int],
+    rejected: tuple[int, ...],
+    tracked: int = 0,
 ) -> dict[str, Any]:
     """Write results version 1 of `sid` as a worker would (tiles, images, mosaic.json, path, state); return
-    mosaic.json."""
+    mosaic.json (tracked: how many placed frames it counts as tracked)."""
     rs = ResultsStore(data_dir)
     rs.ensure_version(sid, 1, {"method": "best"})
     geometry = DziGeometry.for_mosaic(PX_PER_MM)
@@ -114,6 +124,7 @@ def _write_results(
         rows=rows,
         status="done",
         method="best",
+        tracked=tracked,
     )
     rs.write_mosaic_meta(sid, 1, doc)
     rs.write_path(sid, 1, rows)
@@ -238,7 +249,8 @@ def test_viewer_tools_in_chromium(service: Service) -> None:
             banner = page.inner_text("#banner")
             assert "5 of 30 frames" in banner and "few inliers 4" in banner and "blur 1" in banner, banner
             status = page.inner_text("#status")
-            assert status.startswith("done · 30 frames processed (25 placed, 4 lost, 1 rejected)"), status
+            counts = "done · 30 frames processed (25 placed, 6 of them tracked, 4 lost, 1 rejected)"
+            assert status.startswith(counts), status
 
             # start and end markers, lost frames marked
             assert page.get_attribute("#path-overlay circle.start", "visibility") == "visible"

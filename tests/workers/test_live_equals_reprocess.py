@@ -131,6 +131,8 @@ def test_live_and_reprocess_serve_the_same_documents(
         "rejected": 0,
         "no_contact": 0,
         "in_fragments": 0,
+        "keyframes": 40,
+        "tracked": 0,
     }
     assert "compliance_per_n" in mosaic1 and mosaic1["width"] > 0
     assert_same(without(mosaic1, PER_VERSION_MOSAIC), without(mosaic2, PER_VERSION_MOSAIC), "mosaic")

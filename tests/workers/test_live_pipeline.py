@@ -20,6 +20,7 @@ from services.jobs import job_records as jobs
 from services.jobs import queue
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
+from services.store.stored_report import write_version_report
 from services.store.version_state import VersionState
 from tests.shared_scans import SHARED_CLINICAL, clinical_until
 from tests.sim_cache import live_short, offline_best
@@ -140,6 +141,8 @@ def test_two_workers_out_of_order_equal_offline_then_reprocess(
         "rejected": 0,
         "no_contact": 0,
         "in_fragments": 0,
+        "keyframes": 40,
+        "tracked": 0,
     }
     assert meta["dzi"]["max_level"] == 12 and meta["dzi"]["origin_px"] == [1792, 1792]
     assert meta["width"] > 0 and meta["extent_mm"][0] < 0 < meta["extent_mm"][2]
@@ -342,6 +345,16 @@ def test_a_live_session_behind_its_uploads_tracks_frames_and_places_every_one(
     # not the offline path (other frames described), but within what tracking changes: 0.09-0.11 mm apart
     assert 0 < np.max(np.hypot(*(live - off).T)) < TRACKED_PATH_MM
     assert not backend.r.exists(queue.tracking_key(sid, backend.prefix))  # unmarked once it caught up
+    # the frame counts count them too (documents.frame_counts): mosaic.json, the done event, and report.json (as the
+    # API writes it when a reference is posted)
+    frames = {"ok": 40, "keyframes": 40 - tracked, "tracked": tracked}
+    assert {k: results.read_mosaic_meta(sid, 1)["frames"][k] for k in frames} == frames
+    done = json.loads(backend.r.xrevrange(queue.events_stream(sid, backend.prefix), count=1)[0][1][b"data"])
+    assert done["status"] == "done" and {k: done[k] for k in frames} == frames
+    assert scan.reference_mm is not None
+    reference = "seq,x_mm,y_mm\n" + "".join(f"{i},{x},{y}\n" for i, (x, y) in enumerate(scan.reference_mm))
+    report = write_version_report(results, sid, 1, reference, range(40))
+    assert {k: report["frames"][k] for k in frames} == frames
 
 
 def test_a_caught_up_live_session_runs_its_finish_ahead_and_ends_with_the_offline_path(

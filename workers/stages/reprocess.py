@@ -95,7 +95,9 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         recon = reconstruct(scan, opts, progress=progress)
         rows = sorted([*recon.rows, *(sv.rejected_row(s) for s in poison)], key=lambda r: r.seq)
         heartbeat()
-        write_version(ctx, sid, v, rows, recon.mosaic, recon.method, recon.compliance, heartbeat, recon.learned)
+        write_version(
+            ctx, sid, v, rows, recon.mosaic, recon.method, recon.compliance, heartbeat, recon.learned, recon.tracked
+        )
         heartbeat()
         write_report(ctx, sid, v)
         ctx.results.set_current(sid, v)
@@ -130,11 +132,13 @@ def write_version(
     compliance: ComplianceFit | None,
     heartbeat: Callable[[], None] = lambda: None,
     tissue: Mapping[str, Any] | None = None,
+    tracked: int = 0,
 ) -> None:
     """Write a complete version: path, all tiles of both layers, mosaic.png/force.png, mosaic.json, state.
 
     heartbeat is called every 32 tiles: rendering a whole pyramid takes seconds on a loaded machine, longer
     than another worker waits before it claims the job's entry as abandoned (and runs it a second time).
+    tracked: how many placed frames were tracked without features (mosaic.json's frames: documents.frame_counts).
     """
     pub = Publisher(ctx)
     pub.write_path(sid, v, rows)
@@ -158,5 +162,6 @@ def write_version(
         method=method,
         compliance=compliance,
         tissue=tissue,
+        tracked=tracked,
     )
     pub.write_state(sid, v, VersionState(cursor=len(rows), finished=True))

@@ -38,21 +38,29 @@ Revisions = dict[str, dict[str, int]]
 
 
 # ----- frame counts -----------------------------------------------------------------------------------------------
-def frame_counts(rows: Sequence[PathRow]) -> dict[str, int]:
-    """Return {"processed", "ok", "lost", "rejected", "no_contact", "in_fragments"}: frame counts of path rows.
+def frame_counts(rows: Sequence[PathRow], tracked: int = 0) -> dict[str, int]:
+    """Return the frame counts of path rows by status and reason, and of the placed ones by kind (keyframes, tracked).
 
-    no_contact: rejected frames taken off the skin (between strokes); in_fragments: lost frames placed on a
-    fragment that has not joined the map (yet, while live).
+    Keys: processed, ok, lost, rejected, no_contact (rejected frames taken off the skin, between strokes),
+    in_fragments (lost frames placed on a fragment that has not joined the map, yet while live), keyframes and
+    tracked. tracked: how many placed frames were tracked on a keyframe without features
+    (SessionReconstruction.tracked_count: a live session behind its uploads, or a method with track_overlap; 0
+    offline by default), at most the rows' placed frames (a count read beside older rows); keyframes: the other
+    placed frames, registered by their features, so that ok = keyframes + tracked.
     """
     c = Counter(r.status for r in rows)
     why = Counter(r.reason for r in rows)
+    ok = c[STATUS_OK]
+    tracked = min(max(int(tracked), 0), ok)
     return {
         "processed": len(rows),
-        "ok": c[STATUS_OK],
+        "ok": ok,
         "lost": c[STATUS_LOST],
         "rejected": c[STATUS_REJECTED],
         "no_contact": why[REASON_NO_CONTACT],
         "in_fragments": why[REASON_FRAGMENT],
+        "keyframes": ok - tracked,
+        "tracked": tracked,
     }
 
 
@@ -114,13 +122,15 @@ def mosaic_json(
     method: str,
     compliance: ComplianceFit | None = None,
     tissue: Mapping[str, Any] | None = None,
+    tracked: int = 0,
 ) -> dict[str, Any]:
     """Return mosaic.json (spec §4 plus what the viewer needs), the one shape every producer writes.
 
     image: the rendered mosaic's meta (MosaicImage.meta(), or `image_meta`/`empty_image_meta`); version: the
     mosaic's change counter; revisions: {layer: {"level/col_row": revision}}; extent_mm: the session extent;
     rows: the path (frame counts); status: receiving, processing or done; compliance: the fit once finished;
-    tissue: what the scan taught of the tissue and the probe (SessionReconstruction.learned_model).
+    tissue: what the scan taught of the tissue and the probe (SessionReconstruction.learned_model); tracked: how
+    many of the rows' placed frames were tracked without features (frame_counts; SessionReconstruction.tracked_count).
     """
     doc: dict[str, Any] = {k: image[k] for k in IMAGE_KEYS if k in image}
     doc.update(
@@ -130,7 +140,7 @@ def mosaic_json(
             "revisions": revisions,
             "dzi": geometry.to_dict(),
             "extent_mm": extent_mm,
-            "frames": frame_counts(rows),
+            "frames": frame_counts(rows, tracked),
             "status": status,
             "method": method,
         }

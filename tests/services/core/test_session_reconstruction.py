@@ -335,6 +335,8 @@ def test_frame_kind_tells_keyframes_from_tracked_and_unplaced_frames(live_run: L
     described = set(session.registrar.features)
     assert {i for i, k in kinds.items() if k == "keyframe"} == described & set(kinds)
     assert list(kinds.values()).count("tracked") >= 5  # most frames of a slow short scan overlap their keyframe
+    # the frame counts' `tracked` (mosaic.json, report.json): the frames frame_kind calls tracked; none without tracking
+    assert session.tracked_count() == list(kinds.values()).count("tracked") and live.tracked_count() == 0
 
 
 def test_edge_yaws_are_the_graphs_edges_as_it_uses_them(live_run: LiveRun) -> None:

@@ -158,6 +158,7 @@ class Flusher:
             method=held.options.name,
             compliance=held.recon.compliance if final else None,
             tissue=held.recon.learned_model(),
+            tracked=held.recon.tracked_count(),
         )
         fence = held.lease.token
         pub.write_state(sid, v, VersionState(held.cursor, fence, final, lost=held.lost, rejected=held.rejected))

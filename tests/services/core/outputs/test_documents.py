@@ -1,14 +1,19 @@
-"""The two mosaic.json documents (services/core/outputs/documents.py): the folder's and the service's share parts."""
+"""The two mosaic.json documents (services/core/outputs/documents.py): the folder's and the service's share parts;
+the frame counts (frame_counts), the same in mosaic.json and report.json."""
 
 from __future__ import annotations
 
 import json
+import math
+from typing import Any
 
 import numpy as np
 
 from services.core.mosaic.canvas import MosaicImage
 from services.core.mosaic.deepzoom import DziGeometry
-from services.core.outputs.documents import empty_revisions, folder_mosaic_json, mosaic_json
+from services.core.outputs.documents import empty_revisions, folder_mosaic_json, frame_counts, mosaic_json
+from services.core.outputs.session_report import build_session_report
+from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit
 
 IMAGE = MosaicImage(
@@ -49,3 +54,57 @@ def test_the_service_and_the_folder_agree_on_every_key_they_share() -> None:
     )
     assert set(folder) <= set(served)
     assert {k: served[k] for k in folder} == folder
+
+
+def _row(seq: int, status: str = "ok", reason: str = "") -> PathRow:
+    """Return a path row of frame seq with a status and reason (placed at x = seq mm when ok)."""
+    x = float(seq) if status == "ok" else math.nan
+    return PathRow(seq, 0.1 * seq, x, 0.0 if status == "ok" else math.nan, 0.0, 5.0, 0.0, 0.0, 1.0, 50, status, reason)
+
+
+# 6 placed, a lost frame, one waiting in a fragment, one rejected as blurred, one taken off the skin
+ROWS = [
+    *(_row(i) for i in range(6)),
+    _row(6, "lost", "few_inliers"),
+    _row(7, "lost", "unjoined_fragment"),
+    _row(8, "rejected", "blur"),
+    _row(9, "rejected", "no_contact"),
+]
+
+
+def _served(rows: list[PathRow], **fields: Any) -> dict[str, Any]:
+    """Return the service's mosaic.json of rows (an empty image)."""
+    return mosaic_json(
+        IMAGE,
+        version=1,
+        results_version=1,
+        revisions=empty_revisions(),
+        geometry=DziGeometry.for_mosaic(8.0),
+        extent_mm=None,
+        rows=rows,
+        status="receiving",
+        method="best",
+        **fields,
+    )
+
+
+def test_frame_counts_split_the_placed_frames_into_keyframes_and_tracked() -> None:
+    # offline (nothing tracked) every placed frame is a keyframe; a live session behind its uploads passes how many
+    # of its placed frames it tracked without features (SessionReconstruction.tracked_count): ok = keyframes + tracked
+    base = {"processed": 10, "ok": 6, "lost": 2, "rejected": 2, "no_contact": 1, "in_fragments": 1}
+    assert frame_counts(ROWS) == {**base, "keyframes": 6, "tracked": 0}
+    assert frame_counts(ROWS, 4) == {**base, "keyframes": 2, "tracked": 4}
+    assert frame_counts(ROWS, 9)["tracked"] == 6 and frame_counts(ROWS, 9)["keyframes"] == 0  # at most the placed
+    assert frame_counts([]) == dict.fromkeys([*base, "keyframes", "tracked"], 0)
+
+
+def test_mosaic_json_report_json_and_the_events_count_the_tracked_frames_alike() -> None:
+    # one owner: mosaic.json's frames (which the progress, done and version events spread) and report.json's frames
+    # take keyframes and tracked from frame_counts
+    served = _served(ROWS, tracked=4)
+    assert served["frames"] == frame_counts(ROWS, 4)
+    assert _served(ROWS)["frames"]["tracked"] == 0 and _served(ROWS)["frames"]["keyframes"] == 6
+    report = build_session_report(ROWS, None, None, draw=False, tracked=4).doc["frames"]
+    assert (report["keyframes"], report["tracked"], report["ok"]) == (2, 4, 6)
+    offline = build_session_report(ROWS, None, None, draw=False).doc["frames"]
+    assert (offline["keyframes"], offline["tracked"]) == (6, 0)
