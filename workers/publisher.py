@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from services.core.mosaic.canvas import MosaicImage
@@ -115,6 +116,39 @@ class Publisher:
         """Return the image meta, writing mosaic.png, force.png, coverage.png (and raw_layers: layers.npz)."""
         self.ctx.results.write_mosaic_images(sid, v, mosaic, raw_layers=raw_layers)
         return mosaic.meta()
+
+    def write_tiles_and_images(
+        self,
+        sid: str,
+        v: int,
+        pyramid: TilePyramid,
+        tiles: Iterable[TileKey],
+        revision: int,
+        revisions: Revisions,
+        render: Callable[[], MosaicImage] | None,
+        *,
+        raw_layers: bool,
+        durable: bool,
+        heartbeat: Callable[[], None] = lambda: None,
+    ) -> tuple[Revisions, dict[str, Any] | None, tuple[float, float]]:
+        """Return what write_tiles returns, the image meta (None without `render`) and the wall and CPU seconds the
+        whole images took: the tiles (write_tiles) and, when `render` is given, the mosaic it renders (write_images)
+        written at the same time, the images on a thread (rendering, PNG encoding and deflating free the GIL; a
+        live session's final flush waits for both)."""
+        tiles_args = (sid, v, pyramid, tiles, revision, revisions)
+        if render is None:
+            return self.write_tiles(*tiles_args, durable=durable, heartbeat=heartbeat), None, (0.0, 0.0)
+
+        def images() -> tuple[dict[str, Any], tuple[float, float]]:
+            started, cpu = time.monotonic(), time.thread_time()
+            image = self.write_images(sid, v, render(), raw_layers=raw_layers)
+            return image, (time.monotonic() - started, time.thread_time() - cpu)
+
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="images") as pool:
+            pending = pool.submit(images)
+            changed = self.write_tiles(*tiles_args, durable=durable, heartbeat=heartbeat)
+            image, seconds = pending.result()
+        return changed, image, seconds
 
     def write_mosaic_json(self, sid: str, v: int, image: Mapping[str, Any], **fields: Any) -> dict[str, Any]:
         """Return the mosaic.json of version v, written now: the one shape every producer writes.

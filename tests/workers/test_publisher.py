@@ -1,5 +1,5 @@
 """The publisher: a durable batch of tiles made durable by one sync of the filesystem, not a fsync per file; the
-register stage's frames and CPU counted by kind."""
+whole images written beside the tiles; the register stage's frames and CPU counted by kind."""
 
 from __future__ import annotations
 
@@ -52,6 +52,42 @@ def test_durable_tiles_are_synced_once_after_the_batch(backend: Backend, monkeyp
 
     publisher.write_tiles(sid, 1, pyramid, changed, 2, revisions, durable=False)  # live tiles: no sync
     assert len(syncs) == 1 and not fsyncs
+
+
+def test_tiles_and_whole_images_are_written_together_as_each_alone(backend: Backend) -> None:
+    # a flush writes the whole images on a thread beside the tiles: the same files as one after the other
+    results = ResultsStore(backend.data_dir)
+    publisher = Publisher(SimpleNamespace(results=results, r=backend.r, prefix=backend.prefix))  # type: ignore[arg-type]
+    canvas = SparseCanvas(8.0)
+    rng = np.random.default_rng(3)
+    for key in ((0, 0), (1, 0), (0, -1)):
+        canvas.tiles[key] = rng.uniform(0.1, 1.0, (TILE_PX, TILE_PX, PLANES)).astype(np.float32)
+    pyramid = TilePyramid(DziGeometry.for_mosaic(8.0, 100.0))
+    changed = pyramid.update(canvas, set(canvas.tiles))
+    files: dict[str, dict[str, bytes]] = {}
+    for way in ("apart", "together"):
+        sid = uuid.uuid4().hex
+        (backend.data_dir / "sessions" / sid).mkdir(parents=True)
+        if way == "apart":
+            tiles = publisher.write_tiles(sid, 1, pyramid, changed, 1, {}, durable=True)
+            image = publisher.write_images(sid, 1, canvas.render())
+        else:
+            tiles, meta, (wall_s, cpu_s) = publisher.write_tiles_and_images(
+                sid, 1, pyramid, changed, 1, {}, canvas.render, raw_layers=True, durable=True
+            )
+            assert meta == image and wall_s > 0 and cpu_s > 0  # the images' own time, on their thread
+        assert {len(names) for names in tiles.values()} == {len(changed)}
+        root = results.version_dir(sid, 1)
+        files[way] = {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+    assert "mosaic.png" in files["together"] and "layers.npz" in files["together"]
+    assert files["together"] == files["apart"]
+    # without a render, tiles alone
+    sid = uuid.uuid4().hex
+    (backend.data_dir / "sessions" / sid).mkdir(parents=True)
+    _, meta, seconds = publisher.write_tiles_and_images(
+        sid, 1, pyramid, changed, 1, {}, None, raw_layers=False, durable=False
+    )
+    assert meta is None and seconds == (0.0, 0.0) and not results.image_path(sid, 1, "mosaic.png").exists()
 
 
 def test_sync_filesystem_flushes_the_filesystem_of_a_path(tmp_path: Path) -> None:

@@ -15,7 +15,7 @@ import numpy as np
 from services.core.physics.force_model import interpolate_forces, samples_around
 from services.core.physics.tissue_model import reference_tilts_at
 from services.core.pipeline import MASK_SAMPLE_FRAMES, window_setup_of
-from services.core.registration.frame_prep import prepare_frame
+from services.core.registration.frame_prep import prepare_frame, tracks_when_behind
 from services.jobs import queue
 from services.store.session_version import SessionVersion
 from services.store.storage import SessionMeta, SessionNotFoundError
@@ -107,7 +107,8 @@ def handle_frame(ctx: Context, sid: str, seq: int) -> str | Retry:
         mask=mask,
         flat=flat,
         options=sv.method_options,
-        behind=queue.is_tracking(ctx.r, sid, ctx.prefix),  # its features left to registration, to track it
+        # its features left to registration, to track it (the mark read only for a method that would)
+        behind=tracks_when_behind(sv.method_options) and queue.is_tracking(ctx.r, sid, ctx.prefix),
     )
     cpu_s = time.process_time() - started
     counters = ctx.r.pipeline(transaction=False)  # one round trip

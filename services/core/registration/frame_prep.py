@@ -151,12 +151,17 @@ def tracks_frames(options: MethodOptions) -> bool:
     return options.registration == "keyframes" and options.track_overlap > 0
 
 
+def tracks_when_behind(options: MethodOptions) -> bool:
+    """Return whether the method tracks the frames a live session behind its uploads prepared without features
+    (keyframes registration with options.track_overlap_behind > 0): whether being behind changes its preparation."""
+    return options.registration == "keyframes" and options.track_overlap_behind > 0
+
+
 def leaves_features(options: MethodOptions, behind: bool) -> bool:
     """Return whether a frame is prepared without features, for registration to track it or describe it: always
-    when the method tracks frames, and for a live session behind its uploads when options.track_overlap_behind > 0
-    (Registrar.track_overlap)."""
-    keyframes = options.registration == "keyframes"
-    return tracks_frames(options) or (behind and keyframes and options.track_overlap_behind > 0)
+    when the method tracks frames, and for a live session behind its uploads when it tracks those
+    (tracks_when_behind; Registrar.track_overlap)."""
+    return tracks_frames(options) or (behind and tracks_when_behind(options))
 
 
 def describe_frame(

@@ -25,7 +25,7 @@ from services.core.registration.direct_alignment import (
 from services.core.registration.drag_match import DraggedMatch, estimate_dragged_match
 from services.core.registration.edge_corrections import EdgeCorrections, step_of_travel, view_evidence
 from services.core.registration.features import Features
-from services.core.registration.frame_prep import PreparedFrame, describe_frame, tracks_frames
+from services.core.registration.frame_prep import PreparedFrame, describe_frame, tracks_frames, tracks_when_behind
 from services.core.registration.matching import SimilarityFit, estimate_similarity, match_features
 from services.core.registration.outcome import (
     REASON_BLUR,
@@ -330,7 +330,7 @@ class Registrar:
         without features (a live session behind its uploads: frame_prep.leaves_features)."""
         if tracks_frames(self.options):
             return self.options.track_overlap
-        if self.options.registration == "keyframes" and pf.features is None:
+        if pf.features is None and tracks_when_behind(self.options):
             return self.options.track_overlap_behind
         return 0.0
 

@@ -75,6 +75,13 @@ class _Parts:
         self._last = time.monotonic()
         self._last_cpu = time.process_time()
 
+    def beside(self, lap: str, name: str, seconds: float, cpu_s: float) -> None:
+        """Record under `name` a part that ran on another thread during lap `lap`: its wall seconds (overlapping the
+        lap's) and its CPU seconds, taken off the lap's."""
+        self.seconds[name] = seconds
+        self.cpu_s[name] = cpu_s
+        self.cpu_s[lap] = max(0.0, self.cpu_s.get(lap, 0.0) - cpu_s)
+
     def lap(self, name: str) -> None:
         """Record the time since the previous lap under `name`."""
         now, cpu = time.monotonic(), time.process_time()
@@ -134,15 +141,16 @@ class Flusher:
         # a flush after a global refinement re-renders much of the pyramid: keep the lease while it does
         renew = lambda: self.leases.renew_if_due(held)  # noqa: E731
         parts.lap("pyramid")
-        tiles_event = pub.write_tiles(sid, v, held.pyramid, changed, version, revisions, durable=final, heartbeat=renew)
+        render = held.recon.canvas.render if with_images else None  # + coverage, layers: beside the tiles
+        tiles_event, written, (images_s, images_cpu_s) = pub.write_tiles_and_images(
+            sid, v, held.pyramid, changed, version, revisions, render, raw_layers=final, durable=final, heartbeat=renew
+        )
         parts.lap("tiles")
-        image = image_meta(doc, held.calib.px_per_mm)
+        image = image_meta(doc, held.calib.px_per_mm) if written is None else written
         if with_images:
-            image = pub.write_images(sid, v, held.recon.canvas.render(), raw_layers=final)  # + coverage, layers
+            parts.beside("tiles", "images", images_s, images_cpu_s)
             held.clocks.images = now
-        parts.lap("images")
-        if with_images:
-            held.clocks.images_s = parts.seconds["images"]
+            held.clocks.images_s = images_s
         finished = ctx.store.get_meta(sid).finished_at is not None
         status = "done" if final else ("processing" if finished else "receiving")
         doc = pub.write_mosaic_json(

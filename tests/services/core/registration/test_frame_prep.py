@@ -20,6 +20,7 @@ from services.core.registration.frame_prep import (
     normalise_photometry,
     prepare_frame,
     to_unit_float,
+    tracks_when_behind,
 )
 from services.core.registration.matching import estimate_similarity, match_features
 from services.core.simulation.renderer import WINDOW_SIZE_PX, vignette_gain
@@ -227,6 +228,8 @@ def test_a_frame_is_prepared_without_features_only_when_registration_may_track_i
 ) -> None:
     options = method_options("best").with_overrides(overrides)
     assert leaves_features(options, behind) is leaves
+    # being behind matters (the worker reads the session's mark) only to a method that tracks such frames
+    assert tracks_when_behind(options) is ("registration" not in overrides and "track_overlap_behind" not in overrides)
     pf = prepare_frame(
         scan.frame(2),
         index=2,
