@@ -3,6 +3,7 @@ whole images written beside the tiles; the register stage's frames and CPU count
 
 from __future__ import annotations
 
+import io
 import os
 import uuid
 from pathlib import Path
@@ -80,7 +81,12 @@ def test_tiles_and_whole_images_are_written_together_as_each_alone(backend: Back
         root = results.version_dir(sid, 1)
         files[way] = {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
     assert "mosaic.png" in files["together"] and "layers.npz" in files["together"]
+    # the same bytes, but layers.npz's arrays: a zip member records its time (2 s steps)
+    layers = {way: np.load(io.BytesIO(got.pop("layers.npz"))) for way, got in files.items()}
     assert files["together"] == files["apart"]
+    assert layers["together"].files == layers["apart"].files
+    for name in layers["apart"].files:
+        np.testing.assert_array_equal(layers["together"][name], layers["apart"][name])
     # without a render, tiles alone
     sid = uuid.uuid4().hex
     (backend.data_dir / "sessions" / sid).mkdir(parents=True)
