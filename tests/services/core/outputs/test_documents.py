@@ -37,21 +37,25 @@ def test_the_folders_mosaic_json_is_the_spec_image_part_with_the_fit_and_the_dig
     assert not {"compliance_per_n", "gauge", "tissue", "scan_digest"} & set(bare)
 
 
-def test_the_service_and_the_folder_agree_on_every_key_they_share() -> None:
-    folder = folder_mosaic_json(IMAGE, method="best", compliance=FIT, tissue=TISSUE)
-    served = mosaic_json(
+def _served(rows: list[PathRow], **fields: Any) -> dict[str, Any]:
+    """Return the service's mosaic.json of rows (an empty image)."""
+    return mosaic_json(
         IMAGE,
-        version=3,
+        version=1,
         results_version=1,
         revisions=empty_revisions(),
         geometry=DziGeometry.for_mosaic(8.0),
         extent_mm=None,
-        rows=[],
-        status="done",
+        rows=rows,
+        status="receiving",
         method="best",
-        compliance=FIT,
-        tissue=TISSUE,
+        **fields,
     )
+
+
+def test_the_service_and_the_folder_agree_on_every_key_they_share() -> None:
+    folder = folder_mosaic_json(IMAGE, method="best", compliance=FIT, tissue=TISSUE)
+    served = _served([], compliance=FIT, tissue=TISSUE)
     assert set(folder) <= set(served)
     assert {k: served[k] for k in folder} == folder
 
@@ -70,22 +74,6 @@ ROWS = [
     _row(8, "rejected", "blur"),
     _row(9, "rejected", "no_contact"),
 ]
-
-
-def _served(rows: list[PathRow], **fields: Any) -> dict[str, Any]:
-    """Return the service's mosaic.json of rows (an empty image)."""
-    return mosaic_json(
-        IMAGE,
-        version=1,
-        results_version=1,
-        revisions=empty_revisions(),
-        geometry=DziGeometry.for_mosaic(8.0),
-        extent_mm=None,
-        rows=rows,
-        status="receiving",
-        method="best",
-        **fields,
-    )
 
 
 def test_frame_counts_split_the_placed_frames_into_keyframes_and_tracked() -> None:
