@@ -24,6 +24,7 @@ from services.core.inputs.calibration import Calibration
 from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, Warped, blend_weight
+from services.core.mosaic.canvas_units import IDENTITY, CanvasUnits, fit_units
 from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit, fit_compliance
 from services.core.physics.drag import undrag_maps
@@ -323,6 +324,7 @@ class SessionReconstruction:
         ahead = copy.copy(self)
         ahead.live = False  # nothing pasted
         ahead.ahead = None
+        ahead.canvas = SparseCanvas(self.calibration.px_per_mm)  # its places in the path's units (identity)
         ahead.atlas = copy.copy(self.atlas)
         main = _with_own_containers(self.registrar)
         main.corrections = _with_own_containers(main.corrections)
@@ -332,15 +334,18 @@ class SessionReconstruction:
 
     def run_ahead(self) -> int:
         """Return how many frames now wait to be pasted again (stale), after running the finish ahead of the scan's
-        end on a copy (places_if_finished) and keeping the live canvas at its places from now on: each frame it moved
-        by AHEAD_MOVED_PX or more from where it is pasted is re-pasted a few at a time (settle), and frames placed
-        since are pasted at their live places mapped onto its mosaic (AheadRun.mapped). The path and every
+        end on a copy (places_if_finished) and keeping the live canvas at its places from now on, in the canvas's
+        units refitted to them (_fitted_units: the run's change of gauge and origin moves no frame): each frame it
+        moved by AHEAD_MOVED_PX or more from where it is pasted is re-pasted a few at a time (settle), and frames
+        placed since are pasted at their live places mapped onto its mosaic (AheadRun.mapped). The path and every
         registration state are left as they were; the real finish then pastes again only what moved since.
         """
         if not self.live or self.finished:
             return 0
         twin = self._finished_copy()
-        places = twin.stitch_places()
+        path_places = twin.stitch_places()
+        self.canvas.units = self._fitted_units(path_places, AHEAD_MOVED_PX)
+        places = {i: (self.canvas.units.on_canvas(affine), drag) for i, (affine, drag) in path_places.items()}
         newest = max(places, default=None)  # its live place against the run's maps the frames placed since
         live = self._stitch_pose(newest) if newest is not None else None
         correction = np.eye(3)
@@ -438,7 +443,8 @@ class SessionReconstruction:
     def _stitch_pose(self, index: int) -> np.ndarray | None:
         """Return the 2x3 affine (rectified frame mm -> mosaic mm) a frame is pasted with, or None (not pasted).
 
-        The pose after the frame's tilt foreshortening is undone (its view D^-1), so the mosaic is undeformed.
+        The pose after the frame's tilt foreshortening is undone (its view D^-1), so the mosaic is undeformed; once
+        finished, in output units mapped onto the canvas's (SparseCanvas.units), else in the registrar's.
         """
         result = self.results.get(index)
         if result is None or result.status != STATUS_OK or result.blurred:
@@ -450,7 +456,8 @@ class SessionReconstruction:
         pose = pose.rigid() if self.options.rigid_stitch else pose
         m = pose.matrix()
         view = self.registrar.corrections.view(index, self.registrar.poses)
-        return np.hstack([m[:, :2] @ np.linalg.inv(view), m[:, 2:]])
+        affine = np.hstack([m[:, :2] @ np.linalg.inv(view), m[:, 2:]])
+        return self.canvas.units.on_canvas(affine) if self.finished and self.canvas.units != IDENTITY else affine
 
     def _target(self, index: int) -> Place | None:
         """Return where a live frame is to be pasted now, or None (not pasted): its place in the last run ahead, its
@@ -531,10 +538,10 @@ class SessionReconstruction:
         return self.canvas.render()
 
     def restitch(self) -> set[tuple[int, int]]:
-        """Paste every frame afresh at its place now on an empty canvas; return the tiles of the old and the new
-        canvas (what the finish does when every frame moved; offline, every render)."""
+        """Paste every frame afresh at its place now on an empty canvas in the same units; return the tiles of the
+        old and the new canvas (what the finish does when every frame moved; offline, every render)."""
         old = set(self.canvas.tiles)
-        self.canvas = SparseCanvas(self.calibration.px_per_mm)
+        self.canvas = SparseCanvas(self.calibration.px_per_mm, units=self.canvas.units)
         self.pasted = {}
         self.pasted_drag = {}
         self.stale = {}
@@ -542,11 +549,16 @@ class SessionReconstruction:
 
     def _restitch_moved(self) -> set[tuple[int, int]]:
         """Paste afresh the frames not within FINISH_MOVED_PX of their final places, and nothing else; return the
-        tiles changed. The tiles they cover (pasted and final) are emptied and made again from every frame over them,
-        in index order, as a whole restitch makes them (a frame that did not move stays where it is pasted); or, when
-        that is dearer than two warps of each moved frame (a finish run ahead left few to move), those frames are
+        tiles changed. After a run ahead the final places are in the canvas's units refitted to them (_fitted_units),
+        so that a change of the gauge and of frame 0's rest centre alone moves no frame: mosaic.json's px_per_mm and
+        origin_px carry it. The tiles they cover (pasted and final) are emptied and made again from every frame over
+        them, in index order, as a whole restitch makes them (a frame that did not move stays where it is pasted); or,
+        when that is dearer than two warps of each moved frame (a finish run ahead left few to move), those frames are
         moved in place (_move_pasted)."""
         self.stale = {}
+        if self.ahead is not None:  # else the canvas lags the live places by up to LIVE_REPASTE_PX: no gain
+            self.canvas.units = IDENTITY
+            self.canvas.units = self._fitted_units(self.stitch_places(), FINISH_MOVED_PX)
         final = self.stitch_places()
         moved = [i for i in sorted(set(final) | set(self.pasted)) if self._moved(self._pasted_place(i), final.get(i))]
         self.finish_pasted_again = len(moved)
@@ -598,6 +610,23 @@ class SessionReconstruction:
         return {
             i: (pose, self._drag_state(i)) for i in sorted(self.frames) if (pose := self._stitch_pose(i)) is not None
         }
+
+    def _fitted_units(self, places: dict[int, Place], moved_px: float) -> CanvasUnits:
+        """Return the canvas units that map `places` (stitch places at identity units) onto where their frames are
+        pasted with the fewest frames to paste again (moved by `moved_px` or more): the one scale and shift of the whole
+        canvas that fits them best (canvas_units.fit_units), or the identity when that leaves no fewer."""
+        both = [i for i in places if i in self.pasted]
+        path_px = np.array([self.corners_px(places[i][0]) for i in both]).reshape(-1, 4)
+        canvas_px = np.array([self.corners_px(self.pasted[i]) for i in both]).reshape(-1, 4)
+        units = fit_units(path_px, canvas_px, self.calibration.px_per_mm)
+        if units == IDENTITY:
+            return units
+        scaled = units.scale * path_px + complex(*units.origin_px(self.calibration.px_per_mm))
+        pasted = [(self.pasted[i], self.pasted_drag.get(i, NO_DRAG)) for i in both]
+        drags = np.array([self.drag_shift_px(old, places[i]) for old, i in zip(pasted, both, strict=True)])
+        fitted = np.count_nonzero(np.abs(scaled - canvas_px).max(axis=1) + drags >= moved_px)
+        kept = np.count_nonzero(np.abs(path_px - canvas_px).max(axis=1) + drags >= moved_px)
+        return units if fitted < kept else IDENTITY
 
     def _pasted_place(self, index: int) -> Place | None:
         """Return the stitch affine a frame is pasted with and the drag its planes undid, or None (not pasted)."""

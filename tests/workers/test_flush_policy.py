@@ -16,19 +16,20 @@ from workers.stages.register.flush import (
 
 
 @pytest.mark.parametrize(
-    ("final", "written", "caught_up", "since_s", "due"),
+    ("final", "written", "caught_up", "since_s", "units_changed", "due"),
     [
-        (True, True, False, 0.0, True),  # the final flush writes everything, behind or not
-        (False, False, False, 0.0, True),  # the first flush gives the session its images
-        (False, True, True, 2.5, True),  # caught up and image_every_s has passed
-        (False, True, True, 1.5, False),  # caught up, too soon
-        (False, True, False, 60.0, False),  # behind: the CPU goes to placing frames, however long
+        (True, True, False, 0.0, False, True),  # the final flush writes everything, behind or not
+        (False, False, False, 0.0, False, True),  # the first flush gives the session its images
+        (False, True, True, 2.5, False, True),  # caught up and image_every_s has passed
+        (False, True, True, 1.5, False, False),  # caught up, too soon
+        (False, True, False, 60.0, False, False),  # behind: the CPU goes to placing frames, however long
+        (False, True, True, 0.1, True, True),  # a run ahead changed the canvas's units: mosaic.json is theirs
     ],
 )
 def test_whole_images_wait_until_the_session_has_caught_up(
-    final: bool, written: bool, caught_up: bool, since_s: float, due: bool
+    final: bool, written: bool, caught_up: bool, since_s: float, units_changed: bool, due: bool
 ) -> None:
-    assert images_due(final, written, caught_up, since_s, every_s=2.0) is due
+    assert images_due(final, written, caught_up, since_s, every_s=2.0, units_changed=units_changed) is due
 
 
 @pytest.mark.parametrize(

@@ -373,4 +373,12 @@ def test_a_caught_up_live_session_runs_its_finish_ahead_and_ends_with_the_offlin
     queue.enqueue_finish(backend.r, sid, backend.prefix)
     wait_done(store, sid)
     assert_matches_offline(results.read_path(sid, 1), 1)
-    assert results.read_mosaic_meta(sid, 1)["status"] == "done"
+    doc = results.read_mosaic_meta(sid, 1)
+    assert doc["status"] == "done"
+    # the whole images and the tiles in one set of units (the canvas's, which a run ahead may change): the mosaic's
+    # pixel 0 lies on a DZI pixel (to float rounding) and its size is the extent's at its px_per_mm (to the pixel)
+    corner = np.subtract(doc["dzi"]["origin_px"], doc["origin_px"])
+    assert np.allclose(corner, np.round(corner), atol=1e-6)
+    x0, y0, x1, y1 = doc["extent_mm"]
+    size_px = np.array([x1 - x0, y1 - y0]) * doc["px_per_mm"]
+    assert np.allclose(size_px, [doc["width"], doc["height"]], atol=1e-6)

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from services.core.mosaic.canvas_units import IDENTITY, CanvasUnits
 from services.core.similarity import Similarity
 
 TILE_PX = 256
@@ -134,10 +135,15 @@ class Warped:
 
 @dataclass
 class SparseCanvas:
-    """A mosaic canvas in mm of frame 0 at px_per_mm, stored as sparse TILE_PX tiles keyed by (col, row)."""
+    """A mosaic canvas in mm of frame 0 at px_per_mm, stored as sparse TILE_PX tiles keyed by (col, row).
+
+    Frames are pasted in the canvas's millimetres; `units` maps the path's onto them (canvas_units: the identity
+    offline), and the rendered mosaic's px_per_mm and origin_px carry it.
+    """
 
     px_per_mm: float
     tiles: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
+    units: CanvasUnits = IDENTITY
 
     def frame_to_canvas(self, pose: Similarity | np.ndarray, layers: FrameLayers) -> np.ndarray:
         """Return the 2x3 affine from frame pixels to canvas pixels (canvas (0, 0) = frame 0's centre).
@@ -235,7 +241,8 @@ class SparseCanvas:
 
     @classmethod
     def from_mosaic(cls, mosaic: MosaicImage) -> SparseCanvas:
-        """Return a canvas holding a rendered mosaic (unit weight per covered pixel): the inverse of render()."""
+        """Return a canvas holding a rendered mosaic (unit weight per covered pixel): the inverse of render() at
+        identity units (its pixel grid kept: canvas pixel 0 is the mosaic's origin_px, rounded)."""
         canvas = cls(mosaic.px_per_mm)
         h, w = mosaic.vein.shape
         ox, oy = (round(v) for v in mosaic.origin_px)  # the canvas pixel 0 is mosaic pixel origin_px
@@ -285,15 +292,18 @@ class SparseCanvas:
         return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
 
     def render(self, min_weight: float = 1e-3) -> MosaicImage:
-        """Return the whole mosaic cropped to covered pixels, with frame 0's centre at origin_px.
+        """Return the whole mosaic cropped to covered pixels, with frame 0's rest centre (the path's origin) at
+        origin_px and px_per_mm per path mm (both through `units`).
 
         Only the covered box is assembled, and each layer computed in place (a 2816 x 2048 px mosaic took 1.3 s in
         whole-canvas temporaries on a busy machine).
         """
         box = self.covered_box(min_weight)
+        path_px_per_mm = self.units.path_px_per_mm(self.px_per_mm)
+        ox, oy = self.units.origin_px(self.px_per_mm)  # the path's origin on the canvas (0, 0 at identity units)
         if box is None:
             z = np.zeros((1, 1), np.float32)
-            return MosaicImage(z.astype(np.uint8), z * np.nan, z, self.px_per_mm, (0.0, 0.0))
+            return MosaicImage(z.astype(np.uint8), z * np.nan, z, path_px_per_mm, (ox, oy))
         x0, y0, x1, y1 = box
         big = np.zeros((y1 - y0, x1 - x0, PLANES), np.float32)
         for (c, r), tile in self.tiles.items():
@@ -313,7 +323,7 @@ class SparseCanvas:
         force[uncovered] = np.nan
         coverage = big[..., 3].copy()
         coverage[uncovered] = 0
-        return MosaicImage(vein.astype(np.uint8), force, coverage, self.px_per_mm, (float(-x0), float(-y0)))
+        return MosaicImage(vein.astype(np.uint8), force, coverage, path_px_per_mm, (float(ox - x0), float(oy - y0)))
 
 
 def force_to_color(force_n: np.ndarray, full_scale_n: float = FORCE_FULL_SCALE_N) -> np.ndarray:

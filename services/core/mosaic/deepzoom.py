@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from services.core.mosaic.canvas import FORCE_FULL_SCALE_N, PLANES, TILE_PX, SparseCanvas
+from services.core.mosaic.canvas_units import IDENTITY, CanvasUnits
 
 TileKey = tuple[int, int, int]  # (level, col, row)
 MIN_WEIGHT = 1e-3  # as SparseCanvas.render: a pixel with less blend weight is uncovered
@@ -48,10 +49,10 @@ class DziGeometry:
     @classmethod
     def from_dict(cls, dzi: Mapping[str, Any], px_per_mm: float) -> DziGeometry:
         """Return the geometry of a mosaic.json "dzi" block (`to_dict`'s output) at px_per_mm."""
-        width, height, half = int(dzi["width"]), int(dzi["height"]), int(dzi["origin_px"][0])
-        geometry = cls(float(px_per_mm), half, int(dzi["tile_size"]))
+        width, height = int(dzi["width"]), int(dzi["height"])
+        geometry = cls(float(px_per_mm), width // 2, int(dzi["tile_size"]))
         if (geometry.width, geometry.height) != (width, height):
-            raise ValueError("dzi: width and height must be twice origin_px")
+            raise ValueError("dzi: width and height must be one even size")
         return geometry
 
     @property
@@ -71,7 +72,7 @@ class DziGeometry:
 
     @property
     def origin_px(self) -> tuple[int, int]:
-        """Return frame 0's centre in full-resolution DZI pixels."""
+        """Return the canvas pixel 0 (frame 0's centre at identity units) in full-resolution DZI pixels."""
         return self.half_px, self.half_px
 
     @property
@@ -128,14 +129,17 @@ class DziGeometry:
             f'<Size Width="{self.width}" Height="{self.height}"/></Image>\n'
         )
 
-    def to_dict(self) -> dict[str, object]:
-        """Return the "dzi" part of mosaic.json."""
+    def to_dict(self, units: CanvasUnits = IDENTITY) -> dict[str, object]:
+        """Return the "dzi" part of mosaic.json: its origin_px is the path's origin (frame 0's rest centre) in
+        full-resolution DZI pixels, the canvas pixel 0 (origin_px here) moved by the canvas's units."""
+        ox, oy = units.origin_px(self.px_per_mm)
+        origin = [self.half_px, self.half_px] if units == IDENTITY else [self.half_px + ox, self.half_px + oy]
         return {
             "width": self.width,
             "height": self.height,
             "tile_size": self.tile_size,
             "max_level": self.max_level,
-            "origin_px": [self.half_px, self.half_px],
+            "origin_px": origin,
         }
 
 

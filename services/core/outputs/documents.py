@@ -20,6 +20,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from services.core.mosaic.canvas import FORCE_FULL_SCALE_N, SparseCanvas
+from services.core.mosaic.canvas_units import IDENTITY, CanvasUnits
 from services.core.mosaic.deepzoom import MIN_WEIGHT, DziGeometry
 from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit
@@ -68,13 +69,15 @@ def frame_counts(rows: Sequence[PathRow], tracked: int = 0) -> dict[str, int]:
 def canvas_extent_mm(canvas: SparseCanvas, min_weight: float = MIN_WEIGHT) -> list[float] | None:
     """Return the session extent [xmin, ymin, xmax, ymax] in mm (frame 0's axes) of a canvas, None when empty.
 
-    The box of the covered pixels' edges (canvas pixel (0, 0) is frame 0's centre), as `render` crops them.
+    The box of the covered pixels' edges, as `render` crops them, in the path's mm (the canvas's units undone).
     """
     box = canvas.covered_box(min_weight)
     if box is None:
         return None
     k = canvas.px_per_mm
-    return [float(box[0] / k), float(box[1] / k), float(box[2] / k), float(box[3] / k)]
+    x0, y0 = canvas.units.to_path_mm(box[0] / k, box[1] / k)
+    x1, y1 = canvas.units.to_path_mm(box[2] / k, box[3] / k)
+    return [float(x0), float(y0), float(x1), float(y1)]
 
 
 def extent_view(extent_mm: Sequence[float] | None) -> dict[str, float] | None:
@@ -123,6 +126,7 @@ def mosaic_json(
     compliance: ComplianceFit | None = None,
     tissue: Mapping[str, Any] | None = None,
     tracked: int = 0,
+    units: CanvasUnits = IDENTITY,
 ) -> dict[str, Any]:
     """Return mosaic.json (spec §4 plus what the viewer needs), the one shape every producer writes.
 
@@ -130,7 +134,8 @@ def mosaic_json(
     mosaic's change counter; revisions: {layer: {"level/col_row": revision}}; extent_mm: the session extent;
     rows: the path (frame counts); status: receiving, processing or done; compliance: the fit once finished;
     tissue: what the scan taught of the tissue and the probe (SessionReconstruction.learned_model); tracked: how
-    many of the rows' placed frames were tracked without features (frame_counts; SessionReconstruction.tracked_count).
+    many of the rows' placed frames were tracked without features (frame_counts; SessionReconstruction.tracked_count);
+    units: the canvas's (SparseCanvas.units), which place the path's origin on the tiles (the dzi block's origin_px).
     """
     doc: dict[str, Any] = {k: image[k] for k in IMAGE_KEYS if k in image}
     doc.update(
@@ -138,7 +143,7 @@ def mosaic_json(
             "version": int(version),
             "results_version": int(results_version),
             "revisions": revisions,
-            "dzi": geometry.to_dict(),
+            "dzi": geometry.to_dict(units),
             "extent_mm": extent_mm,
             "frames": frame_counts(rows, tracked),
             "status": status,

@@ -21,6 +21,7 @@ from services.core.inputs.calibration import Calibration, default_calibration
 from services.core.inputs.scan import Scan
 from services.core.methods import MethodOptions, method_options
 from services.core.mosaic.canvas import MosaicImage, SparseCanvas
+from services.core.mosaic.canvas_units import IDENTITY
 from services.core.path_rows import path_rows_json
 from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
 from services.core.registration.frame_prep import PreparedFrame
@@ -201,7 +202,7 @@ def test_a_frames_move_is_its_farthest_corner_plus_the_most_its_undone_drag_shif
 def on_one_grid(*mosaics: MosaicImage) -> list[tuple[np.ndarray, np.ndarray]]:
     """Return each mosaic's vein image and covered pixels on one grid (their canvas's pixels: the union of their
     extents), uncovered outside each."""
-    corners = [(-int(m.origin_px[0]), -int(m.origin_px[1])) for m in mosaics]  # a mosaic's pixel 0 on the canvas
+    corners = [(-math.floor(m.origin_px[0]), -math.floor(m.origin_px[1])) for m in mosaics]  # its pixel 0 on the canvas
     x0, y0 = min(c[0] for c in corners), min(c[1] for c in corners)
     x1 = max(c[0] + m.vein.shape[1] for c, m in zip(corners, mosaics, strict=True))
     y1 = max(c[1] + m.vein.shape[0] for c, m in zip(corners, mosaics, strict=True))
@@ -265,6 +266,7 @@ def test_the_finished_live_mosaic_is_a_whole_restitch_within_a_grey_level(
     live.finish()
     offline.finish()
     assert path_rows_json(live.path_rows()) == path_rows_json(offline.path_rows())  # the path: identical
+    offline.canvas.units = live.canvas.units  # the whole restitch in the live canvas's units
     offline.render()  # every frame pasted at its final place
     assert grey_gap(live.canvas.render(), offline.canvas) <= TOL.finish_restitch_grey
     # the comparison can fail: the canvas as it was before the finish is far from it
@@ -304,6 +306,38 @@ def test_the_finish_pastes_again_only_the_frames_that_moved(live_run: LiveRun, m
     assert not np.array_equal(live.pasted[near], before[near])
     assert grey_gap(finished, live.canvas) <= TOL.finish_restitch_grey
     assert grey_gap(unfinished, live.canvas) > TOL.finish_restitch_grey
+
+
+def test_a_scale_and_shift_of_the_whole_path_moves_no_frame_the_mosaics_units_carry_it(live_run: LiveRun) -> None:
+    # a session that ran its finish ahead (which moved nothing: no final pass or self-calibration), then every pose
+    # scaled by 1.5 % about a point 2 mm off frame 0 (as a change of the gauge and of frame 0's rest centre moves a
+    # path) and four frames moved by 4 px besides: the finish pastes only those four again, in the canvas's units
+    # refitted to the rest, which the rendered mosaic carries
+    options = dataclasses.replace(live_run.options, refine=False, self_calibrate=False)
+    live = SessionReconstruction(live_run.calib, options, live_run.radius_mm, live=True)
+    for pf in live_run.frames:
+        live.add(pf)
+    live.restitch()
+    assert live.run_ahead() == 0 and live.canvas.units == IDENTITY
+    before = dict(live.pasted)
+    poses, k, shift = live.registrar.poses, 1.015, 2.0 - 1.0j
+    far = [30, 31, 32, 33]
+    for i, pose in poses.items():
+        poses[i] = Similarity(pose.a * k, pose.t * k + shift + (0.5 if i in far else 0.0))  # 4 px at 8 px/mm
+    live.finish()
+    again = [i for i in live.pasted if not np.array_equal(live.pasted[i], before[i])]
+    assert again == far
+    # the units undo the scale and shift to 1e-9 (a least-squares fit of exact corners)
+    units = live.canvas.units
+    assert units.scale == pytest.approx(1 / k, abs=1e-9) and abs(units.shift_mm + shift / k) < 1e-9
+    mosaic = live.canvas.render()
+    assert mosaic.px_per_mm == pytest.approx(live_run.calib.px_per_mm / k, abs=1e-9)
+    live.restitch()  # every frame afresh at its final place in the same units
+    assert grey_gap(mosaic, live.canvas) <= TOL.finish_restitch_grey
+    # the comparison can fail: the path's own units (the identity) put every frame elsewhere
+    live.canvas.units = IDENTITY
+    live.restitch()
+    assert grey_gap(mosaic, live.canvas) > TOL.finish_restitch_grey
 
 
 @pytest.mark.parametrize(("reselect", "gate_px"), [(False, 0.0), (True, 2.0)])
@@ -409,7 +443,7 @@ def test_add_next_records_the_seqs_the_camera_dropped_as_lost() -> None:
 @pytest.mark.parametrize(
     ("self_calibrate", "runs", "in_place"),
     [
-        (True, (40, 70), False),  # best: each run's gauge moves every frame; the finish pastes most of them again
+        (True, (40, 70), False),  # best: each run's law and final pass move most frames; the finish pastes most again
         (False, (40, 76), True),  # no gauge: the finish pastes again only the frames placed since, in place
     ],
 )
@@ -463,5 +497,6 @@ def test_a_canvas_kept_at_finishes_run_ahead_finishes_as_a_whole_restitch(
         assert moved_in_place == [len(again)] and 0 < len(again) < len(live.pasted) // 4
     else:
         assert not moved_in_place and len(again) > len(live.pasted) // 2
+    offline.canvas.units = live.canvas.units  # the whole restitch in the live canvas's units
     offline.render()
     assert grey_gap(live.canvas.render(), offline.canvas) <= TOL.finish_restitch_grey

@@ -5,8 +5,9 @@ pastes again only the frames that moved since: SessionReconstruction.run_ahead).
 A run is due once the session has caught up with its uploads, is not finished, has re-pasted every frame waiting to
 be (the last run's moved frames among them), has placed new frames since the last run, and finish_ahead_every_s (or
 AHEAD_COST_FACTOR times the last run's duration, if longer: a long examination's run takes about 2 s at 2400
-frames) has passed since it; finish_ahead_every_s 0 (the default) turns it off: with the compliance gauge in the
-canvas's pixels each run moves most frames of a long examination (docs/performance.md).
+frames) has passed since it; finish_ahead_every_s 0 (the default) turns it off: the canvas's units take up the
+compliance gauge's change, but each run still moves hundreds of frames of a long examination beyond that
+(docs/performance.md).
 """
 
 from __future__ import annotations

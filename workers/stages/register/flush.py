@@ -59,10 +59,13 @@ def images_every_s(every_s: float, last_s: float) -> float:
     return max(every_s, IMAGES_COST_FACTOR * last_s)
 
 
-def images_due(final: bool, written: bool, caught_up: bool, since_s: float, every_s: float) -> bool:
-    """Return True when a flush writes the whole images: always at the end or the first time, else at most every
-    every_s seconds and only once the session has caught up with its uploads."""
-    return final or not written or (caught_up and since_s >= every_s)
+def images_due(
+    final: bool, written: bool, caught_up: bool, since_s: float, every_s: float, units_changed: bool = False
+) -> bool:
+    """Return True when a flush writes the whole images: always at the end, the first time or when the canvas's units
+    changed since the last ones (a finish run ahead: mosaic.json's px_per_mm and origin_px are theirs), else at most
+    every every_s seconds and only once the session has caught up with its uploads."""
+    return final or not written or units_changed or (caught_up and since_s >= every_s)
 
 
 class _Parts:
@@ -130,7 +133,15 @@ class Flusher:
         version = int(doc.get("version", 0)) + 1
         revisions: dict[str, dict[str, int]] = doc.get("revisions") or empty_revisions()
         every_images = images_every_s(cfg.image_every_s, held.clocks.images_s)
-        with_images = images_due(final, bool(doc.get("width")), caught_up, now - held.clocks.images, every_images)
+        units = held.recon.canvas.units
+        px_per_mm = units.path_px_per_mm(held.calib.px_per_mm)  # the mosaic's, per path mm
+        regeared = (doc.get("px_per_mm"), (doc.get("dzi") or {}).get("origin_px")) != (
+            px_per_mm,
+            held.geometry.to_dict(units)["origin_px"],
+        )
+        written = bool(doc.get("width"))
+        since = now - held.clocks.images
+        with_images = images_due(final, written, caught_up, since, every_images, units_changed=written and regeared)
         pending.deferred |= held.pyramid.update(held.recon.canvas, pending.touched)
         pending.touched = set()
         # levels where one tile holds the whole canvas are only seen zoomed far out: refresh them with the images
@@ -142,11 +153,11 @@ class Flusher:
         renew = lambda: self.leases.renew_if_due(held)  # noqa: E731
         parts.lap("pyramid")
         render = held.recon.canvas.render if with_images else None  # + coverage, layers: beside the tiles
-        tiles_event, written, (images_s, images_cpu_s) = pub.write_tiles_and_images(
+        tiles_event, rendered, (images_s, images_cpu_s) = pub.write_tiles_and_images(
             sid, v, held.pyramid, changed, version, revisions, render, raw_layers=final, durable=final, heartbeat=renew
         )
         parts.lap("tiles")
-        image = image_meta(doc, held.calib.px_per_mm) if written is None else written
+        image = image_meta(doc, px_per_mm) if rendered is None else rendered
         if with_images:
             parts.beside("tiles", "images", images_s, images_cpu_s)
             held.clocks.images = now
@@ -167,6 +178,7 @@ class Flusher:
             compliance=held.recon.compliance if final else None,
             tissue=held.recon.learned_model(),
             tracked=held.recon.tracked_count(),
+            units=units,
         )
         fence = held.lease.token
         pub.write_state(sid, v, VersionState(held.cursor, fence, final, lost=held.lost, rejected=held.rejected))
