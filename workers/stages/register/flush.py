@@ -187,6 +187,11 @@ class Flusher:
         self.publisher.count_register_cost(v, pending.cost.frames, pending.cost.cpu_s)
         pending.cost = RegisterCost()
         lags = self.record_lags(held, pending.seqs)
+        held_s = time.time() - held.taken_at
+        # the tracking mark settled before the event (and before the completion marks the session done)
+        tracking = tracking_due(caught_up, lags, cfg.track_lag_s, held_s)  # its next frames are prepared to be tracked
+        if tracking or held.tracking:  # renewed while behind, cleared once
+            self.publisher.mark_tracking(held.sid, tracking)
         if before_event is not None:
             before_event()
         pub.results_event(sid, doc, tiles_event, rows, pending.seqs, pending.path_reset or final)
@@ -196,14 +201,10 @@ class Flusher:
         pending.path_reset = False
         pending.dirty = False
         held.clocks.flushed = time.monotonic()
-        held_s = time.time() - held.taken_at
         held.behind = is_behind(caught_up, lags, cfg.behind_lag_s, held_s)  # its frames' moved neighbours wait (cursor)
         # three probes on two cores: 18.2 -> 24.1 frames/s placed with the behind rule (bench/probes.py)
         every = flush_every_s(held.behind, cfg.flush_every_s, cfg.behind_flush_every_s)
         held.clocks.flush_interval = max(every, 2.0 * (held.clocks.flushed - now))
-        tracking = tracking_due(caught_up, lags, cfg.track_lag_s, held_s)  # its next frames are prepared to be tracked
-        if tracking or held.tracking:  # renewed while behind, cleared once
-            self.publisher.mark_tracking(held.sid, tracking)
         if tracking != held.tracking:
             state = "behind its uploads: its next frames are tracked" if tracking else "caught up: frames described"
             waited = min(lags, default=0.0)
