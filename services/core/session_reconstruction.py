@@ -66,6 +66,10 @@ FINISH_MOVED_PX = 0.25
 # A finish run ahead (run_ahead) pastes a frame again when it moved this far from where it is pasted: half the
 # finish's rule, so that the moves of runs that follow do not add up past FINISH_MOVED_PX unseen.
 AHEAD_MOVED_PX = 0.5 * FINISH_MOVED_PX
+# What moving a pasted frame costs (_move_pasted: its planes built once, warped and added twice) against pasting a
+# frame afresh (planes built, warped and added once): building the planes (reading the pixels back, the blend weight,
+# the load map) is about half of a paste (docs/performance.md, "A frame pasted again").
+MOVE_COST = 1.5
 NO_DRAG: tuple[complex, float] = (0j, 0.0)  # a frame's planes undo no drag: (drag mm, profile width mm)
 # where a frame is pasted: its stitch affine (rectified frame mm -> mosaic mm, 2x3) and the drag its planes undo
 Place = tuple[np.ndarray, tuple[complex, float]]
@@ -573,7 +577,7 @@ class SessionReconstruction:
         places = {i: place for i in staying if (place := self._pasted_place(i)) is not None}
         places.update((i, final[i]) for i in moved if i in final)
         over = {i: places[i] for i in sorted(places) if not tiles.isdisjoint(self._footprint(places[i][0]))}
-        if 2 * len(moved) < len(over):
+        if MOVE_COST * len(moved) < len(over):
             return self._move_pasted(moved, final)
         for i in moved:
             self._record_pasted(i, None)
@@ -582,17 +586,21 @@ class SessionReconstruction:
 
     def _move_pasted(self, moved: list[int], final: dict[int, Place]) -> set[tuple[int, int]]:
         """Remove the frames `moved` from where they are pasted and paste them at their places in `final` (absent:
-        not pasted); return the tiles changed. Two warps a frame, where emptying their tiles and pasting every frame
-        over them again (_restitch_moved) costs one a frame over those tiles: cheaper when few moved among many. The
-        sums are a whole restitch's to float32 rounding (the removed planes are the pasted ones, rebuilt the same).
-        Warped up to RESTITCH_AHEAD frames ahead on two threads, as _paste_in_order."""
+        not pasted); return the tiles changed. A frame's planes built once (when its undone drag is the same at both
+        places) and warped twice, where emptying their tiles and pasting every frame over them again
+        (_restitch_moved) costs one paste a frame over those tiles: cheaper when fewer than 1 / MOVE_COST of them
+        moved. The sums are a whole restitch's to float32 rounding (the removed planes are the pasted ones, rebuilt
+        the same). Warped up to RESTITCH_AHEAD frames ahead on two threads, as _paste_in_order."""
 
         def warp(i: int) -> list[tuple[Warped | None, float]]:
             old, new = self._pasted_place(i), final.get(i)
-            parts = []
+            parts: list[tuple[Warped | None, float]] = []
+            built: dict[tuple[complex, float], FrameLayers] = {}
             for place, sign in ((old, -1.0), (new, 1.0)):
                 if place is not None:
-                    parts.append((self.canvas.warp(self._planes(i, place[1], remember=False), place[0]), sign))
+                    if place[1] not in built:
+                        built[place[1]] = self._planes(i, place[1], remember=False)
+                    parts.append((self.canvas.warp(built[place[1]], place[0]), sign))
             return parts
 
         touched: set[tuple[int, int]] = set()
