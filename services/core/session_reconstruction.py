@@ -557,8 +557,8 @@ class SessionReconstruction:
         so that a change of the gauge and of frame 0's rest centre alone moves no frame: mosaic.json's px_per_mm and
         origin_px carry it. The tiles they cover (pasted and final) are emptied and made again from every frame over
         them, in index order, as a whole restitch makes them (a frame that did not move stays where it is pasted); or,
-        when that is dearer than two warps of each moved frame (a finish run ahead left few to move), those frames are
-        moved in place (_move_pasted)."""
+        when that is dearer than moving each moved frame (MOVE_COST pastes: a finish run ahead left few to move),
+        those frames are moved in place (_move_pasted)."""
         self.stale = {}
         if self.ahead is not None:  # else the canvas lags the live places by up to LIVE_REPASTE_PX: no gain
             self.canvas.units = IDENTITY
