@@ -347,9 +347,7 @@ class SessionReconstruction:
         if not self.live or self.finished:
             return 0
         twin = self._finished_copy()
-        path_places = twin.stitch_places()
-        self.canvas.units = self._fitted_units(path_places, AHEAD_MOVED_PX)
-        places = {i: (self.canvas.units.on_canvas(affine), drag) for i, (affine, drag) in path_places.items()}
+        places = self._onto_canvas(twin.stitch_places(), AHEAD_MOVED_PX)
         newest = max(places, default=None)  # its live place against the run's maps the frames placed since
         live = self._stitch_pose(newest) if newest is not None else None
         correction = np.eye(3)
@@ -562,8 +560,9 @@ class SessionReconstruction:
         self.stale = {}
         if self.ahead is not None:  # else the canvas lags the live places by up to LIVE_REPASTE_PX: no gain
             self.canvas.units = IDENTITY
-            self.canvas.units = self._fitted_units(self.stitch_places(), FINISH_MOVED_PX)
-        final = self.stitch_places()
+            final = self._onto_canvas(self.stitch_places(), FINISH_MOVED_PX)
+        else:
+            final = self.stitch_places()
         moved = [i for i in sorted(set(final) | set(self.pasted)) if self._moved(self._pasted_place(i), final.get(i))]
         self.finish_pasted_again = len(moved)
         tiles: set[tuple[int, int]] = set()
@@ -618,6 +617,12 @@ class SessionReconstruction:
         return {
             i: (pose, self._drag_state(i)) for i in sorted(self.frames) if (pose := self._stitch_pose(i)) is not None
         }
+
+    def _onto_canvas(self, places: dict[int, Place], moved_px: float) -> dict[int, Place]:
+        """Return stitch places given in the path's units (identity) mapped onto the canvas, whose units become
+        those that leave the fewest frames moved by `moved_px` or more from where they are pasted (_fitted_units)."""
+        self.canvas.units = self._fitted_units(places, moved_px)
+        return {i: (self.canvas.units.on_canvas(affine), drag) for i, (affine, drag) in places.items()}
 
     def _fitted_units(self, places: dict[int, Place], moved_px: float) -> CanvasUnits:
         """Return the canvas units that map `places` (stitch places at identity units) onto where their frames are
