@@ -7,8 +7,9 @@ import io
 import zipfile
 
 import numpy as np
+import pytest
 
-from services.core.npz import NPZ_COMPRESS_LEVEL, npz_bytes
+from services.core.npz import NPZ_COMPRESS_LEVEL, npz_bytes, npz_members
 
 
 def test_arrays_read_back_with_their_members_stored_or_deflated_as_asked() -> None:
@@ -46,3 +47,61 @@ def _member_size(data: bytes) -> int:
     with zipfile.ZipFile(io.BytesIO(data)) as archive:
         (info,) = archive.infolist()
         return info.compress_size
+
+
+def _arrays() -> dict[str, np.ndarray]:
+    """Return arrays of several dtypes and layouts (a Fortran-ordered one, a scalar, an empty one)."""
+    rng = np.random.default_rng(5)
+    return {
+        "image": rng.integers(0, 256, (48, 64), dtype=np.uint8),
+        "mask": np.repeat(np.array([0, 255], np.uint8), 48 * 32).reshape(48, 64),
+        "points": np.asfortranarray(rng.normal(size=(7, 2))),
+        "scale": np.float64(8.25),
+        "none": np.zeros((0, 128), np.float32),
+    }
+
+
+def test_chosen_members_read_back_as_np_load_reads_them_stored_or_deflated() -> None:
+    arrays = _arrays()
+    for stored in ((), ("image",), tuple(arrays)):
+        data = npz_bytes(stored=stored, **arrays)
+        got = npz_members(data, ("image", "points", "scale", "none", "absent"))
+        assert sorted(got) == ["image", "none", "points", "scale"]  # the absent one is left out, the mask not read
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            for name, value in got.items():
+                assert value.dtype == z[name].dtype and value.shape == z[name].shape
+                assert np.array_equal(value, z[name])
+        assert not got["image"].flags.writeable  # a view over the file's bytes: nothing writes into it
+
+
+def test_a_damaged_member_is_refused_by_its_crc() -> None:
+    data = bytearray(npz_bytes(stored=("image",), **_arrays()))
+    start = bytes(data).index(b"image.npy") + len("image.npy") + 200  # past the local header, into the array
+    data[start] ^= 0xFF
+    with pytest.raises(zipfile.BadZipFile, match=r"image\.npy"):
+        npz_members(bytes(data), ("image",))
+    assert np.array_equal(npz_members(bytes(data), ("mask",))["mask"], _arrays()["mask"])  # another member reads
+
+
+def test_an_archive_written_with_data_descriptors_is_read_through_zipfile() -> None:
+    class Unseekable(io.RawIOBase):
+        """A write-only stream zipfile cannot seek back into: it writes data descriptors after each member."""
+
+        def __init__(self) -> None:
+            self.chunks: list[bytes] = []
+
+        def writable(self) -> bool:
+            return True
+
+        def write(self, b: bytes) -> int:  # type: ignore[override]
+            self.chunks.append(bytes(b))
+            return len(b)
+
+    stream = Unseekable()
+    with zipfile.ZipFile(stream, "w") as archive:
+        member = io.BytesIO()
+        np.lib.format.write_array(member, _arrays()["image"])
+        archive.writestr("image.npy", member.getvalue(), zipfile.ZIP_DEFLATED)
+    data = b"".join(stream.chunks)
+    assert zipfile.ZipFile(io.BytesIO(data)).infolist()[0].flag_bits & 0x08  # the layout the fast path leaves
+    assert np.array_equal(npz_members(data, ("image",))["image"], _arrays()["image"])
