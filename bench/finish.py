@@ -11,8 +11,10 @@ self-calibration, the restitch), then the final flush's pyramid update, the tile
 publisher and the whole images with the raw layers, written beside the tiles on a thread as a flush does
 (Publisher.write_tiles_and_images: the images column is then 0 s of wall time, their CPU seconds in brackets; a tree
 without it writes them after the tiles). Wall seconds (the session waits for them) and the process's CPU seconds.
-A --scan is a simulated scenario's name (seed 1) or a scan folder. The first --repo (default: this tree) is the
-baseline of the ratio column; another tree is e.g. `git archive <commit> | tar -x -C /tmp/old`.
+The stitched column counts the frames the mosaic is made of (a frame over skin enough stitched frames show is placed,
+not stitched: MethodOptions.stitch_cover_cap). A --scan is a simulated scenario's name (seed 1) or a scan folder.
+The first --repo (default: this tree) is the baseline of the ratio column; another tree is e.g.
+`git archive <commit> | tar -x -C /tmp/old`.
 Last, a whole restitch (every frame pasted again on an empty canvas, as the finish does when every frame moved) is
 timed RESTITCH_REPEATS times in the same process, its median in the last column: steadier than one finish's
 restitch when comparing trees. --repeat N measures each tree N times, the trees taking turns, and prints each
@@ -163,6 +165,7 @@ def measure(scan_name: str, frames: int, flush_every: int, ahead_every: int = 0)
             publisher.write_images(sid, 1, recon.canvas.render(), raw_layers=True)
             lap("images")
         out["tiles_written"] = len(changed)
+        out["stitched"] = len(recon.pasted)  # the frames the mosaic is stitched from (stitch_cover leaves others out)
         out["pasted_again"] = sum(1 for i, a in recon.pasted.items() if i not in pasted or (a != pasted[i]).any())
         out["moved_px"], out["moved_after_affine_px"] = moves_px(recon, pasted)
         out.update({f"finish_{k}": v for k, v in getattr(recon, "finish_seconds", {}).items()})
@@ -256,7 +259,8 @@ def main() -> int:
     repos = args.repo or [REPO]
     print("a live session's finish and final flush; wall s (CPU s); frames pasted again at the finish, tiles written;")
     print("how far the finish moves a pasted frame (median, px), and what one affine map of the canvas leaves of it\n")
-    head = ["scan", "tree", "frames", *PARTS, "done after the last frame", "vs first", "pasted again", "tiles"]
+    head = ["scan", "tree", "frames", "stitched", *PARTS, "done after the last frame", "vs first", "pasted again"]
+    head += ["tiles"]
     head += ["moved px", "after one affine", f"every frame pasted again (median of {RESTITCH_REPEATS})"]
     print("| " + " | ".join(head) + " |")
     print("|---|---|" + "---:|" * (len(head) - 2))
@@ -276,7 +280,8 @@ def main() -> int:
             split = ", ".join(f"{k[7:]} {v:.2f}" for k, v in got.items() if k.startswith("finish_") and k[7:] != "cpu")
             name = repo.resolve().name  # "." names its folder
             print(
-                f"| {Path(scan).name} | {name} | {got['frames']:.0f} | {cells} | {total:.2f} | {total / base:.2f}x "
+                f"| {Path(scan).name} | {name} | {got['frames']:.0f} | {got['stitched']:.0f} | {cells} | {total:.2f} "
+                f"| {total / base:.2f}x "
                 f"| {got['pasted_again']:.0f} | {got['tiles_written']:.0f} | {got['moved_px']:.2f} "
                 f"| {got['moved_after_affine_px']:.2f} | {got['restitch_all']:.2f} ({got['restitch_all_cpu']:.2f}) |",
                 flush=True,

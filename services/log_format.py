@@ -29,6 +29,7 @@ LOG_FIELDS = (
     "final_flush_s",  # and its final flush: every tile durably, the whole images (s)
     "parts_s",  # both by part: {refine, calibrate, restitch, flush_path, flush_pyramid, flush_tiles, ...} (s)
     "pasted_again",  # the frames the finish pasted again (moved by a quarter pixel or more)
+    "unstitched",  # the placed frames left out of the mosaic: their skin was shown (mosaic.stitch_cover)
 )
 
 

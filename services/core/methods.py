@@ -36,6 +36,10 @@ class MethodOptions:
     track_overlap_behind: float = 0.85
     track_closures: int = 2  # a tracked frame's loop closures, by direct alignment on older keyframes (0: none)
     rigid_stitch: bool = False  # stitch with yaw + x/y only (the paper's correction) instead of the similarity
+    # a placed frame whose window shows almost only skin this many stitched frames already cover is left out of the
+    # mosaic (mosaic.stitch_cover; 0: every placed frame is stitched). A long examination passes over its skin
+    # hundreds of times, and every frame stitched costs a paste live and again at the finish
+    stitch_cover_cap: int = 16
     refine: bool = True  # global pose-graph refinement on loop closures (beyond the paper)
     self_calibrate: bool = True  # fit the tissue compliance from registration scales (beyond the paper)
     stiffening: bool = True  # let that fit's strain law stiffen with load when the scales show it
@@ -104,6 +108,7 @@ def method_options(name: str) -> MethodOptions:
             rectify=False,
             registration="previous",
             rigid_stitch=True,
+            stitch_cover_cap=0,
             refine=False,
             self_calibrate=False,
             fit_tilt=False,
@@ -117,6 +122,7 @@ def method_options(name: str) -> MethodOptions:
             max_features=400,
             registration="mosaic",
             rigid_stitch=True,
+            stitch_cover_cap=0,
             refine=False,
             self_calibrate=False,
             fit_tilt=False,

@@ -25,6 +25,7 @@ from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, Warped, blend_weight
 from services.core.mosaic.canvas_units import IDENTITY, CanvasUnits, fit_units
+from services.core.mosaic.stitch_cover import StitchCover
 from services.core.path_rows import PathRow
 from services.core.physics.compliance import ComplianceFit, fit_compliance
 from services.core.physics.drag import undrag_maps
@@ -140,6 +141,8 @@ class SessionReconstruction:
     recent: dict[int, FrameLayers] = field(default_factory=dict)  # paste planes of the newest frames (live)
     stale: dict[int, None] = field(default_factory=dict)  # moved frames not re-pasted yet, oldest first (live)
     ahead: AheadRun | None = None  # the last finish run ahead (live): the canvas is kept at its places
+    cover: StitchCover = field(init=False)  # how often the stitched frames cover the skin (stitch_cover)
+    unstitched: set[int] = field(default_factory=set)  # placed frames left out of the stitch: their skin was shown
     heartbeat: Callable[[], None] = field(default=lambda: None, repr=False)  # called between long steps
     # where a placed frame's rectified image and mask are read back by index (a live worker: its prepared file,
     # so a long examination does not hold every frame's pixels); None keeps them here, as PNG
@@ -148,6 +151,9 @@ class SessionReconstruction:
     def __post_init__(self) -> None:
         self.atlas = Atlas(self._new_map, self.window_radius_mm)
         self.canvas = SparseCanvas(self.calibration.px_per_mm)
+        w, h = self.calibration.image_size  # the window's inscribed disc: within the window and the image
+        inscribed_mm = min(self.window_radius_mm, 0.5 * min(w, h) / self.calibration.px_per_mm)
+        self.cover = StitchCover(self.options.stitch_cover_cap, inscribed_mm)
 
     def _new_map(self) -> Registrar:
         """Return an empty map (registration state) with this session's calibration and options."""
@@ -196,6 +202,9 @@ class SessionReconstruction:
         self.heartbeat()
         self.results[pf.index] = result
         pasteable = (result.status == STATUS_OK or pf.index in self.in_fragment) and not result.blurred
+        if pasteable and result.status == STATUS_OK and not self._admitted(pf.index):
+            self.unstitched.add(pf.index)  # placed, not stitched: nor are its pixels kept
+            pasteable = False
         kept = keep_frame(pf, pasteable, keep_pixels=self.pixels is None)
         self.frames[pf.index] = kept
         touched: set[tuple[int, int]] = set()
@@ -208,6 +217,12 @@ class SessionReconstruction:
             touched |= self._sync_canvas((pf.index, *now))
             touched |= self.settle(REPAINT_PER_FRAME if repaint else 0)
         return result, touched
+
+    def _admitted(self, index: int) -> bool:
+        """Return True when a frame just placed on the main map is to be stitched (stitch_cover: decided once, at the
+        place it was given now); a frame without a pose is."""
+        pose = self.registrar.poses.get(index)
+        return pose is None or self.cover.admit((pose.t.real, pose.t.imag))
 
     def add_next(self, pf: PreparedFrame) -> tuple[FrameResult, set[tuple[int, int]]]:
         """Return add(pf) after recording as lost the seqs before it that never came (frames the camera dropped):
@@ -449,7 +464,7 @@ class SessionReconstruction:
         finished, in output units mapped onto the canvas's (SparseCanvas.units), else in the registrar's.
         """
         result = self.results.get(index)
-        if result is None or result.status != STATUS_OK or result.blurred:
+        if result is None or result.status != STATUS_OK or result.blurred or index in self.unstitched:
             return None
         pose = self.registrar.poses.get(index)
         if pose is None:

@@ -273,6 +273,33 @@ def test_the_finished_live_mosaic_is_a_whole_restitch_within_a_grey_level(
     assert grey_gap(unfinished.render(), offline.canvas) > TOL.finish_restitch_grey
 
 
+def test_frames_over_skin_shown_enough_are_placed_not_stitched_live_as_offline() -> None:
+    # the revisit scan passes over its skin again: with a cap of 2 stitched frames over a skin cell, frames that show
+    # only such skin are placed on the path and left out of the mosaic, live as offline; the path is the one a cap of
+    # 0 (every frame stitched) gives, and the live mosaic is still a whole restitch (of the frames stitched)
+    scan = simulated("revisit", 1)
+    capped = dataclasses.replace(method_options("best"), stitch_cover_cap=2)
+    frames, radius_mm = first_prepared(scan, capped, 160)
+    live = SessionReconstruction(scan.calibration, capped, radius_mm, live=True)
+    offline = SessionReconstruction(scan.calibration, capped, radius_mm)
+    every = SessionReconstruction(scan.calibration, dataclasses.replace(capped, stitch_cover_cap=0), radius_mm)
+    for pf in frames:
+        for session in (live, offline, every):
+            session.add(pf)
+    for session in (live, offline, every):
+        session.finish()
+    placed = {i for i, r in live.results.items() if r.status == "ok"}
+    assert 10 <= len(live.unstitched) <= len(placed) // 2  # frames left out (18 of 160 here), most stitched
+    assert live.unstitched == offline.unstitched and not every.unstitched
+    assert path_rows_json(live.path_rows()) == path_rows_json(every.path_rows())  # the stitch leaves the path alone
+    assert set(live.pasted) == placed - live.unstitched  # the others are pasted, once each
+    assert not any(live.frames[i].has_pixels or offline.frames[i].has_pixels for i in live.unstitched)
+    offline.canvas.units = live.canvas.units
+    offline.render()
+    assert set(offline.pasted) == set(live.pasted)
+    assert grey_gap(live.canvas.render(), offline.canvas) <= TOL.finish_restitch_grey
+
+
 def test_the_finish_pastes_again_only_the_frames_that_moved(live_run: LiveRun, monkeypatch: pytest.MonkeyPatch) -> None:
     # a live canvas whose frames all lie at their poses; then four frames move by 4 px and one by 0.08 px, and a
     # finish without a final pass or self-calibration (nothing else moves) pastes only the four again

@@ -64,6 +64,7 @@ class Completion:
                 **timings,
                 "parts_s": parts,
                 "pasted_again": held.recon.finish_pasted_again,
+                "unstitched": len(held.recon.unstitched),
             },
         )
 
