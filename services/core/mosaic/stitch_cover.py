@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 CELL_MM = 2.0  # the skin's cells (mm): fine against a window of 60 mm, coarse against a pose's later moves
+MAX_CELLS = 2500  # the grid's largest side (5 m of skin): a frame placed beyond it is stitched, and counts nothing
 NEW_SKIN_SHARE = 0.05  # a frame is stitched when this share of its disc's cells is covered fewer than `cap` times
 
 
@@ -43,34 +44,42 @@ class StitchCover:
     def admit(self, centre_mm: tuple[float, float]) -> bool:
         """Return True when a frame whose window is centred at `centre_mm` (mosaic mm) is to be stitched, and count
         its window's cells as covered once more if so; False leaves the counts as they were."""
-        if self.cap <= 0:
+        if self.cap <= 0 or not all(math.isfinite(v) for v in centre_mm):
             return True
-        rows, cols = self._cells(centre_mm)
+        cells = self._cells(centre_mm)
+        if cells is None:  # too far from the skin counted so far to grow the grid to it
+            return True
+        rows, cols = cells
         if np.count_nonzero(self.counts[rows, cols] < self.cap) < NEW_SKIN_SHARE * rows.size:
             return False
         self.counts[rows, cols] += 1
         return True
 
-    def _cells(self, centre_mm: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-        """Return the (rows, cols) of `counts` under a window centred at `centre_mm`, the grid grown to hold them."""
+    def _cells(self, centre_mm: tuple[float, float]) -> tuple[np.ndarray, np.ndarray] | None:
+        """Return the (rows, cols) of `counts` under a window centred at `centre_mm`, the grid grown to hold them, or
+        None when that would make it larger than MAX_CELLS a side."""
         col, row = (math.floor(v / CELL_MM) for v in centre_mm)
         dy, dx = self._disc
         reach = int(dx.max(initial=0))
-        self._grow(col - reach, row - reach, col + reach, row + reach)
+        if not self._grow(col - reach, row - reach, col + reach, row + reach):
+            return None
         return dy + (row - self.origin[1]), dx + (col - self.origin[0])
 
-    def _grow(self, c0: int, r0: int, c1: int, r1: int) -> None:
-        """Grow the grid to hold cells c0..c1, r0..r1 (inclusive), by at least a quarter each way it grows."""
+    def _grow(self, c0: int, r0: int, c1: int, r1: int) -> bool:
+        """Return True once the grid holds cells c0..c1, r0..r1 (inclusive), grown by a margin of at least a quarter
+        each way; False (the grid unchanged) when the cells it would have to hold span more than MAX_CELLS a side."""
         h, w = self.counts.shape
         oc, orow = self.origin
-        if h and w and c0 >= oc and r0 >= orow and c1 < oc + w and r1 < orow + h:
-            return
-        margin = max(8, w // 4, h // 4)
-        nc0 = min(c0, oc) - margin if w else c0 - margin
-        nr0 = min(r0, orow) - margin if h else r0 - margin
-        nc1 = max(c1, oc + w - 1) + margin if w else c1 + margin
-        nr1 = max(r1, orow + h - 1) + margin if h else r1 + margin
-        grown = np.zeros((nr1 - nr0 + 1, nc1 - nc0 + 1), np.int32)
         if h and w:
-            grown[orow - nr0 : orow - nr0 + h, oc - nc0 : oc - nc0 + w] = self.counts
-        self.counts, self.origin = grown, (nc0, nr0)
+            if c0 >= oc and r0 >= orow and c1 < oc + w and r1 < orow + h:
+                return True
+            c0, r0, c1, r1 = min(c0, oc), min(r0, orow), max(c1, oc + w - 1), max(r1, orow + h - 1)
+        if max(c1 - c0, r1 - r0) >= MAX_CELLS:
+            return False
+        margin = max(8, w // 4, h // 4)
+        c0, r0, c1, r1 = c0 - margin, r0 - margin, c1 + margin, r1 + margin
+        grown = np.zeros((r1 - r0 + 1, c1 - c0 + 1), np.int32)
+        if h and w:
+            grown[orow - r0 : orow - r0 + h, oc - c0 : oc - c0 + w] = self.counts
+        self.counts, self.origin = grown, (c0, r0)
+        return True

@@ -3,9 +3,11 @@ window covers is covered `cap` times by stitched frames, and stitched while it b
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from services.core.mosaic.stitch_cover import CELL_MM, NEW_SKIN_SHARE, StitchCover
+from services.core.mosaic.stitch_cover import CELL_MM, MAX_CELLS, NEW_SKIN_SHARE, StitchCover
 
 
 def test_a_frame_over_skin_shown_cap_times_is_left_out_and_counts_nothing() -> None:
@@ -41,3 +43,14 @@ def test_the_grid_grows_every_way_and_keeps_its_counts() -> None:
     one.admit((0.0, 0.0))
     assert int(cover.counts.sum()) == 5 * int(one.counts.sum())  # five frames stitched: two at the origin, three far
     assert int(cover.counts.max()) == 2
+
+
+def test_a_frame_placed_absurdly_far_or_nowhere_is_stitched_and_grows_nothing() -> None:
+    cover = StitchCover(cap=1, radius_mm=30.0)
+    assert cover.admit((0.0, 0.0))
+    shape = cover.counts.shape
+    far = (CELL_MM * MAX_CELLS * 4, 0.0)  # a pose many metres off (a wrong placement): no grid that large
+    assert cover.admit(far) and cover.admit(far)  # stitched each time: nothing counted there
+    assert cover.admit((math.nan, 0.0)) and cover.admit((0.0, math.inf))
+    assert cover.counts.shape == shape
+    assert not cover.admit((0.0, 0.0))  # the grid still counts the skin it held
