@@ -1,12 +1,12 @@
 """Which placed frames the mosaic is stitched from: a frame that shows only skin enough stitched frames already show is
 left out of the stitch (it is still placed on the path).
 
-A long examination passes over the same skin again and again (a simulated 4-minute one covers a median skin point
-with 228 frames' windows): every such frame costs a paste live and at the finish, which pastes every frame that
-moved again, and adds nothing the mosaic lacks. Each frame is decided once, when it is placed, from its centre at that
-place: it is stitched when at least NEW_SKIN_SHARE of the skin its window covers is covered by fewer than `cap`
-stitched frames. The window is taken as its inscribed disc, the same at any yaw, and the skin as a grid of CELL_MM
-cells in mosaic mm. A scan in rows or strokes brings new skin with nearly every frame and leaves none out.
+A long examination passes over the same skin again and again (the simulated 4-minute one stitches 570 of its 2400
+frames: bench/finish.py): every frame over skin already shown costs a paste live and at the finish, which pastes every
+frame that moved again, and adds little the mosaic lacks. Each frame is decided once, when it is placed, from its
+centre at that place: it is stitched when at least NEW_SKIN_SHARE of the skin its window covers is covered by fewer
+than `cap` stitched frames. The window is taken as its inscribed disc, the same at any yaw, and the skin as a grid of
+CELL_MM cells in mosaic mm. A scan in rows or strokes brings new skin with nearly every frame and leaves none out.
 """
 
 from __future__ import annotations
