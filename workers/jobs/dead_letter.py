@@ -36,8 +36,8 @@ def dead_letter(
         queue.incr_metric(ctx.r, "frames_rejected_total", prefix=ctx.prefix)
         queue.enqueue_register(ctx.r, sid, LIVE_VERSION, ctx.prefix)
     elif kind in ("reprocess", "send") and fields.get("job"):
-        ctx.update_job(fields["job"], state="failed", error=error[:300])
-        if kind == "reprocess":
+        if kind == "reprocess":  # counted before the state a client waits for
             queue.incr_metric(ctx.r, "jobs_failed_total", prefix=ctx.prefix)
+        ctx.update_job(fields["job"], state="failed", error=error[:300])
         runner.finish(fields["job"], "failed")
     queue.ack_delete(ctx.r, stream, entry_id)

@@ -54,9 +54,10 @@ def write_report(ctx: Context, sid: str, v: int) -> dict[str, Any] | None:
 
 
 def _fail(ctx: Context, job_id: str, error: str) -> None:
-    """Mark a reprocess job failed with its reason and count it (jobs_failed_total on /metrics)."""
-    ctx.update_job(job_id, state="failed", error=error[:300])
+    """Count a reprocess job failed (jobs_failed_total on /metrics), then mark it so with its reason: a client woken by
+    its state sees it counted."""
     queue.incr_metric(ctx.r, "jobs_failed_total", prefix=ctx.prefix)
+    ctx.update_job(job_id, state="failed", error=error[:300])
 
 
 def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], None]) -> None:
@@ -115,10 +116,10 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         Publisher(ctx).write_state(sid, v, VersionState(failed=True))  # the viewer's banner stops
         return
     seconds = time.perf_counter() - started
-    ctx.update_job(job_id, state="done", done=len(rows), finished=time.time())
-    queue.incr_metric(ctx.r, "jobs_done_total", prefix=ctx.prefix)
+    queue.incr_metric(ctx.r, "jobs_done_total", prefix=ctx.prefix)  # counted before the state a client waits for
     queue.incr_metric(ctx.r, "job_seconds_sum", seconds + 1e-9, prefix=ctx.prefix)
     queue.incr_metric(ctx.r, "job_seconds_count", prefix=ctx.prefix)
+    ctx.update_job(job_id, state="done", done=len(rows), finished=time.time())
     Publisher(ctx).version_event(sid, v, job_id)
 
 
