@@ -105,3 +105,19 @@ def test_an_archive_written_with_data_descriptors_is_read_through_zipfile() -> N
     data = b"".join(stream.chunks)
     assert zipfile.ZipFile(io.BytesIO(data)).infolist()[0].flag_bits & 0x08  # the layout the fast path leaves
     assert np.array_equal(npz_members(data, ("image",))["image"], _arrays()["image"])
+
+
+def test_a_member_with_a_version_3_header_or_pickled_objects_is_read_as_numpy_reads_it() -> None:
+    member = io.BytesIO()
+    np.lib.format.write_array(member, _arrays()["points"], version=(3, 0))
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as archive:
+        archive.writestr("points.npy", member.getvalue(), zipfile.ZIP_STORED)
+    assert np.array_equal(npz_members(buf.getvalue(), ("points",))["points"], _arrays()["points"])
+    objects = io.BytesIO()
+    np.lib.format.write_array(objects, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as archive:
+        archive.writestr("objects.npy", objects.getvalue(), zipfile.ZIP_STORED)
+    with pytest.raises(ValueError, match="allow_pickle"):
+        npz_members(buf.getvalue(), ("objects",))
