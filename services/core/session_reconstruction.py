@@ -81,6 +81,10 @@ Place = tuple[np.ndarray, tuple[complex, float]]
 REPAINT_PER_FRAME = 4
 RESTITCH_AHEAD = 4  # a restitch builds and warps this many frames (~5 + 10 MB each) ahead of adding them
 REPAINT_AT_ONCE = 12  # moved frames this recent are re-pasted at once (their planes are usually kept)
+# A session that keeps its frames' pixels (offline) keeps the images uncompressed up to this many bytes (~800 frames
+# at 640 x 480), as PNG beyond: encoding and decoding them cost ~4.5 ms of a frame's ~60 ms of CPU, and a scan of a
+# few minutes stitches fewer frames than that (frames over skin already shown keep no pixels: stitch_cover).
+RAW_PIXELS_BUDGET = 256 * 2**20
 
 
 def _in_output_units(pose: Similarity, gauge: float, origin_shift: complex) -> Similarity:
@@ -143,9 +147,10 @@ class SessionReconstruction:
     ahead: AheadRun | None = None  # the last finish run ahead (live): the canvas is kept at its places
     cover: StitchCover = field(init=False)  # how often the stitched frames cover the skin (stitch_cover)
     unstitched: set[int] = field(default_factory=set)  # placed frames left out of the stitch: their skin was shown
+    raw_pixel_bytes: int = 0  # bytes of the images kept uncompressed (RAW_PIXELS_BUDGET)
     heartbeat: Callable[[], None] = field(default=lambda: None, repr=False)  # called between long steps
     # where a placed frame's rectified image and mask are read back by index (a live worker: its prepared file,
-    # so a long examination does not hold every frame's pixels); None keeps them here, as PNG
+    # so a long examination does not hold every frame's pixels); None keeps them here (RAW_PIXELS_BUDGET)
     pixels: Callable[[int], tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -205,8 +210,9 @@ class SessionReconstruction:
         if pasteable and result.status == STATUS_OK and not self._admitted(pf.index):
             self.unstitched.add(pf.index)  # placed, not stitched: nor are its pixels kept
             pasteable = False
-        kept = keep_frame(pf, pasteable, keep_pixels=self.pixels is None)
+        kept = keep_frame(pf, pasteable, keep_pixels=self.pixels is None, compress=self._compress(pf.image.nbytes))
         self.frames[pf.index] = kept
+        self.raw_pixel_bytes += kept.raw_bytes
         touched: set[tuple[int, int]] = set()
         if self.live:
             if kept.pasteable:  # the planes straight from the prepared frame: the kept image is the same, losslessly
@@ -445,6 +451,10 @@ class SessionReconstruction:
         if kept.has_pixels or self.pixels is None:
             return kept.image(), kept.mask()
         return self.pixels(index)
+
+    def _compress(self, image_bytes: int) -> bool:
+        """Return whether a kept image of image_bytes goes over RAW_PIXELS_BUDGET with the images kept so far."""
+        return self.raw_pixel_bytes + image_bytes > RAW_PIXELS_BUDGET
 
     def _remember(self, index: int, layers: FrameLayers) -> None:
         """Keep the planes of the RECENT_LAYERS newest frames: new frames and most re-pastes after a refinement."""

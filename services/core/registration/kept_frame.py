@@ -3,10 +3,11 @@
 A minutes-long examination registers thousands of frames and refinement may move any of them, so each placed
 frame must stay pasteable until the end; what it keeps is made compact (issue 15: memory bounded by what is
 needed, not a full PreparedFrame per frame). A live session reads a placed frame's pixels back from its prepared
-file and keeps none (keep_pixels=False); otherwise the rectified image is kept losslessly as PNG (2.4x smaller on
-the shared scans' kind of frame, ~5 ms to encode and ~3 ms to decode at 640x480), the window mask bit-packed
-(8x); frames that will never be pasted (lost, rejected, blurred) keep no image at all. Decoding gives back
-exactly the arrays kept, so the mosaic is the same as from the full frames.
+file and keeps none (keep_pixels=False); otherwise the rectified image is kept as it is while the session's
+budget of uncompressed pixels lasts (compress=False: no encoding now, no decoding at the stitch), and losslessly
+as PNG beyond it (2.4x smaller on the shared scans' kind of frame, ~2.5 ms to encode and ~2 ms to decode at
+640x480); the window mask is bit-packed (8x); frames that will never be pasted (lost, rejected, blurred, not
+stitched) keep no image at all. Decoding gives back exactly the arrays kept, so the mosaic is the same either way.
 """
 
 from __future__ import annotations
@@ -44,14 +45,22 @@ class KeptFrame:
     pasteable: bool = False  # placed and sharp: it is stitched into the mosaic
     image_png: bytes | None = None  # the rectified 8-bit image, PNG; None when not pasted or not kept here
     mask_bits: np.ndarray | None = None  # np.packbits of mask > 0
+    image_raw: np.ndarray | None = None  # the rectified 8-bit image itself (read-only), kept instead of image_png
 
     @property
     def has_pixels(self) -> bool:
         """Return True when the frame's image and mask are kept here (else they are read back from elsewhere)."""
-        return self.image_png is not None and self.mask_bits is not None
+        return (self.image_png is not None or self.image_raw is not None) and self.mask_bits is not None
+
+    @property
+    def raw_bytes(self) -> int:
+        """Return the bytes of image kept uncompressed (0 when kept as PNG or not kept)."""
+        return 0 if self.image_raw is None else self.image_raw.nbytes
 
     def image(self) -> np.ndarray:
-        """Return the rectified image (H, W) uint8 exactly as it was kept."""
+        """Return the rectified image (H, W) uint8 exactly as it was kept (read-only when kept uncompressed)."""
+        if self.image_raw is not None:
+            return self.image_raw
         if self.image_png is None:
             raise ValueError(f"frame {self.index} kept no image (it is not pasted, or its pixels are elsewhere)")
         return cv2.imdecode(np.frombuffer(self.image_png, np.uint8), cv2.IMREAD_UNCHANGED)
@@ -64,14 +73,19 @@ class KeptFrame:
         return (np.unpackbits(self.mask_bits, count=h * w).reshape(h, w) * np.uint8(255)).astype(np.uint8)
 
 
-def keep_frame(pf: PreparedFrame, pasteable: bool, keep_pixels: bool = True) -> KeptFrame:
-    """Return what a session keeps of a prepared frame (its image and mask only when pasted and keep_pixels)."""
-    image_png = mask_bits = None
+def keep_frame(pf: PreparedFrame, pasteable: bool, keep_pixels: bool = True, compress: bool = True) -> KeptFrame:
+    """Return what a session keeps of a prepared frame (its image and mask only when pasted and keep_pixels; the
+    image as PNG when compress, else as a read-only view of the array)."""
+    image_png = mask_bits = image_raw = None
     if pasteable and keep_pixels:
-        ok, buf = cv2.imencode(".png", pf.image, PNG_PARAMS)
-        if not ok:
-            raise ValueError(f"frame {pf.index}: the rectified image could not be kept")
-        image_png = buf.tobytes()
+        if compress:
+            ok, buf = cv2.imencode(".png", pf.image, PNG_PARAMS)
+            if not ok:
+                raise ValueError(f"frame {pf.index}: the rectified image could not be kept")
+            image_png = buf.tobytes()
+        else:
+            image_raw = np.ascontiguousarray(pf.image, np.uint8).view()
+            image_raw.flags.writeable = False
         mask_bits = np.packbits(pf.mask > 0)
     return KeptFrame(
         pf.index,
@@ -84,4 +98,5 @@ def keep_frame(pf: PreparedFrame, pasteable: bool, keep_pixels: bool = True) -> 
         pasteable,
         image_png,
         mask_bits,
+        image_raw,
     )

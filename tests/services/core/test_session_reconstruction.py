@@ -527,3 +527,33 @@ def test_a_canvas_kept_at_finishes_run_ahead_finishes_as_a_whole_restitch(
     offline.canvas.units = live.canvas.units  # the whole restitch in the live canvas's units
     offline.render()
     assert grey_gap(live.canvas.render(), offline.canvas) <= TOL.finish_restitch_grey
+
+
+def test_images_kept_uncompressed_within_the_budget_then_as_png_stitch_the_same(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """An offline session keeps its frames' images as they are up to RAW_PIXELS_BUDGET, as PNG beyond it: the
+    mosaic is the same to the grey level either way (both are lossless)."""
+    scan = simulated("raster", 1)
+    options = method_options("best")
+    frames, radius_mm = first_prepared(scan, options, 12)
+
+    def rendered(budget: int) -> tuple[SessionReconstruction, MosaicImage]:
+        monkeypatch.setattr(session_reconstruction, "RAW_PIXELS_BUDGET", budget)
+        session = SessionReconstruction(scan.calibration, options, radius_mm)
+        for pf in frames:
+            session.add_next(pf)
+        session.finish()
+        return session, session.render()
+
+    image_bytes = frames[0].image.nbytes
+    budgeted, mosaic = rendered(int(2.5 * image_bytes))
+    unlimited, reference = rendered(10**12)
+    kept = [budgeted.frames[i] for i in sorted(budgeted.frames) if budgeted.frames[i].has_pixels]
+    assert len(kept) >= 10
+    assert [k.raw_bytes > 0 for k in kept] == [True, True] + [False] * (len(kept) - 2)
+    assert all(k.image_png is not None for k in kept[2:])
+    assert budgeted.raw_pixel_bytes == 2 * image_bytes
+    assert all(k.raw_bytes > 0 for k in unlimited.frames.values() if k.has_pixels)
+    np.testing.assert_array_equal(mosaic.vein, reference.vein)
+    np.testing.assert_array_equal(mosaic.force_n, reference.force_n)
