@@ -51,6 +51,7 @@ class Reconstruction:
     # the mean load of its frames (N) (SessionReconstruction.edge_yaws)
     edge_yaws: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     tracked: int = 0  # placed frames tracked without features (SessionReconstruction.tracked_count): frame_counts'
+    stitched: int | None = None  # placed frames pasted into the mosaic (SessionReconstruction.stitched_count)
 
     @property
     def closures(self) -> int:
@@ -163,4 +164,5 @@ def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = 
         len(session.registrar.features),
         session.edge_yaws(),
         tracked=session.tracked_count(),
+        stitched=session.stitched_count(),
     )

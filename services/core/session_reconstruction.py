@@ -195,6 +195,13 @@ class SessionReconstruction:
         """Return how many handled frames are placed as "tracked" (frame_kind): the frame counts' `tracked`."""
         return sum(self.frame_kind(i) == TRACKED for i in self.results)
 
+    def stitched_count(self) -> int:
+        """Return how many handled frames are pasted into the mosaic (_stitch_pose's rule): frame_counts' `stitched`."""
+        return sum(
+            r.status == STATUS_OK and not r.blurred and i not in self.unstitched and i in self.registrar.poses
+            for i, r in self.results.items()
+        )
+
     def add(self, pf: PreparedFrame, repaint: bool = True) -> tuple[FrameResult, set[tuple[int, int]]]:
         """Return the result of a frame (in index order: contact, then registration) and the canvas tiles changed.
 

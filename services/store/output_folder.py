@@ -60,7 +60,14 @@ def write_reconstruction(
     }
     identity = SheetIdentity(session=label or out.resolve().name, method=recon.method)  # offline: no patient
     report = build_session_report(
-        recon.rows, reference, mosaic, extra, identity=identity, sheet=sheet, tracked=recon.tracked
+        recon.rows,
+        reference,
+        mosaic,
+        extra,
+        identity=identity,
+        sheet=sheet,
+        tracked=recon.tracked,
+        stitched=recon.stitched,
     )
     for name, data in report.images.items():
         (out / name).write_bytes(data)

@@ -95,6 +95,7 @@ def write_version_report(
             backdrop=_backdrop(rs, sid, v, mosaic_doc) if mosaic is None else None,
             tissue=mosaic_doc.get("tissue"),
             tracked=int((mosaic_doc.get("frames") or {}).get("tracked", 0)),  # 0 in results from before it
+            stitched=(mosaic_doc.get("frames") or {}).get("stitched"),  # None in results from before it
         )
     except ValueError as exc:
         raise NothingToCompareError(f"reference.csv: {exc}") from None

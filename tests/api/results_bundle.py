@@ -95,6 +95,7 @@ def make_bundle(scan: Scan, n_frames: int | None = None, final: bool = True, mos
             "in_fragments": 0,
             "keyframes": len(ok),
             "tracked": 0,
+            "stitched": len(ok),
         },
         "status": "done" if final else "processing",
     }

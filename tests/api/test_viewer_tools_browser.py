@@ -85,7 +85,7 @@ def install_fixture(data_dir: Path, sid: str) -> list[PathRow]:
     doc = _write_results(data_dir, sid, canvas, rows, lost=lost_seqs, rejected=REJECTED, tracked=TRACKED)
     assert doc["frames"] == {
         "processed": N_FRAMES, "ok": N_FRAMES - len(LOST), "lost": 4, "rejected": 1, "no_contact": 0, "in_fragments": 0,
-        "keyframes": N_FRAMES - len(LOST) - TRACKED, "tracked": TRACKED,
+        "keyframes": N_FRAMES - len(LOST) - TRACKED, "tracked": TRACKED, "stitched": N_FRAMES - len(LOST),
     }  # fmt: skip
     return rows
 

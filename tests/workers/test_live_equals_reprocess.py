@@ -133,6 +133,7 @@ def test_live_and_reprocess_serve_the_same_documents(
         "in_fragments": 0,
         "keyframes": 40,
         "tracked": 0,
+        "stitched": 40,
     }
     assert "compliance_per_n" in mosaic1 and mosaic1["width"] > 0
     assert_same(without(mosaic1, PER_VERSION_MOSAIC), without(mosaic2, PER_VERSION_MOSAIC), "mosaic")

@@ -143,6 +143,7 @@ def test_two_workers_out_of_order_equal_offline_then_reprocess(
         "in_fragments": 0,
         "keyframes": 40,
         "tracked": 0,
+        "stitched": 40,
     }
     assert meta["dzi"]["max_level"] == 12 and meta["dzi"]["origin_px"] == [1792, 1792]
     assert meta["width"] > 0 and meta["extent_mm"][0] < 0 < meta["extent_mm"][2]

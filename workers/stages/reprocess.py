@@ -97,7 +97,17 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
         rows = sorted([*recon.rows, *(sv.rejected_row(s) for s in poison)], key=lambda r: r.seq)
         heartbeat()
         write_version(
-            ctx, sid, v, rows, recon.mosaic, recon.method, recon.compliance, heartbeat, recon.learned, recon.tracked
+            ctx,
+            sid,
+            v,
+            rows,
+            recon.mosaic,
+            recon.method,
+            recon.compliance,
+            heartbeat,
+            recon.learned,
+            recon.tracked,
+            stitched=recon.stitched,
         )
         heartbeat()
         write_report(ctx, sid, v)
@@ -134,12 +144,14 @@ def write_version(
     heartbeat: Callable[[], None] = lambda: None,
     tissue: Mapping[str, Any] | None = None,
     tracked: int = 0,
+    stitched: int | None = None,
 ) -> None:
     """Write a complete version: path, all tiles of both layers, mosaic.png/force.png, mosaic.json, state.
 
     heartbeat is called every 32 tiles: rendering a whole pyramid takes seconds on a loaded machine, longer
     than another worker waits before it claims the job's entry as abandoned (and runs it a second time).
-    tracked: how many placed frames were tracked without features (mosaic.json's frames: documents.frame_counts).
+    tracked: how many placed frames were tracked without features, stitched how many are pasted into the mosaic
+    (mosaic.json's frames: documents.frame_counts).
     """
     pub = Publisher(ctx)
     pub.write_path(sid, v, rows)
@@ -164,5 +176,6 @@ def write_version(
         compliance=compliance,
         tissue=tissue,
         tracked=tracked,
+        stitched=stitched,
     )
     pub.write_state(sid, v, VersionState(cursor=len(rows), finished=True))

@@ -39,20 +39,24 @@ Revisions = dict[str, dict[str, int]]
 
 
 # ----- frame counts -----------------------------------------------------------------------------------------------
-def frame_counts(rows: Sequence[PathRow], tracked: int = 0) -> dict[str, int]:
-    """Return the frame counts of path rows by status and reason, and of the placed ones by kind (keyframes, tracked).
+def frame_counts(rows: Sequence[PathRow], tracked: int = 0, stitched: int | None = None) -> dict[str, int]:
+    """Return the frame counts of path rows by status and reason, of the placed ones by kind (keyframes, tracked), and
+    the placed frames the mosaic is made of (stitched).
 
     Keys: processed, ok, lost, rejected, no_contact (rejected frames taken off the skin, between strokes),
     in_fragments (lost frames placed on a fragment that has not joined the map, yet while live), keyframes and
     tracked. tracked: how many placed frames were tracked on a keyframe without features
     (SessionReconstruction.tracked_count: a live session behind its uploads, or a method with track_overlap; 0
     offline by default), at most the rows' placed frames (a count read beside older rows); keyframes: the other
-    placed frames, registered by their features, so that ok = keyframes + tracked.
+    placed frames, registered by their features, so that ok = keyframes + tracked. stitched: how many placed frames
+    are pasted into the mosaic (SessionReconstruction.stitched_count: not blurred, not over skin already shown by
+    MethodOptions.stitch_cover_cap stitched frames), at most ok; None (results from before the count) gives ok.
     """
     c = Counter(r.status for r in rows)
     why = Counter(r.reason for r in rows)
     ok = c[STATUS_OK]
     tracked = min(max(int(tracked), 0), ok)
+    stitched = ok if stitched is None else min(max(int(stitched), 0), ok)
     return {
         "processed": len(rows),
         "ok": ok,
@@ -62,6 +66,7 @@ def frame_counts(rows: Sequence[PathRow], tracked: int = 0) -> dict[str, int]:
         "in_fragments": why[REASON_FRAGMENT],
         "keyframes": ok - tracked,
         "tracked": tracked,
+        "stitched": stitched,
     }
 
 
@@ -126,6 +131,7 @@ def mosaic_json(
     compliance: ComplianceFit | None = None,
     tissue: Mapping[str, Any] | None = None,
     tracked: int = 0,
+    stitched: int | None = None,
     units: CanvasUnits = IDENTITY,
 ) -> dict[str, Any]:
     """Return mosaic.json (spec §4 plus what the viewer needs), the one shape every producer writes.
@@ -135,6 +141,7 @@ def mosaic_json(
     rows: the path (frame counts); status: receiving, processing or done; compliance: the fit once finished;
     tissue: what the scan taught of the tissue and the probe (SessionReconstruction.learned_model); tracked: how
     many of the rows' placed frames were tracked without features (frame_counts; SessionReconstruction.tracked_count);
+    stitched: how many are pasted into the mosaic (frame_counts; SessionReconstruction.stitched_count);
     units: the canvas's (SparseCanvas.units), which place the path's origin on the tiles (the dzi block's origin_px).
     """
     doc: dict[str, Any] = {k: image[k] for k in IMAGE_KEYS if k in image}
@@ -145,7 +152,7 @@ def mosaic_json(
             "revisions": revisions,
             "dzi": geometry.to_dict(units),
             "extent_mm": extent_mm,
-            "frames": frame_counts(rows, tracked),
+            "frames": frame_counts(rows, tracked, stitched),
             "status": status,
             "method": method,
         }

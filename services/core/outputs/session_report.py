@@ -1,8 +1,8 @@
 """The one builder of a session's report (report.json and its images), for the CLI, the API and the workers.
 
 report.json: "frames" (counts by status, lost/rejected per reason, registered fraction, and the placed frames by
-kind, keyframes and tracked: documents.frame_counts), "warnings" (the 5 % rule, services.core.outputs.scan_quality),
-"accuracy_summary" (one line), and — with a reference track — the spec §4
+kind, keyframes and tracked, and those stitched: documents.frame_counts), "warnings" (the 5 % rule,
+services.core.outputs.scan_quality), "accuracy_summary" (one line), and — with a reference track — the spec §4
 accuracy figures at the top level (rmse_mm, max_error_mm, ..., as before) with paths.png and errors.png.
 With a mosaic, the one-page sheet (sheet.png, sheet.pdf, A4 portrait): identification (the caller's
 SheetIdentity), mosaic with path, force and coverage maps with colour scales, accuracy, fitted tissue model,
@@ -81,6 +81,7 @@ def build_session_report(
     backdrop: Backdrop | None = None,
     draw: bool = True,
     tracked: int = 0,
+    stitched: int | None = None,
 ) -> SessionReport:
     """Return the report of a path (rows in seq order) with an optional reference track and mosaic.
 
@@ -92,7 +93,8 @@ def build_session_report(
     identity: who and what the sheet is about (None: every field "not given"); extra["tissue"], when given, is
     shown on the sheet as the fitted tissue and probe model.
     backdrop: the image paths.png is drawn over when there is no mosaic with layers yet (a live version).
-    tracked: how many placed frames were tracked without features (documents.frame_counts).
+    tracked: how many placed frames were tracked without features; stitched: how many are pasted into the mosaic
+    (documents.frame_counts: None gives every placed frame).
     Raises ValueError when a reference is given but no frame can be compared with it.
     """
     frames = summarize_frames(rows)
@@ -107,8 +109,8 @@ def build_session_report(
         if angles:
             doc["angles"] = angles
     doc["registered_fraction"] = frames.registered_fraction
-    kinds = frame_counts(rows, tracked)  # the one owner of the keyframes/tracked counts, as in mosaic.json
-    doc["frames"] = {**frames.to_dict(), "keyframes": kinds["keyframes"], "tracked": kinds["tracked"]}
+    kinds = frame_counts(rows, tracked, stitched)  # the one owner of the counts by kind, as in mosaic.json
+    doc["frames"] = {**frames.to_dict(), **{k: kinds[k] for k in ("keyframes", "tracked", "stitched")}}
     doc["warnings"] = scan_warnings(frames)
     doc["accuracy_summary"] = accuracy.summary() if accuracy is not None else "no reference track: not measured"
     doc.update(extra or {})
@@ -148,12 +150,13 @@ def version_report(
     backdrop: Backdrop | None = None,
     tissue: Mapping[str, Any] | None = None,
     tracked: int = 0,
+    stitched: int | None = None,
 ) -> SessionReport:
     """Return the report of results version `version` (report.json + paths.png, errors.png), see the docstring.
 
     rows: the version's path in seq order; reference: (N, 2) or (N, 5) aligned to rows; mosaic_version: the
     mosaic.json change counter it was made from (the API rebuilds the report when it changes); tracked: its
-    frames' count of placed frames tracked without features (mosaic.json's).
+    frames' count of placed frames tracked without features, and of those stitched (mosaic.json's; None: not counted).
     Raises ValueError when no frame can be compared with the reference.
     """
     extra = {
@@ -165,7 +168,9 @@ def version_report(
     }
     if tissue is not None:
         extra["tissue"] = dict(tissue)
-    report = build_session_report(rows, reference, mosaic, extra, sheet=False, backdrop=backdrop, tracked=tracked)
+    report = build_session_report(
+        rows, reference, mosaic, extra, sheet=False, backdrop=backdrop, tracked=tracked, stitched=stitched
+    )
     images = {name: data for name, data in report.images.items() if name in ACCURACY_PLOTS}
     doc = {**report.doc, "plots": {name: f"{name}.png" for name in PLOT_NAMES}}
     return SessionReport(doc, report.accuracy, report.frames, images)

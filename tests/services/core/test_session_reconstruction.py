@@ -293,6 +293,9 @@ def test_frames_over_skin_shown_enough_are_placed_not_stitched_live_as_offline()
     assert live.unstitched == offline.unstitched and not every.unstitched
     assert path_rows_json(live.path_rows()) == path_rows_json(every.path_rows())  # the stitch leaves the path alone
     assert set(live.pasted) == placed - live.unstitched  # the others are pasted, once each
+    # what the frame counts report as stitched (documents.frame_counts): the frames the mosaic is made of
+    assert live.stitched_count() == offline.stitched_count() == len(live.pasted)
+    assert every.stitched_count() == len(placed)
     assert not any(live.frames[i].has_pixels or offline.frames[i].has_pixels for i in live.unstitched)
     offline.canvas.units = live.canvas.units
     offline.render()

@@ -60,6 +60,7 @@ def test_write_reconstruction_without_reference(tmp_path: Path) -> None:
     assert doc["frames"] == {
         "total": 3, "ok": 2, "lost": 1, "rejected": 0, "no_contact": 0, "registered_fraction": pytest.approx(2 / 3),
         "lost_reasons": {"few_inliers": 1}, "rejected_reasons": {}, "keyframes": 2, "tracked": 0,
+        "stitched": 2,
     }  # fmt: skip
     assert [w["code"] for w in doc["warnings"]] == ["frames_lost"]  # 1 of 3 > 5 %
     assert (out / "sheet.pdf").read_bytes().startswith(b"%PDF")

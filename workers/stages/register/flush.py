@@ -178,6 +178,7 @@ class Flusher:
             compliance=held.recon.compliance if final else None,
             tissue=held.recon.learned_model(),
             tracked=held.recon.tracked_count(),
+            stitched=held.recon.stitched_count(),
             units=units,
         )
         fence = held.lease.token

@@ -80,10 +80,20 @@ def test_frame_counts_split_the_placed_frames_into_keyframes_and_tracked() -> No
     # offline (nothing tracked) every placed frame is a keyframe; a live session behind its uploads passes how many
     # of its placed frames it tracked without features (SessionReconstruction.tracked_count): ok = keyframes + tracked
     base = {"processed": 10, "ok": 6, "lost": 2, "rejected": 2, "no_contact": 1, "in_fragments": 1}
-    assert frame_counts(ROWS) == {**base, "keyframes": 6, "tracked": 0}
-    assert frame_counts(ROWS, 4) == {**base, "keyframes": 2, "tracked": 4}
+    assert frame_counts(ROWS) == {**base, "keyframes": 6, "tracked": 0, "stitched": 6}
+    assert frame_counts(ROWS, 4) == {**base, "keyframes": 2, "tracked": 4, "stitched": 6}
     assert frame_counts(ROWS, 9)["tracked"] == 6 and frame_counts(ROWS, 9)["keyframes"] == 0  # at most the placed
-    assert frame_counts([]) == dict.fromkeys([*base, "keyframes", "tracked"], 0)
+    assert frame_counts([]) == dict.fromkeys([*base, "keyframes", "tracked", "stitched"], 0)
+
+
+def test_frame_counts_count_the_placed_frames_stitched_into_the_mosaic() -> None:
+    # a session passes how many placed frames it pasted (SessionReconstruction.stitched_count: not those over skin
+    # already shown, nor blurred ones); results from before the count (None) give every placed frame; at most ok
+    assert frame_counts(ROWS, stitched=4)["stitched"] == 4
+    assert frame_counts(ROWS)["stitched"] == 6
+    assert frame_counts(ROWS, stitched=9)["stitched"] == 6 and frame_counts(ROWS, stitched=-1)["stitched"] == 0
+    assert _served(ROWS, stitched=4)["frames"]["stitched"] == 4
+    assert build_session_report(ROWS, None, None, draw=False, stitched=4).doc["frames"]["stitched"] == 4
 
 
 def test_mosaic_json_report_json_and_the_events_count_the_tracked_frames_alike() -> None:
