@@ -81,10 +81,11 @@ Place = tuple[np.ndarray, tuple[complex, float]]
 REPAINT_PER_FRAME = 4
 RESTITCH_AHEAD = 4  # a restitch builds and warps this many frames (~5 + 10 MB each) ahead of adding them
 REPAINT_AT_ONCE = 12  # moved frames this recent are re-pasted at once (their planes are usually kept)
-# A session that keeps its frames' pixels (offline) keeps the images uncompressed up to this many bytes (~800 frames
-# at 640 x 480), as PNG beyond: encoding and decoding them cost ~4.5 ms of a frame's ~60 ms of CPU, and a scan of a
-# few minutes stitches fewer frames than that (frames over skin already shown keep no pixels: stitch_cover).
-RAW_PIXELS_BUDGET = 256 * 2**20
+# A session that keeps its frames' pixels (offline) keeps the images uncompressed up to this many bytes (~430 frames
+# at 640 x 480: every stitched frame of the shared scans), as PNG beyond: encoding and decoding them cost ~4.5 ms of a
+# frame's ~60 ms of CPU. Bounded so that a long examination stays within its 1.5 GB (bench/long_exam.py: at 256 MB
+# the 2400-frame examination peaked at 1433 MB, at none 1259 MB).
+RAW_PIXELS_BUDGET = 128 * 2**20
 
 
 def _in_output_units(pose: Similarity, gauge: float, origin_shift: complex) -> Similarity:
