@@ -44,8 +44,8 @@ def frame_counts(rows: Sequence[PathRow], tracked: int = 0, stitched: int | None
     the placed frames the mosaic is made of (stitched).
 
     Keys: processed, ok, lost, rejected, no_contact (rejected frames taken off the skin, between strokes),
-    in_fragments (lost frames placed on a fragment that has not joined the map, yet while live), keyframes and
-    tracked. tracked: how many placed frames were tracked on a keyframe without features
+    in_fragments (lost frames placed on a fragment that has not joined the map, yet while live), keyframes,
+    tracked and stitched. tracked: how many placed frames were tracked on a keyframe without features
     (SessionReconstruction.tracked_count: a live session behind its uploads, or a method with track_overlap; 0
     offline by default), at most the rows' placed frames (a count read beside older rows); keyframes: the other
     placed frames, registered by their features, so that ok = keyframes + tracked. stitched: how many placed frames
