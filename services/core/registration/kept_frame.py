@@ -84,7 +84,7 @@ def keep_frame(pf: PreparedFrame, pasteable: bool, keep_pixels: bool = True, com
                 raise ValueError(f"frame {pf.index}: the rectified image could not be kept")
             image_png = buf.tobytes()
         else:
-            image_raw = np.ascontiguousarray(pf.image, np.uint8).view()
+            image_raw = np.ascontiguousarray(pf.image).view()  # as it is (uint8), never cast
             image_raw.flags.writeable = False
         mask_bits = np.packbits(pf.mask > 0)
     return KeptFrame(
