@@ -197,10 +197,19 @@ class SessionReconstruction:
         return sum(self.frame_kind(i) == TRACKED for i in self.results)
 
     def stitched_count(self) -> int:
-        """Return how many handled frames are pasted into the mosaic (_stitch_pose's rule): frame_counts' `stitched`."""
-        return sum(
-            r.status == STATUS_OK and not r.blurred and i not in self.unstitched and i in self.registrar.poses
-            for i, r in self.results.items()
+        """Return how many handled frames are pasted into the mosaic (_stitched): frame_counts' `stitched`."""
+        return sum(self._stitched(i) for i in self.results)
+
+    def _stitched(self, index: int) -> bool:
+        """Return whether a frame is stitched into the mosaic: placed on the main map, sharp, and not left out over
+        skin already shown (stitch_cover). The one rule of _stitch_pose and stitched_count."""
+        result = self.results.get(index)
+        return (
+            result is not None
+            and result.status == STATUS_OK
+            and not result.blurred
+            and index not in self.unstitched
+            and index in self.registrar.poses
         )
 
     def add(self, pf: PreparedFrame, repaint: bool = True) -> tuple[FrameResult, set[tuple[int, int]]]:
@@ -481,12 +490,9 @@ class SessionReconstruction:
         The pose after the frame's tilt foreshortening is undone (its view D^-1), so the mosaic is undeformed; once
         finished, in output units mapped onto the canvas's (SparseCanvas.units), else in the registrar's.
         """
-        result = self.results.get(index)
-        if result is None or result.status != STATUS_OK or result.blurred or index in self.unstitched:
+        if not self._stitched(index):
             return None
-        pose = self.registrar.poses.get(index)
-        if pose is None:
-            return None
+        pose = self.registrar.poses[index]
         pose = self._output_pose(pose) if self.finished else pose
         pose = pose.rigid() if self.options.rigid_stitch else pose
         m = pose.matrix()

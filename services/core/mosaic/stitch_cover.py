@@ -33,11 +33,12 @@ class StitchCover:
     radius_mm: float
     counts: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.int32))
     origin: tuple[int, int] = (0, 0)  # the cell (col, row) of counts[0, 0]
-    _disc: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False)
+    _disc: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False)  # the disc's cells about its centre's
+    _reach: int = field(init=False, repr=False)  # the disc's radius in cells
 
     def __post_init__(self) -> None:
-        reach = max(0, math.floor(self.radius_mm / CELL_MM))
-        dy, dx = np.mgrid[-reach : reach + 1, -reach : reach + 1]
+        self._reach = max(0, math.floor(self.radius_mm / CELL_MM))
+        dy, dx = np.mgrid[-self._reach : self._reach + 1, -self._reach : self._reach + 1]
         inside = (dx * dx + dy * dy) * CELL_MM**2 <= self.radius_mm**2
         self._disc = (dy[inside].astype(np.intp), dx[inside].astype(np.intp))
 
@@ -60,7 +61,7 @@ class StitchCover:
         None when that would make it larger than MAX_CELLS a side."""
         col, row = (math.floor(v / CELL_MM) for v in centre_mm)
         dy, dx = self._disc
-        reach = int(dx.max(initial=0))
+        reach = self._reach
         if not self._grow(col - reach, row - reach, col + reach, row + reach):
             return None
         return dy + (row - self.origin[1]), dx + (col - self.origin[0])
