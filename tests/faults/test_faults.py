@@ -11,6 +11,7 @@ import functools
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import threading
@@ -87,10 +88,18 @@ def _mount_tmpfs(path: Path, size_mb: int) -> None:
         pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode(errors='replace').strip()}")
 
 
+def _sizes(folder: Path) -> str:
+    """Return what each file under `folder` holds (bytes), largest first: what filled a volume."""
+    files = sorted((p.stat().st_size, str(p.relative_to(folder))) for p in folder.rglob("*") if p.is_file())
+    return ", ".join(f"{name} {size}" for size, name in files[::-1][:20])
+
+
 def _fill(path: Path) -> int:
     """Write zeros into `path` until the volume is full; return the bytes written."""
     written = 0
     chunk = b"\0" * (256 * 1024)
+    usage = shutil.disk_usage(path.parent)
+    assert usage.free > len(chunk), f"the volume was full before the ballast: {usage}, {_sizes(path.parent)}"
     with open(path, "wb") as fh:
         try:
             while True:
