@@ -154,7 +154,7 @@ class Publisher:
         """Return the mosaic.json of version v, written now: the one shape every producer writes.
 
         It is documents.mosaic_json(image, results_version=v, **fields) (version, revisions, geometry, extent_mm,
-        rows, status, method, compliance).
+        rows, status, method, compliance, tissue, kinds, units).
         """
         doc = mosaic_json(image, results_version=v, **fields)
         self.ctx.results.write_mosaic_meta(sid, v, doc)

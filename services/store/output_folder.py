@@ -66,8 +66,7 @@ def write_reconstruction(
         extra,
         identity=identity,
         sheet=sheet,
-        tracked=recon.tracked,
-        stitched=recon.stitched,
+        kinds=recon.kinds,
     )
     for name, data in report.images.items():
         (out / name).write_bytes(data)

@@ -21,7 +21,7 @@ from typing import Any
 from services.core.mosaic.canvas import MosaicImage, SparseCanvas
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
 from services.core.outputs.documents import canvas_extent_mm, empty_revisions
-from services.core.path_rows import PathRow
+from services.core.path_rows import UNCOUNTED, FrameKinds, PathRow
 from services.core.physics.compliance import ComplianceFit
 from services.core.pipeline import reconstruct
 from services.jobs import queue
@@ -106,8 +106,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
             recon.compliance,
             heartbeat,
             recon.learned,
-            recon.tracked,
-            stitched=recon.stitched,
+            recon.kinds,
         )
         heartbeat()
         write_report(ctx, sid, v)
@@ -143,14 +142,13 @@ def write_version(
     compliance: ComplianceFit | None,
     heartbeat: Callable[[], None] = lambda: None,
     tissue: Mapping[str, Any] | None = None,
-    tracked: int = 0,
-    stitched: int | None = None,
+    kinds: FrameKinds = UNCOUNTED,
 ) -> None:
     """Write a complete version: path, all tiles of both layers, mosaic.png/force.png, mosaic.json, state.
 
     heartbeat is called every 32 tiles: rendering a whole pyramid takes seconds on a loaded machine, longer
     than another worker waits before it claims the job's entry as abandoned (and runs it a second time).
-    tracked: how many placed frames were tracked without features, stitched how many are pasted into the mosaic
+    kinds: how many placed frames were tracked without features and how many are pasted into the mosaic
     (mosaic.json's frames: documents.frame_counts).
     """
     pub = Publisher(ctx)
@@ -175,7 +173,6 @@ def write_version(
         method=method,
         compliance=compliance,
         tissue=tissue,
-        tracked=tracked,
-        stitched=stitched,
+        kinds=kinds,
     )
     pub.write_state(sid, v, VersionState(cursor=len(rows), finished=True))

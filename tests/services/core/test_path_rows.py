@@ -13,6 +13,8 @@ import pytest
 
 from services.core.path_rows import (
     PATH_COLUMNS,
+    UNCOUNTED,
+    FrameKinds,
     PathRow,
     path_csv,
     path_row_from_json,
@@ -116,3 +118,11 @@ def test_the_path_tail_lists_the_rows_asked_for_by_seq() -> None:
         [3, 2.0, -2.0, "ok", 1, ""],
     ]
     json.dumps(path_tail(rows, range(4)), allow_nan=False)  # strict JSON: no NaN leaks into an event
+
+
+def test_frame_kinds_read_back_from_a_documents_counts_and_from_older_ones() -> None:
+    # mosaic.json's "frames" carries tracked and stitched; a stored report is rebuilt from them (stored_report), and
+    # results written before either count lack its key: nothing tracked, the stitched frames not counted
+    assert FrameKinds.of_counts({"ok": 6, "keyframes": 2, "tracked": 4, "stitched": 5}) == FrameKinds(4, 5)
+    assert FrameKinds.of_counts({"ok": 6, "tracked": 4}) == FrameKinds(4, None)
+    assert FrameKinds.of_counts({"ok": 6}) == FrameKinds.of_counts(None) == UNCOUNTED == FrameKinds(0, None)

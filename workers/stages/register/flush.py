@@ -177,8 +177,7 @@ class Flusher:
             method=held.options.name,
             compliance=held.recon.compliance if final else None,
             tissue=held.recon.learned_model(),
-            tracked=held.recon.tracked_count(),
-            stitched=held.recon.stitched_count(),
+            kinds=held.recon.frame_kinds(),
             units=units,
         )
         fence = held.lease.token
