@@ -2,7 +2,7 @@
 
 `np.median` of an even count partitions about both middle positions; one partition about the upper one and the
 largest value below it give the same two values, and the same mean of them. On a frame's quarter-million pixels
-(normalise_photometry and contact.focus_measure take one per frame) even one partition costs about 4 ms, so a
+(normalise_photometry and contact.focus_measure take one per frame) even one partition costs milliseconds, so a
 large array is first bracketed: a strided sample's quantiles a few standard errors either side of the middle give
 bounds lo <= hi, the values below lo are counted, and when the middle positions fall among the values within
 [lo, hi] (a few per cent of them) only those are partitioned. When they do not (a sample that misjudged the
