@@ -139,7 +139,7 @@ def measure(
                     status="receiving",
                     method=options.name,
                     tissue=recon.learned_model(),
-                    kinds=recon.frame_kinds(),
+                    placed=recon.placed_counts(),
                 )
                 results.write_mosaic_meta(sid, 1, doc)
                 results.write_state(sid, 1, VersionState(i + 1, 1, False))

@@ -4,7 +4,7 @@ PathRow is what a reconstruction says of each frame: when it was taken, where it
 when it was not), the load and tilts, its status and why, and its stroke. path.json holds path_rows_json's dicts
 (null where a value is not finite), path.csv path_csv's text (blank cells there), a progress event the
 path_tail of the rows it changed. The core builds the rows (SessionReconstruction.path_rows), the store writes
-them, the workers and the API read them back with path_rows_from_json. FrameKinds carries what the rows do not
+them, the workers and the API read them back with path_rows_from_json. PlacedCounts carries what the rows do not
 say of their placed frames (how many were tracked, how many stitched), for the frame counts
 (outputs.documents.frame_counts).
 """
@@ -68,7 +68,7 @@ class PathRow:
 
 
 @dataclass(frozen=True)
-class FrameKinds:
+class PlacedCounts:
     """What the path rows do not say of their placed frames: how many were tracked on a keyframe without features
     (SessionReconstruction.tracked_count: a live session behind its uploads, or a method with track_overlap; 0
     offline by default), and how many are pasted into the mosaic (SessionReconstruction.stitched_count: not blurred,
@@ -79,15 +79,15 @@ class FrameKinds:
     stitched: int | None = None
 
     @classmethod
-    def of_counts(cls, frames: Mapping[str, Any] | None) -> FrameKinds:
-        """Return the kinds a document's frame counts carry (mosaic.json's "frames"; tracked 0 and stitched None where
+    def from_frames(cls, frames: Mapping[str, Any] | None) -> PlacedCounts:
+        """Return the counts a document's frame counts carry (mosaic.json's "frames"; tracked 0 and stitched None where
         results from before them lack the keys)."""
         frames = frames or {}
         stitched = frames.get("stitched")
         return cls(int(frames.get("tracked", 0)), None if stitched is None else int(stitched))
 
 
-UNCOUNTED = FrameKinds()  # nothing tracked, the stitched frames not counted (every placed frame, frame_counts)
+UNCOUNTED = PlacedCounts()  # nothing tracked, the stitched frames not counted (every placed frame, frame_counts)
 
 
 def rejected_row(seq: int, t_s: float = math.nan, reason: str = REASON_BAD_FRAME) -> PathRow:

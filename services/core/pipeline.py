@@ -15,7 +15,7 @@ from services.core.inputs.scan import Scan
 from services.core.lookahead import in_order_ahead
 from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import MosaicImage
-from services.core.path_rows import UNCOUNTED, FrameKinds, PathRow
+from services.core.path_rows import UNCOUNTED, PathRow, PlacedCounts
 from services.core.physics.compliance import ComplianceFit
 from services.core.physics.force_model import interpolate_forces
 from services.core.physics.tissue_model import reference_tilts_at
@@ -50,7 +50,7 @@ class Reconstruction:
     # the final graph's edges: frame i, frame j, measured relative yaw (deg), loop 0/1, the yaw's SD in the graph (deg),
     # the mean load of its frames (N) (SessionReconstruction.edge_yaws)
     edge_yaws: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
-    kinds: FrameKinds = UNCOUNTED  # placed frames tracked and stitched (SessionReconstruction.frame_kinds)
+    placed: PlacedCounts = UNCOUNTED  # placed frames tracked and stitched (SessionReconstruction.placed_counts)
 
     @property
     def closures(self) -> int:
@@ -162,5 +162,5 @@ def reconstruct(scan: Scan, options: MethodOptions, progress: Progress | None = 
         session.learned_model(),
         len(session.registrar.features),
         session.edge_yaws(),
-        kinds=session.frame_kinds(),
+        placed=session.placed_counts(),
     )

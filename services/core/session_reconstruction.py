@@ -26,7 +26,7 @@ from services.core.methods import MethodOptions
 from services.core.mosaic.canvas import FrameLayers, MosaicImage, SparseCanvas, Warped, blend_weight
 from services.core.mosaic.canvas_units import IDENTITY, CanvasUnits, fit_units
 from services.core.mosaic.stitch_cover import StitchCover
-from services.core.path_rows import FrameKinds, PathRow
+from services.core.path_rows import PathRow, PlacedCounts
 from services.core.physics.compliance import ComplianceFit, fit_compliance
 from services.core.physics.drag import undrag_maps
 from services.core.physics.force_clock import ClockOffset, estimate_clock_offset
@@ -200,10 +200,10 @@ class SessionReconstruction:
         """Return how many handled frames are pasted into the mosaic (_stitched): frame_counts' `stitched`."""
         return sum(self._stitched(i) for i in self.results)
 
-    def frame_kinds(self) -> FrameKinds:
+    def placed_counts(self) -> PlacedCounts:
         """Return the counts of the placed frames tracked (tracked_count) and stitched (stitched_count) that the
         frame counts of mosaic.json, report.json and the events carry (documents.frame_counts)."""
-        return FrameKinds(self.tracked_count(), self.stitched_count())
+        return PlacedCounts(self.tracked_count(), self.stitched_count())
 
     def _stitched(self, index: int) -> bool:
         """Return whether a frame is stitched into the mosaic: placed on the main map, sharp, and not left out over

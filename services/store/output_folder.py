@@ -66,7 +66,7 @@ def write_reconstruction(
         extra,
         identity=identity,
         sheet=sheet,
-        kinds=recon.kinds,
+        placed=recon.placed,
     )
     for name, data in report.images.items():
         (out / name).write_bytes(data)

@@ -16,7 +16,7 @@ import numpy as np
 
 from services.core.inputs.reference import parse_reference_csv
 from services.core.outputs.session_report import Backdrop, version_report
-from services.core.path_rows import FrameKinds, PathRow, path_rows_from_json
+from services.core.path_rows import PathRow, PlacedCounts, path_rows_from_json
 from services.store.results_store import ResultsStore
 
 
@@ -94,7 +94,7 @@ def write_version_report(
             method=(rs.read_options(sid, v) or {}).get("method"),
             backdrop=_backdrop(rs, sid, v, mosaic_doc) if mosaic is None else None,
             tissue=mosaic_doc.get("tissue"),
-            kinds=FrameKinds.of_counts(mosaic_doc.get("frames")),
+            placed=PlacedCounts.from_frames(mosaic_doc.get("frames")),
         )
     except ValueError as exc:
         raise NothingToCompareError(f"reference.csv: {exc}") from None

@@ -26,7 +26,7 @@ from cli.launcher import Service
 from services.core.mosaic.canvas import FrameLayers, SparseCanvas, blend_weight
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
 from services.core.outputs.documents import LAYERS, canvas_extent_mm, empty_revisions, mosaic_json
-from services.core.path_rows import FrameKinds, PathRow
+from services.core.path_rows import PathRow, PlacedCounts
 from services.core.similarity import Similarity
 from services.store.results_store import ResultsStore
 from services.store.storage import SessionStore
@@ -124,7 +124,7 @@ def _write_results(
         rows=rows,
         status="done",
         method="best",
-        kinds=FrameKinds(tracked=tracked),
+        placed=PlacedCounts(tracked=tracked),
     )
     rs.write_mosaic_meta(sid, 1, doc)
     rs.write_path(sid, 1, rows)

@@ -21,7 +21,7 @@ from typing import Any
 from services.core.mosaic.canvas import MosaicImage, SparseCanvas
 from services.core.mosaic.deepzoom import DziGeometry, TilePyramid
 from services.core.outputs.documents import canvas_extent_mm, empty_revisions
-from services.core.path_rows import UNCOUNTED, FrameKinds, PathRow
+from services.core.path_rows import UNCOUNTED, PathRow, PlacedCounts
 from services.core.physics.compliance import ComplianceFit
 from services.core.pipeline import reconstruct
 from services.jobs import queue
@@ -106,7 +106,7 @@ def handle_job(ctx: Context, fields: dict[str, str], heartbeat: Callable[[], Non
             recon.compliance,
             heartbeat,
             recon.learned,
-            recon.kinds,
+            recon.placed,
         )
         heartbeat()
         write_report(ctx, sid, v)
@@ -142,13 +142,13 @@ def write_version(
     compliance: ComplianceFit | None,
     heartbeat: Callable[[], None] = lambda: None,
     tissue: Mapping[str, Any] | None = None,
-    kinds: FrameKinds = UNCOUNTED,
+    placed: PlacedCounts = UNCOUNTED,
 ) -> None:
     """Write a complete version: path, all tiles of both layers, mosaic.png/force.png, mosaic.json, state.
 
     heartbeat is called every 32 tiles: rendering a whole pyramid takes seconds on a loaded machine, longer
     than another worker waits before it claims the job's entry as abandoned (and runs it a second time).
-    kinds: how many placed frames were tracked without features and how many are pasted into the mosaic
+    placed: how many placed frames were tracked without features and how many are pasted into the mosaic
     (mosaic.json's frames: documents.frame_counts).
     """
     pub = Publisher(ctx)
@@ -173,6 +173,6 @@ def write_version(
         method=method,
         compliance=compliance,
         tissue=tissue,
-        kinds=kinds,
+        placed=placed,
     )
     pub.write_state(sid, v, VersionState(cursor=len(rows), finished=True))

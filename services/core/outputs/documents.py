@@ -22,7 +22,7 @@ from typing import Any
 from services.core.mosaic.canvas import FORCE_FULL_SCALE_N, SparseCanvas
 from services.core.mosaic.canvas_units import IDENTITY, CanvasUnits
 from services.core.mosaic.deepzoom import MIN_WEIGHT, DziGeometry
-from services.core.path_rows import UNCOUNTED, FrameKinds, PathRow
+from services.core.path_rows import UNCOUNTED, PathRow, PlacedCounts
 from services.core.physics.compliance import ComplianceFit
 from services.core.registration.outcome import (
     REASON_FRAGMENT,
@@ -39,21 +39,21 @@ Revisions = dict[str, dict[str, int]]
 
 
 # ----- frame counts -----------------------------------------------------------------------------------------------
-def frame_counts(rows: Sequence[PathRow], kinds: FrameKinds = UNCOUNTED) -> dict[str, int]:
+def frame_counts(rows: Sequence[PathRow], placed: PlacedCounts = UNCOUNTED) -> dict[str, int]:
     """Return the frame counts of path rows by status and reason, of the placed ones by kind (keyframes, tracked), and
     the placed frames the mosaic is made of (stitched).
 
     Keys: processed, ok, lost, rejected, no_contact (rejected frames taken off the skin, between strokes),
     in_fragments (lost frames placed on a fragment that has not joined the map, yet while live), keyframes,
-    tracked and stitched. tracked: kinds.tracked, at most the rows' placed frames (a count read beside older rows);
+    tracked and stitched. tracked: placed.tracked, at most the rows' placed frames (a count read beside older rows);
     keyframes: the other placed frames, registered by their features, so that ok = keyframes + tracked. stitched:
-    kinds.stitched, at most ok; None gives ok.
+    placed.stitched, at most ok; None gives ok.
     """
     c = Counter(r.status for r in rows)
     why = Counter(r.reason for r in rows)
     ok = c[STATUS_OK]
-    tracked = min(max(int(kinds.tracked), 0), ok)
-    stitched = ok if kinds.stitched is None else min(max(int(kinds.stitched), 0), ok)
+    tracked = min(max(placed.tracked, 0), ok)
+    stitched = ok if placed.stitched is None else min(max(placed.stitched, 0), ok)
     return {
         "processed": len(rows),
         "ok": ok,
@@ -127,7 +127,7 @@ def mosaic_json(
     method: str,
     compliance: ComplianceFit | None = None,
     tissue: Mapping[str, Any] | None = None,
-    kinds: FrameKinds = UNCOUNTED,
+    placed: PlacedCounts = UNCOUNTED,
     units: CanvasUnits = IDENTITY,
 ) -> dict[str, Any]:
     """Return mosaic.json (spec §4 plus what the viewer needs), the one shape every producer writes.
@@ -135,7 +135,7 @@ def mosaic_json(
     image: the rendered mosaic's meta (MosaicImage.meta(), or `image_meta`/`empty_image_meta`); version: the
     mosaic's change counter; revisions: {layer: {"level/col_row": revision}}; extent_mm: the session extent;
     rows: the path (frame counts); status: receiving, processing or done; compliance: the fit once finished;
-    tissue: what the scan taught of the tissue and the probe (SessionReconstruction.learned_model); kinds: how many
+    tissue: what the scan taught of the tissue and the probe (SessionReconstruction.learned_model); placed: how many
     of the rows' placed frames were tracked without features and how many are stitched (frame_counts); units: the
     canvas's (SparseCanvas.units), which place the path's origin on the tiles (the dzi block's origin_px).
     """
@@ -147,7 +147,7 @@ def mosaic_json(
             "revisions": revisions,
             "dzi": geometry.to_dict(units),
             "extent_mm": extent_mm,
-            "frames": frame_counts(rows, kinds),
+            "frames": frame_counts(rows, placed),
             "status": status,
             "method": method,
         }

@@ -28,7 +28,7 @@ from services.core.outputs.evaluation import AccuracyReport, evaluate_angles, ev
 from services.core.outputs.plots import plot_error_along_scan, plot_paths_over_mosaic
 from services.core.outputs.scan_quality import FrameSummary, scan_warnings, summarize_frames
 from services.core.outputs.sheet import SheetIdentity, build_sheet_figure, render_sheet
-from services.core.path_rows import UNCOUNTED, FrameKinds, PathRow
+from services.core.path_rows import UNCOUNTED, PathRow, PlacedCounts
 
 ACCURACY_PLOTS = ("paths.png", "errors.png")
 PLOT_NAMES = ("paths", "errors")  # the report plots a results version keeps (ACCURACY_PLOTS without ".png")
@@ -80,7 +80,7 @@ def build_session_report(
     sheet: bool = True,
     backdrop: Backdrop | None = None,
     draw: bool = True,
-    kinds: FrameKinds = UNCOUNTED,
+    placed: PlacedCounts = UNCOUNTED,
 ) -> SessionReport:
     """Return the report of a path (rows in seq order) with an optional reference track and mosaic.
 
@@ -92,7 +92,7 @@ def build_session_report(
     identity: who and what the sheet is about (None: every field "not given"); extra["tissue"], when given, is
     shown on the sheet as the fitted tissue and probe model.
     backdrop: the image paths.png is drawn over when there is no mosaic with layers yet (a live version).
-    kinds: how many placed frames were tracked without features and how many are pasted into the mosaic
+    placed: how many placed frames were tracked without features and how many are pasted into the mosaic
     (documents.frame_counts).
     Raises ValueError when a reference is given but no frame can be compared with it.
     """
@@ -108,7 +108,7 @@ def build_session_report(
         if angles:
             doc["angles"] = angles
     doc["registered_fraction"] = frames.registered_fraction
-    counts = frame_counts(rows, kinds)  # the one owner of the counts by kind, as in mosaic.json
+    counts = frame_counts(rows, placed)  # the one owner of the counts by kind, as in mosaic.json
     doc["frames"] = {**frames.to_dict(), **{k: counts[k] for k in ("keyframes", "tracked", "stitched")}}
     doc["warnings"] = scan_warnings(frames)
     doc["accuracy_summary"] = accuracy.summary() if accuracy is not None else "no reference track: not measured"
@@ -148,13 +148,13 @@ def version_report(
     method: str | None,
     backdrop: Backdrop | None = None,
     tissue: Mapping[str, Any] | None = None,
-    kinds: FrameKinds = UNCOUNTED,
+    placed: PlacedCounts = UNCOUNTED,
 ) -> SessionReport:
     """Return the report of results version `version` (report.json + paths.png, errors.png), see the docstring.
 
     rows: the version's path in seq order; reference: (N, 2) or (N, 5) aligned to rows; mosaic_version: the
-    mosaic.json change counter it was made from (the API rebuilds the report when it changes); kinds: its placed
-    frames tracked without features and stitched (mosaic.json's counts: documents.FrameKinds.of_counts).
+    mosaic.json change counter it was made from (the API rebuilds the report when it changes); placed: its placed
+    frames tracked without features and stitched (mosaic.json's counts: documents.PlacedCounts.from_frames).
     Raises ValueError when no frame can be compared with the reference.
     """
     extra = {
@@ -166,7 +166,7 @@ def version_report(
     }
     if tissue is not None:
         extra["tissue"] = dict(tissue)
-    report = build_session_report(rows, reference, mosaic, extra, sheet=False, backdrop=backdrop, kinds=kinds)
+    report = build_session_report(rows, reference, mosaic, extra, sheet=False, backdrop=backdrop, placed=placed)
     images = {name: data for name, data in report.images.items() if name in ACCURACY_PLOTS}
     doc = {**report.doc, "plots": {name: f"{name}.png" for name in PLOT_NAMES}}
     return SessionReport(doc, report.accuracy, report.frames, images)

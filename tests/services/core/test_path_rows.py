@@ -14,8 +14,8 @@ import pytest
 from services.core.path_rows import (
     PATH_COLUMNS,
     UNCOUNTED,
-    FrameKinds,
     PathRow,
+    PlacedCounts,
     path_csv,
     path_row_from_json,
     path_rows_from_json,
@@ -120,9 +120,9 @@ def test_the_path_tail_lists_the_rows_asked_for_by_seq() -> None:
     json.dumps(path_tail(rows, range(4)), allow_nan=False)  # strict JSON: no NaN leaks into an event
 
 
-def test_frame_kinds_read_back_from_a_documents_counts_and_from_older_ones() -> None:
+def test_placed_counts_read_back_from_a_documents_counts_and_from_older_ones() -> None:
     # mosaic.json's "frames" carries tracked and stitched; a stored report is rebuilt from them (stored_report), and
     # results written before either count lack its key: nothing tracked, the stitched frames not counted
-    assert FrameKinds.of_counts({"ok": 6, "keyframes": 2, "tracked": 4, "stitched": 5}) == FrameKinds(4, 5)
-    assert FrameKinds.of_counts({"ok": 6, "tracked": 4}) == FrameKinds(4, None)
-    assert FrameKinds.of_counts({"ok": 6}) == FrameKinds.of_counts(None) == UNCOUNTED == FrameKinds(0, None)
+    assert PlacedCounts.from_frames({"ok": 6, "keyframes": 2, "tracked": 4, "stitched": 5}) == PlacedCounts(4, 5)
+    assert PlacedCounts.from_frames({"ok": 6, "tracked": 4}) == PlacedCounts(4, None)
+    assert PlacedCounts.from_frames({"ok": 6}) == PlacedCounts.from_frames(None) == UNCOUNTED == PlacedCounts(0, None)

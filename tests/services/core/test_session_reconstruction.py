@@ -22,7 +22,7 @@ from services.core.inputs.scan import Scan
 from services.core.methods import MethodOptions, method_options
 from services.core.mosaic.canvas import MosaicImage, SparseCanvas
 from services.core.mosaic.canvas_units import IDENTITY
-from services.core.path_rows import FrameKinds, path_rows_json
+from services.core.path_rows import PlacedCounts, path_rows_json
 from services.core.pipeline import frame_forces, prepared_frames, window_radius_mm, window_setup
 from services.core.registration.frame_prep import PreparedFrame
 from services.core.registration.outcome import REASON_MISSING, STATUS_LOST
@@ -401,8 +401,8 @@ def test_frame_kind_tells_keyframes_from_tracked_and_unplaced_frames(live_run: L
     assert list(kinds.values()).count("tracked") >= 5  # most frames of a slow short scan overlap their keyframe
     # the frame counts' `tracked` (mosaic.json, report.json): the frames frame_kind calls tracked; none without tracking
     assert session.tracked_count() == list(kinds.values()).count("tracked") and live.tracked_count() == 0
-    # and the documents read both counts from frame_kinds
-    assert session.frame_kinds() == FrameKinds(session.tracked_count(), session.stitched_count())
+    # and the documents read both counts from placed_counts
+    assert session.placed_counts() == PlacedCounts(session.tracked_count(), session.stitched_count())
 
 
 def test_edge_yaws_are_the_graphs_edges_as_it_uses_them(live_run: LiveRun) -> None:

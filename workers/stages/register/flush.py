@@ -177,7 +177,7 @@ class Flusher:
             method=held.options.name,
             compliance=held.recon.compliance if final else None,
             tissue=held.recon.learned_model(),
-            kinds=held.recon.frame_kinds(),
+            placed=held.recon.placed_counts(),
             units=units,
         )
         fence = held.lease.token

@@ -13,7 +13,7 @@ from services.core.mosaic.canvas import MosaicImage
 from services.core.mosaic.deepzoom import DziGeometry
 from services.core.outputs.documents import empty_revisions, folder_mosaic_json, frame_counts, mosaic_json
 from services.core.outputs.session_report import build_session_report
-from services.core.path_rows import FrameKinds, PathRow
+from services.core.path_rows import PathRow, PlacedCounts
 from services.core.physics.compliance import ComplianceFit
 
 IMAGE = MosaicImage(
@@ -81,8 +81,8 @@ def test_frame_counts_split_the_placed_frames_into_keyframes_and_tracked() -> No
     # of its placed frames it tracked without features (SessionReconstruction.tracked_count): ok = keyframes + tracked
     base = {"processed": 10, "ok": 6, "lost": 2, "rejected": 2, "no_contact": 1, "in_fragments": 1}
     assert frame_counts(ROWS) == {**base, "keyframes": 6, "tracked": 0, "stitched": 6}
-    assert frame_counts(ROWS, FrameKinds(tracked=4)) == {**base, "keyframes": 2, "tracked": 4, "stitched": 6}
-    nine = frame_counts(ROWS, FrameKinds(tracked=9))
+    assert frame_counts(ROWS, PlacedCounts(tracked=4)) == {**base, "keyframes": 2, "tracked": 4, "stitched": 6}
+    nine = frame_counts(ROWS, PlacedCounts(tracked=9))
     assert nine["tracked"] == 6 and nine["keyframes"] == 0  # at most the placed
     assert frame_counts([]) == dict.fromkeys([*base, "keyframes", "tracked", "stitched"], 0)
 
@@ -90,22 +90,22 @@ def test_frame_counts_split_the_placed_frames_into_keyframes_and_tracked() -> No
 def test_frame_counts_count_the_placed_frames_stitched_into_the_mosaic() -> None:
     # a session passes how many placed frames it pasted (SessionReconstruction.stitched_count: not those over skin
     # already shown, nor blurred ones); results from before the count (None) give every placed frame; at most ok
-    four = FrameKinds(stitched=4)
+    four = PlacedCounts(stitched=4)
     assert frame_counts(ROWS, four)["stitched"] == 4
     assert frame_counts(ROWS)["stitched"] == 6
-    assert frame_counts(ROWS, FrameKinds(stitched=9))["stitched"] == 6
-    assert frame_counts(ROWS, FrameKinds(stitched=-1))["stitched"] == 0
-    assert _served(ROWS, kinds=four)["frames"]["stitched"] == 4
-    assert build_session_report(ROWS, None, None, draw=False, kinds=four).doc["frames"]["stitched"] == 4
+    assert frame_counts(ROWS, PlacedCounts(stitched=9))["stitched"] == 6
+    assert frame_counts(ROWS, PlacedCounts(stitched=-1))["stitched"] == 0
+    assert _served(ROWS, placed=four)["frames"]["stitched"] == 4
+    assert build_session_report(ROWS, None, None, draw=False, placed=four).doc["frames"]["stitched"] == 4
 
 
 def test_mosaic_json_report_json_and_the_events_count_the_tracked_frames_alike() -> None:
     # one owner: mosaic.json's frames (which the progress, done and version events spread) and report.json's frames
     # take keyframes and tracked from frame_counts
-    served = _served(ROWS, kinds=FrameKinds(tracked=4))
-    assert served["frames"] == frame_counts(ROWS, FrameKinds(tracked=4))
+    served = _served(ROWS, placed=PlacedCounts(tracked=4))
+    assert served["frames"] == frame_counts(ROWS, PlacedCounts(tracked=4))
     assert _served(ROWS)["frames"]["tracked"] == 0 and _served(ROWS)["frames"]["keyframes"] == 6
-    report = build_session_report(ROWS, None, None, draw=False, kinds=FrameKinds(tracked=4)).doc["frames"]
+    report = build_session_report(ROWS, None, None, draw=False, placed=PlacedCounts(tracked=4)).doc["frames"]
     assert (report["keyframes"], report["tracked"], report["ok"]) == (2, 4, 6)
     offline = build_session_report(ROWS, None, None, draw=False).doc["frames"]
     assert (offline["keyframes"], offline["tracked"]) == (6, 0)
