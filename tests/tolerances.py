@@ -64,6 +64,12 @@ class Tolerances:
     # perfect answer (the milder seeds 1, 2 are at 0.27 and 0.21 mm).
     sim_raster_strong_drag_rmse_mm: tuple[float, float] = (0.25, 0.9)
 
+    # `best` on the simulated dragged raster of seed 4 (0.12 mm/N): measured 1.098 mm, its path 0.59 % small and turned
+    # 0.39 deg (31.1 mm when a global pass while the scan went on shrank every frame but frame 0 to half, and frame 0
+    # was left 31 mm from the rest). <= 1.6 mm fails a map that shrinks again; >= 0.5 mm flags a suspiciously good
+    # answer on a scan whose turn no change has yet removed (docs/accuracy.md, "Skin drag").
+    sim_raster_drag_seed4_rmse_mm: tuple[float, float] = (0.5, 1.6)
+
     # `best` on the simulated short scan (seed 1, a patient with the linear law and a hand's tilt) whose veins are
     # a photograph's vessels (test_vein_texture.vessel_photo: 30 straight vessels): measured 0.266 mm, against
     # 0.293 mm over the procedural veins of the same scan. <= 0.6 mm says the registration does not depend on the

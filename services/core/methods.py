@@ -66,8 +66,10 @@ class MethodOptions:
     # what the calibration's law expects of a rectified frame (a tissue off the calibration, or loads of 30 N, stay
     # free): along a chain with few closures the scale no longer wanders away (a strong drag made it fall 0.2 % an
     # edge, to half over a raster, and no closure held: issue 31). 0.05 clamped a simulated hard scan's saturating
-    # tissue (7.22 -> 7.82 mm), 0.12 let the dragged raster fall apart again. The final pass re-optimises every scale
-    # on the edges alone (0: off)
+    # tissue (7.22 -> 7.82 mm), 0.12 let the dragged raster fall apart again. A global pass while the scan goes on
+    # keeps the map's mean scale within the same band (registrar._optimise: disagreeing edges shrank a dragged
+    # raster's whole map to half, seed 4: 31 -> 1.1 mm). The final pass re-optimises every scale on the edges alone
+    # (0: off)
     chain_scale_band: float = 0.08
     # the skin drag's evidence (physics.drag): 0, a match's inliers; > 0, its pairs within this many RANSAC gates of
     # its similarity. The gate cuts the pairs a drag moves most (the window's centre), so the drags fitted to the

@@ -193,6 +193,7 @@ def optimise_poses(
     robust_mm: float = 0.5,
     iterations: int = 10,
     scale_priors: Mapping[int, tuple[float, float]] | None = None,
+    mean_scale: tuple[float, float] | None = None,
 ) -> GraphSolution:
     """Return poses minimising the robust (Cauchy) sum of edge misfits with node(s) `fixed` held at their poses.
 
@@ -204,6 +205,8 @@ def optimise_poses(
     any edge, so loop closures still move poses by millimetres, but the problem stays well posed when outlier
     edges are dropped and part of the graph loses its link to the fixed node (without it such a part is free to
     shrink to scale 0, as it did on a simulated hard scan).
+    scale_priors: each listed free node's |a| held to (target, sigma); mean_scale: the free nodes' mean |a| held
+    to (target, sigma), one row on the mode the edges leave to the held node's few (_with_mean_scale).
     """
     nodes = sorted(initial)
     held = {fixed} if isinstance(fixed, int) else set(fixed)
@@ -221,6 +224,8 @@ def optimise_poses(
     A0, b0 = _unit_system(initial, usable, col, lever_mm)
     if scale_priors:
         A0, b0 = _with_scale_priors(A0, b0, initial, col, scale_priors)
+    if mean_scale is not None:
+        A0, b0 = _with_mean_scale(A0, b0, initial, col, mean_scale)
     n_edge_rows = 4 * len(usable)
     sigma = np.array([e.sigma_mm for e in usable])
     it = 0
@@ -268,6 +273,23 @@ def _with_scale_priors(
         shape=(len(nodes), A.shape[1]),
     )
     return vstack([A, extra]).tocsr(), np.concatenate([b, np.array([priors[n][0] for n in nodes]) * inv])
+
+
+def _with_mean_scale(
+    A: csr_matrix, b: np.ndarray, initial: dict[int, Similarity], col: dict[int, int], prior: tuple[float, float]
+) -> tuple[csr_matrix, np.ndarray]:
+    """Return (A, b) with one row holding the free nodes' mean scale to prior (target |a|, sigma): the mean of each
+    a's component along its initial direction. The residuals t_j - t_i - a_i t_ij shrink with the scale of every
+    free node at once, which only the held node's few edges resist: where many edges disagree, solving shrinks the
+    whole map toward 0 (Registrar._optimise). The scales relative to each other stay the edges'."""
+    nodes = [n for n in col if abs(initial[n].a) > 0]
+    if not nodes:
+        return A, b
+    u = np.array([initial[n].a / abs(initial[n].a) for n in nodes], dtype=complex) / (len(nodes) * prior[1])
+    c = np.array([col[n] for n in nodes], dtype=np.int64)
+    zeros = np.zeros(2 * len(nodes), dtype=np.int64)
+    row = csr_matrix((np.concatenate([u.real, u.imag]), (zeros, np.concatenate([c, c + 1]))), shape=(1, A.shape[1]))
+    return vstack([A, row]).tocsr(), np.concatenate([b, [prior[0] / prior[1]]])
 
 
 def place_node(placed: dict[int, Similarity], edges: list[Edge], node: int, lever_mm: float = LEVER_MM) -> Similarity:

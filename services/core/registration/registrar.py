@@ -68,6 +68,7 @@ FIRST_KEYFRAMES = 10  # a map's first frames are all keyframes: the map's axes a
 DRAG_CHECK_EDGES = 600  # the newest edges a global refinement checks for a dragged skin (a raster's shows by its
 # second row): a long examination's checks cost no more than a short one's
 SAME_PLACE_PX = 2.0  # keypoints matched within this of each other (rectified pixels) are one place (A-SIFT's views)
+MEAN_SCALE_SIGMA = 1e-3  # a global pass while the scan goes on: the map's mean scale held at its band's edge
 NEAR_PAIR_GATES = 3.0  # MethodOptions.drag_reselect: the pairs a match keeps, within this many RANSAC gates
 TEMPLATE_CACHE = 16  # placed frames kept as sparse templates: the keyframe tracked on and the closures' last ones
 TRACK_CLOSURE_OVERLAP = 0.5  # a tracked frame's closure must overlap this share of the older keyframe's window
@@ -569,7 +570,8 @@ class Registrar:
             final or view_evidence(self.edges) >= VIEW_REFIT_GROWTH * self.corrections.last_view_evidence
         ):
             self.corrections.fit_tilt(self.edges, self.poses, self.options.tissue_axis)
-        return self._optimise(self.poses, self.edges, {self.order[0]})
+        band = 0.0 if final else self.options.chain_scale_band  # the final pass: every scale on the edges alone
+        return self._optimise(self.poses, self.edges, {self.order[0]}, band=band)
 
     def refine_scales(self, targets: dict[int, float], sigma: float) -> tuple[int, ...]:
         """Return the frames that moved when re-optimising every pose, each frame's scale |a| held to its target
@@ -583,10 +585,27 @@ class Registrar:
         edges: list[Edge],
         held: set[int],
         scale_priors: dict[int, tuple[float, float]] | None = None,
+        band: float = 0.0,
     ) -> tuple[int, ...]:
-        """Optimise `poses` on `edges` (undeformed) with `held` fixed; update them; return the frames that moved."""
+        """Optimise `poses` on `edges` (undeformed) with `held` fixed; update them; return the frames that moved.
+
+        band > 0 (MethodOptions.chain_scale_band, a global pass while the scan goes on): when the free frames' mean
+        scale comes out beyond exp(+-band) of 1, the solve is repeated with that mean held at the band's edge
+        (pose_graph's mean_scale, MEAN_SCALE_SIGMA). The graph's residuals shrink with the scale of the whole map,
+        so edges that disagree (a skin dragged along, its stretch not undone until the end) pulled every frame but
+        frame 0 toward scale 0, a few per cent a pass, until frame 0's own edges were dropped as outliers and it
+        was left 31 mm from the rest (the simulated dragged raster, seed 4; docs/accuracy.md, "Skin drag").
+        """
         undeformed = self.corrections.undeformed(edges, self.poses)
         solution = optimise_poses(poses, undeformed, fixed=held, scale_priors=scale_priors)
+        free = [i for i in solution.poses if i not in held]
+        if band > 0 and free:
+            mean = float(np.mean([abs(solution.poses[i].a) for i in free]))
+            edge = float(np.clip(mean, np.exp(-band), np.exp(band)))
+            if edge != mean:
+                solution = optimise_poses(
+                    poses, undeformed, fixed=held, scale_priors=scale_priors, mean_scale=(edge, MEAN_SCALE_SIGMA)
+                )
         moved = moved_frames(solution.poses, self.poses)
         self.poses.update(solution.poses)
         return moved

@@ -8,7 +8,7 @@ import pytest
 
 from services.core.methods import method_options
 from services.core.outputs.evaluation import evaluate_path
-from services.core.pipeline import reconstruct
+from services.core.pipeline import Reconstruction, reconstruct
 from services.core.simulation.probe_path import rotation
 from services.core.simulation.scenarios import simulate
 from services.core.simulation.skin_drag import GAIN_MM_PER_N, SkinDrag, dragged_rest_mm
@@ -54,12 +54,26 @@ def test_best_learns_the_drag_back() -> None:
     assert np.all(np.isfinite(drag_x)) and np.median(np.abs(drag_x)) > 0.2  # reported per frame (path.csv)
 
 
+def _dragged_raster(seed: int) -> tuple[Reconstruction, float]:
+    """Return `best`'s reconstruction of the simulated dragged raster of a seed and its path RMSE (mm)."""
+    scan = simulate("raster", seed, tissue="linear", drag=True)
+    recon = reconstruct(scan, method_options("best"))
+    return recon, evaluate_path(recon.estimate_mm, recon.registered, scan.reference_mm).rmse_mm
+
+
 @pytest.mark.slow
 def test_a_strong_drag_no_longer_breaks_a_raster() -> None:
     # rows dragged opposite ways: closures gated about the drag model (registration.drag_match), the chain's scale
     # held in its band while the scan goes on (MethodOptions.chain_scale_band)
-    scan = simulate("raster", 3, tissue="linear", drag=True)
-    recon = reconstruct(scan, method_options("best"))
-    rmse = evaluate_path(recon.estimate_mm, recon.registered, scan.reference_mm).rmse_mm
+    recon, rmse = _dragged_raster(3)
     assert TOL.sim_raster_strong_drag_rmse_mm[0] <= rmse <= TOL.sim_raster_strong_drag_rmse_mm[1], rmse
     assert recon.closures >= 40, recon.closures  # 67 measured; 9 when the drag broke them
+
+
+@pytest.mark.slow
+def test_a_dragged_raster_keeps_its_scale_while_the_scan_goes_on() -> None:
+    # the edges' drag, undone only at the end, made every global pass shrink the map about frame 0 until frame 0's
+    # own edges were dropped: the map's mean scale is held within chain_scale_band while the scan goes on
+    recon, rmse = _dragged_raster(4)
+    assert TOL.sim_raster_drag_seed4_rmse_mm[0] <= rmse <= TOL.sim_raster_drag_seed4_rmse_mm[1], rmse
+    assert recon.learned["gauge"] > 0.85, recon.learned["gauge"]  # 0.87 measured; 0.49 when the map shrank
