@@ -67,7 +67,7 @@ def test_a_strong_drag_no_longer_breaks_a_raster() -> None:
     # held in its band while the scan goes on (MethodOptions.chain_scale_band)
     recon, rmse = _dragged_raster(3)
     assert TOL.sim_raster_strong_drag_rmse_mm[0] <= rmse <= TOL.sim_raster_strong_drag_rmse_mm[1], rmse
-    assert recon.closures >= 40, recon.closures  # 67 measured; 9 when the drag broke them
+    assert recon.closures >= 40, recon.closures  # 66 measured; 9 when the drag broke them
 
 
 @pytest.mark.slow
