@@ -76,4 +76,4 @@ def test_a_dragged_raster_keeps_its_scale_while_the_scan_goes_on() -> None:
     # own edges were dropped: the map's mean scale is held within chain_scale_band while the scan goes on
     recon, rmse = _dragged_raster(4)
     assert TOL.sim_raster_drag_seed4_rmse_mm[0] <= rmse <= TOL.sim_raster_drag_seed4_rmse_mm[1], rmse
-    assert recon.learned["gauge"] > 0.85, recon.learned["gauge"]  # 0.87 measured; 0.49 when the map shrank
+    assert recon.learned["gauge"] > 0.85, recon.learned["gauge"]  # 0.90 measured; 0.49 when the map shrank
