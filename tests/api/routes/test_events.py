@@ -66,8 +66,10 @@ def stream(client: TestClient, sid: str, **headers: str) -> tuple[list[dict[str,
 
 @pytest.fixture
 def fast_keepalive(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Make the keep-alive interval (and so the XREAD BLOCK) 50 ms."""
-    monkeypatch.setattr(events_module, "KEEPALIVE_S", 0.05)
+    """Make the keep-alive interval (and so the XREAD BLOCK) 200 ms. sse_starlette pings on its own task, which at
+    50 ms could fire before the response had started on a loaded machine (a CI run beside benches: the test
+    client's 'body without start'); 200 ms still puts keep-alives between events 0.6 s apart."""
+    monkeypatch.setattr(events_module, "KEEPALIVE_S", 0.2)
 
 
 def test_fresh_connection_gets_snapshot_then_done(client: TestClient, session_id: str) -> None:
@@ -111,8 +113,8 @@ def test_trimmed_resume_falls_back_to_snapshot(client: TestClient, session_id: s
 def test_live_events_and_keepalive(client: TestClient, session_id: str, fast_keepalive: None) -> None:
     first = publish(client, session_id, "progress", processed=1, tiles={"vein": {"12/3_4": 1}})
     timers = [
-        threading.Timer(0.4, publish, (client, session_id, "progress"), {"processed": 2}),
-        threading.Timer(0.8, publish, (client, session_id, "done"), {"processed": 2, "status": "done"}),
+        threading.Timer(0.6, publish, (client, session_id, "progress"), {"processed": 2}),
+        threading.Timer(1.2, publish, (client, session_id, "done"), {"processed": 2, "status": "done"}),
     ]
     for t in timers:
         t.start()
