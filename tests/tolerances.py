@@ -64,7 +64,7 @@ class Tolerances:
     # perfect answer (the milder seeds 1, 2 are at 0.27 and 0.21 mm).
     sim_raster_strong_drag_rmse_mm: tuple[float, float] = (0.25, 0.9)
 
-    # `best` on the simulated dragged raster of seed 4 (0.12 mm/N): measured 1.098 mm, its path 0.59 % small and turned
+    # `best` on the simulated dragged raster of seed 4 (0.12 mm/N): measured 1.098 mm, its path 0.58 % small and turned
     # 0.39 deg (31.1 mm when a global pass while the scan went on shrank every frame but frame 0 to half, and frame 0
     # was left 31 mm from the rest). <= 1.6 mm fails a map that shrinks again; >= 0.5 mm flags a suspiciously good
     # answer on a scan whose turn no change has yet removed (docs/accuracy.md, "Skin drag").

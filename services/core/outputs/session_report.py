@@ -154,7 +154,7 @@ def version_report(
 
     rows: the version's path in seq order; reference: (N, 2) or (N, 5) aligned to rows; mosaic_version: the
     mosaic.json change counter it was made from (the API rebuilds the report when it changes); placed: its placed
-    frames tracked without features and stitched (mosaic.json's counts: documents.PlacedCounts.from_frames).
+    frames tracked without features and stitched (mosaic.json's counts: path_rows.PlacedCounts.from_frames).
     Raises ValueError when no frame can be compared with the reference.
     """
     extra = {

@@ -598,9 +598,9 @@ class Registrar:
         """
         undeformed = self.corrections.undeformed(edges, self.poses)
         solution = optimise_poses(poses, undeformed, fixed=held, scale_priors=scale_priors)
-        free = [i for i in solution.poses if i not in held]
-        if band > 0 and free:
-            mean = float(np.mean([abs(solution.poses[i].a) for i in free]))
+        scales = [abs(p.a) for i, p in solution.poses.items() if i not in held] if band > 0 else []
+        if scales:
+            mean = float(np.mean(scales))
             edge = float(np.clip(mean, np.exp(-band), np.exp(band)))
             if edge != mean:
                 solution = optimise_poses(
